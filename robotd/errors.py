@@ -1,0 +1,42 @@
+"""One exception root for robotd, with a subclass per concern.
+
+Messages carry the numbers and the URL, path or key that failed, so a log line is enough to act on.
+"""
+
+from __future__ import annotations
+
+
+class RobotdError(Exception):
+    """Root of every error robotd raises on purpose."""
+
+
+class ConfigError(RobotdError):
+    """A configuration file or value is wrong (unknown key, wrong type, out of range)."""
+
+
+class CalibrationError(RobotdError):
+    """A calibration is missing, malformed or could not be computed."""
+
+
+class InputError(RobotdError):
+    """A message crossing a border (frame, odometry, observation) is malformed: shape, dtype, NaN."""
+
+
+class DriverError(RobotdError):
+    """A hardware or replay driver failed: unknown URL scheme, device missing, link lost."""
+
+
+class ProtocolError(DriverError):
+    """A wire frame (serial, MAVLink, recording) could not be decoded."""
+
+
+class EstimatorError(RobotdError):
+    """A filter reached a state it cannot continue from (non-finite covariance, no particles)."""
+
+
+class PersistenceError(RobotdError):
+    """A saved map or recording is corrupt, foreign or could not be written."""
+
+
+class DatasetError(RobotdError):
+    """A dataset folder or file does not have the expected layout."""
