@@ -1,0 +1,116 @@
+"""Drivers: the only code that touches hardware, each chosen by URL.
+
+``open_camera(url)`` and ``open_vehicle(url)`` pick the module from the URL scheme, like
+pyserial's ``serial_for_url``. Mocks are drivers in their own right (``sim://``, dataset replay)
+and feed the same pipeline as the hardware. Each module is the only importer of its library
+(``drivers.oak`` of depthai, ``drivers.serial_link`` of pyserial, ``drivers.mavlink_link`` of
+pymavlink); modules are imported lazily so a missing optional library only breaks its scheme.
+
+Contract shared by every driver:
+
+- A driver is a context manager; ``__enter__`` opens the device (or raises
+  :class:`robotd.errors.DriverError` with the URL and the reason), ``__exit__`` releases it.
+- ``StereoCamera.frames(timeout_s)`` yields :class:`robotd.msgs.StereoFrame` (rectified when the
+  driver can rectify) and returns when the source ends (replay) or ``close()`` is called. A
+  hardware camera that unplugs keeps retrying inside the driver and reports it in ``stats()``.
+- ``VehicleLink.odometry(timeout_s)`` yields :class:`robotd.msgs.Odometry` samples the same way;
+  ``send_pose(pose, quality, reset_counter)`` forwards the SLAM pose where the link supports it.
+- ``stats()`` returns counters (frames, drops, gaps, errors, reconnects) for the health output.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from urllib.parse import urlsplit
+
+from robotd.errors import DriverError
+
+if TYPE_CHECKING:
+    from robotd.msgs import Odometry, PoseEstimate, StereoFrame
+    from robotd.stereo import RectifiedStereo
+
+
+@runtime_checkable
+class StereoCamera(Protocol):
+    url: str
+
+    def __enter__(self) -> StereoCamera: ...
+    def __exit__(self, *exc: object) -> None: ...
+    def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]: ...
+    def rectified_model(self) -> RectifiedStereo: ...
+    def close(self) -> None: ...
+    def stats(self) -> dict[str, Any]: ...
+
+
+@runtime_checkable
+class VehicleLink(Protocol):
+    url: str
+
+    def __enter__(self) -> VehicleLink: ...
+    def __exit__(self, *exc: object) -> None: ...
+    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]: ...
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None: ...
+    def close(self) -> None: ...
+    def stats(self) -> dict[str, Any]: ...
+
+
+# scheme -> (module, factory attribute). The factory takes (url, **options).
+_CAMERAS: dict[str, tuple[str, str]] = {
+    "sim": ("drivers.sim", "open_sim_camera"),
+    "oak": ("drivers.oak", "open_oak_camera"),
+    "kitti": ("drivers.dataset", "open_kitti"),
+    "euroc": ("drivers.dataset", "open_euroc"),
+    "mcap": ("drivers.dataset", "open_mcap"),
+}
+_VEHICLES: dict[str, tuple[str, str]] = {
+    "sim": ("drivers.sim", "open_sim_vehicle"),
+    "none": ("drivers.sim", "open_null_vehicle"),
+    "serial": ("drivers.serial_link", "open_serial_vehicle"),
+    "mavlink+udp": ("drivers.mavlink_link", "open_mavlink_vehicle"),
+    "mavlink+serial": ("drivers.mavlink_link", "open_mavlink_vehicle"),
+}
+
+
+def _scheme(url: str) -> str:
+    if "://" not in url:
+        # a bare path to a recording is a replay source
+        if url.endswith(".mcap"):
+            return "mcap"
+        raise DriverError(f"{url!r}: expected a URL such as sim://, oak://, kitti://DIR, got no scheme")
+    return urlsplit(url).scheme.lower()
+
+
+def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any) -> Any:
+    scheme = _scheme(url)
+    if scheme not in table:
+        known = ", ".join(f"{s}://" for s in sorted(table))
+        raise DriverError(f"{url!r}: unknown {kind} scheme {scheme!r}; known: {known}")
+    module_name, attr = table[scheme]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise DriverError(f"{url!r}: the {scheme}:// driver could not be loaded: {exc}") from exc
+    factory = getattr(module, attr, None)
+    if factory is None:
+        raise DriverError(f"{url!r}: the {scheme}:// driver is not available in this build ({module_name}.{attr})")
+    return factory(url, **options)
+
+
+def open_camera(url: str, **options: Any) -> StereoCamera:
+    """Open a stereo source by URL: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap."""
+    return _open(_CAMERAS, "camera", url, **options)  # type: ignore[no-any-return]
+
+
+def open_vehicle(url: str, **options: Any) -> VehicleLink:
+    """Open a vehicle link by URL: sim://, none://, serial:///dev/ttyX?baud=…, mavlink+udp://…, mavlink+serial://…"""
+    return _open(_VEHICLES, "vehicle", url, **options)  # type: ignore[no-any-return]
+
+
+def camera_schemes() -> list[str]:
+    return sorted(_CAMERAS)
+
+
+def vehicle_schemes() -> list[str]:
+    return sorted(_VEHICLES)

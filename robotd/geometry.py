@@ -456,3 +456,51 @@ def numerical_jacobian(f, x: np.ndarray, eps: float = 1e-6, wrap: np.ndarray | N
             d = np.where(wrap, wrap_angle(d), d)
         J[:, i] = d / (2.0 * eps)
     return J
+
+
+# --------------------------------------------------------------------------------------------
+# Point-set alignment (Umeyama 1991), used by RANSAC (algorithms.md §5.1) and evaluation (§11)
+
+
+def umeyama(a: np.ndarray, b: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares (s, R, t) with b ≈ s R a + t for point sets a, b of shape (n, d), d = 2 or 3.
+
+    Closed form of Umeyama (1991): C_ab = UDV^T, S = diag(1, …, det U det V), R = U S V^T,
+    s = tr(DS)/σ_a², t = μ_b − s R μ_a. With ``with_scale=False`` s is fixed to 1 (rigid).
+    """
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    n, d = a.shape
+    mu_a, mu_b = a.mean(0), b.mean(0)
+    da, db = a - mu_a, b - mu_b
+    var_a = float(np.sum(da * da) / n)
+    C = db.T @ da / n
+    U, D, Vt = np.linalg.svd(C)
+    S = np.ones(d)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[-1] = -1.0
+    R = (U * S) @ Vt
+    s = float(np.sum(D * S) / var_a) if (with_scale and var_a > 0) else 1.0
+    t = mu_b - s * R @ mu_a
+    return s, R, t
+
+
+def umeyama_batch(a: np.ndarray, b: np.ndarray, with_scale: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Umeyama over a batch of small samples: a, b (K, n, d) -> s (K,), R (K, d, d), t (K, d)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    k, n, d = a.shape
+    mu_a, mu_b = a.mean(1), b.mean(1)
+    da, db = a - mu_a[:, None], b - mu_b[:, None]
+    var_a = np.sum(da * da, axis=(1, 2)) / n
+    C = np.einsum("kni,knj->kij", db, da) / n
+    U, D, Vt = np.linalg.svd(C)
+    S = np.ones((k, d))
+    S[np.linalg.det(U) * np.linalg.det(Vt) < 0, -1] = -1.0
+    R = (U * S[:, None, :]) @ Vt
+    if with_scale:
+        s = np.sum(D * S, 1) / np.where(var_a > 0, var_a, 1.0)
+    else:
+        s = np.ones(k)
+    t = mu_b - s[:, None] * np.einsum("kij,kj->ki", R, mu_a)
+    return s, R, t
