@@ -392,9 +392,7 @@ def pose2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def pose2_inverse(a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], -1
-    )
+    return np.stack([-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], -1)
 
 
 def pose2_compose_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

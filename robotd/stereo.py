@@ -36,9 +36,7 @@ class RectifiedStereo:
         return d_min_px, self.fb / depth_min_m
 
 
-def triangulate(
-    xl: np.ndarray, xr: np.ndarray, y: np.ndarray, f: float, px: float, py: float, b: float
-) -> np.ndarray:
+def triangulate(xl: np.ndarray, xr: np.ndarray, y: np.ndarray, f: float, px: float, py: float, b: float) -> np.ndarray:
     """Rectified correspondences -> (N, 3) points in the robot frame (eq. 3.2.14).
 
     ``xl``, ``xr``: (N,) columns in the left/right rectified image; ``y``: (N,) common row
