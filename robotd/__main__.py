@@ -1,0 +1,9 @@
+"""``python -m robotd`` is the ``robotd`` command."""
+
+from __future__ import annotations
+
+import sys
+
+from robotd.cli import main
+
+sys.exit(main())

@@ -1,0 +1,202 @@
+"""The ``robotd`` command: run | replay | record | eval | experiments | echo | print-config | mcu-sim.
+
+Logging is configured here and nowhere else. Every subcommand returns an exit code; a
+:class:`robotd.errors.RobotdError` becomes one clear line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from robotd import __version__
+from robotd.config import Config, load_config, to_toml
+from robotd.errors import RobotdError
+
+logger = logging.getLogger("robotd")
+
+
+def configure_logging(level: str = "INFO") -> None:
+    """stderr logging; under systemd (JOURNAL_STREAM set) without timestamps, journald adds them."""
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if not os.environ.get("JOURNAL_STREAM"):
+        fmt = "%(asctime)s.%(msecs)03d " + fmt
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, datefmt="%H:%M:%S")
+
+
+def _load(args: argparse.Namespace) -> Config:
+    return load_config(getattr(args, "config", None))
+
+
+# --------------------------------------------------------------------------------------------
+# subcommands
+
+
+def cmd_print_config(args: argparse.Namespace) -> int:
+    cfg = _load(args)
+    sys.stdout.write(to_toml(cfg, with_docs=args.docs))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from robotd.daemon import run_daemon
+
+    cfg = _load(args)
+    overrides: dict[str, Any] = {}
+    if args.camera:
+        overrides.setdefault("camera", {})["url"] = args.camera
+    if args.vehicle:
+        overrides.setdefault("vehicle", {})["url"] = args.vehicle
+    if overrides:
+        cfg = load_config(getattr(args, "config", None), overrides)
+    configure_logging(args.log_level or cfg.log.level)
+    return run_daemon(cfg, duration_s=args.duration)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from robotd.replay import replay
+
+    cfg = _load(args)
+    configure_logging(args.log_level or cfg.log.level)
+    summary = replay(
+        cfg,
+        args.source,
+        realtime=args.realtime,
+        out_traj=args.out,
+        max_frames=args.max_frames,
+        progress=not args.quiet,
+        gt_odometry=args.gt_odometry,
+    )
+    if args.json:
+        print(json.dumps(summary, sort_keys=True))
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from robotd.replay import record
+
+    cfg = _load(args)
+    configure_logging(args.log_level or cfg.log.level)
+    summary = record(cfg, args.out, duration_s=args.duration, max_frames=args.max_frames)
+    if args.json:
+        print(json.dumps(summary, sort_keys=True))
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from robotd.evaluate import evaluate_files
+
+    configure_logging(args.log_level or "WARNING")
+    result = evaluate_files(args.traj, args.gt, plot_png=args.plot)
+    if args.json:
+        print(json.dumps(result, sort_keys=True))
+    else:
+        for k in sorted(result):
+            print(f"{k:>22}: {result[k]}")
+    return 0
+
+
+def cmd_experiments(args: argparse.Namespace) -> int:
+    from robotd.experiments import run_experiments
+
+    configure_logging(args.log_level or "INFO")
+    run_experiments(Path(args.out), quick=args.quick, seeds=args.seeds)
+    print(Path(args.out) / "report.md")
+    return 0
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    from robotd.publish import echo
+
+    configure_logging(args.log_level or "WARNING")
+    return echo(args.key, connect=args.connect, count=args.count, timeout_s=args.timeout)
+
+
+def cmd_mcu_sim(args: argparse.Namespace) -> int:
+    from drivers.mcu_sim import main as mcu_main
+
+    return mcu_main(list(args.rest))
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="robotd", description="Onboard stereo-vision SLAM daemon.")
+    p.add_argument("--version", action="version", version=f"robotd {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, fn: Callable[[argparse.Namespace], int], help_: str, config: bool = True) -> Any:
+        sp = sub.add_parser(name, help=help_, description=help_)
+        if config:
+            sp.add_argument("--config", metavar="FILE", help="TOML file overriding the built-in defaults")
+        sp.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default=None)
+        sp.set_defaults(func=fn)
+        return sp
+
+    sp = add("run", cmd_run, "run the daemon (default: on the simulated rover, sim://)")
+    sp.add_argument("--camera", metavar="URL", help="override camera.url")
+    sp.add_argument("--vehicle", metavar="URL", help="override vehicle.url")
+    sp.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until SIGTERM)")
+
+    sp = add("replay", cmd_replay, "run a recording or dataset through the pipeline")
+    sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
+    sp.add_argument("--realtime", action="store_true", help="pace frames at their recorded rate")
+    sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format)")
+    sp.add_argument("--max-frames", type=int, default=0)
+    sp.add_argument("--gt-odometry", action="store_true", help="EXPERIMENTS ONLY: odometry synthesised from truth")
+    sp.add_argument("--json", action="store_true", help="print a JSON summary")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
+    sp.add_argument("out", help="OUT.mcap")
+    sp.add_argument("--duration", type=float, default=10.0)
+    sp.add_argument("--max-frames", type=int, default=0)
+    sp.add_argument("--json", action="store_true")
+
+    sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)
+    sp.add_argument("traj", help="estimated trajectory (TUM)")
+    sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")
+    sp.add_argument("--plot", metavar="PNG", help="write a plot of the path against ground truth")
+    sp.add_argument("--json", action="store_true")
+
+    sp = add("experiments", cmd_experiments, "reproduce the thesis's simulation experiments", config=False)
+    sp.add_argument("--out", required=True, metavar="DIR")
+    sp.add_argument("--quick", action="store_true", help="a small version (seconds) for smoke tests")
+    sp.add_argument("--seeds", type=int, default=None)
+
+    sp = add("echo", cmd_echo, "print what robotd publishes on a Zenoh key", config=False)
+    sp.add_argument("key", help="key expression, e.g. robotd/r1/pose or robotd/**")
+    sp.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
+    sp.add_argument("--count", type=int, default=0, help="exit after N samples (0: forever)")
+    sp.add_argument("--timeout", type=float, default=0.0, help="exit after this many seconds (0: never)")
+
+    add("print-config", cmd_print_config, "print the resolved configuration").add_argument(
+        "--docs", action="store_true", help="with each key's documentation"
+    )
+
+    sp = add("mcu-sim", cmd_mcu_sim, "the reference vehicle MCU simulator (serial protocol)", config=False)
+    sp.add_argument("rest", nargs=argparse.REMAINDER)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except RobotdError as exc:
+        print(f"robotd: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

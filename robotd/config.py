@@ -1,0 +1,293 @@
+"""Configuration: defaults in code as a tree of frozen dataclasses; TOML files only override.
+
+An unknown key, a wrong type or an out-of-range value fails with the key's dotted path, e.g.
+``slam.n_particles: expected an integer >= 1, got 0 (in /etc/robotd/robotd.toml)``.
+``robotd print-config [--config FILE]`` prints the resolved tree as TOML.
+
+Each field may carry ``metadata``: ``min``/``max`` (inclusive bounds), ``choices`` and ``doc``.
+Calibration is data and lives in its own file (docs/calibration.md), not here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from robotd.errors import ConfigError
+
+
+def _f(default: Any, doc: str = "", **meta: Any) -> Any:
+    """A dataclass field with a default and validation metadata."""
+    if isinstance(default, list | dict):
+        return field(default_factory=lambda: type(default)(default), metadata={"doc": doc, **meta})
+    return field(default=default, metadata={"doc": doc, **meta})
+
+
+DETECTORS = ("orb", "sift", "surf")
+OUTLIER_DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")
+FILTERS = ("ekf", "fastslam1", "fastslam2")
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    id: str = _f(
+        "r1",
+        "robot id: a valid ROS 2 name chunk, used in every Zenoh key robotd/<id>/…",
+        pattern=r"[A-Za-z][A-Za-z0-9_]*",
+    )
+    seed: int = _f(1, "seed of every random generator; logged at start so a run can be replayed", min=0)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    url: str = _f("sim://", "stereo source: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap")
+    calibration: str = _f("", "calibration file (Kalibr-style camchain YAML); empty: the source's own")
+    queue_size: int = _f(2, "frames buffered between the camera thread and SLAM (drop-oldest)", min=1, max=64)
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    url: str = _f("sim://", "vehicle link: sim://, none://, serial:///dev/ttyX?baud=…, mavlink+udp://HOST:PORT")
+    queue_size: int = _f(256, "odometry samples buffered (drop-oldest)", min=1, max=100000)
+    max_gap_s: float = _f(0.5, "odometry older than this at a frame's time counts as missing", min=0.0)
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    detector: str = _f("orb", "feature detector", choices=DETECTORS)
+    max_features: int = _f(1000, "per-image feature cap", min=10, max=20000)
+    grid_rows: int = _f(4, "grid bucketing rows (spread features evenly)", min=1, max=64)
+    grid_cols: int = _f(8, "grid bucketing columns", min=1, max=64)
+    bucketing: bool = _f(True, "spread features evenly over the image")
+    depth_min_m: float = _f(0.3, "nearest landmark depth (sets d_max = f·b / depth_min)", min=0.01)
+    disparity_min_px: float = _f(5.0, "smallest disparity accepted (far limit)", min=0.5)
+    row_tolerance_px: float = _f(2.0, "|y_L - y_R| allowed in stereo matching", min=0.1, max=20.0)
+    sigma_x_px: float = _f(0.5, "pixel noise of columns (measurement covariance)", min=0.01, max=10.0)
+    sigma_y_px: float = _f(0.3535533905932738, "pixel noise of the mean row", min=0.01, max=10.0)
+    cov_inflation: float = _f(1.0, "multiplier on the measurement covariance", min=0.1, max=100.0)
+    outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_DETECTORS)
+    chi2_consensus: float = _f(11.345, "χ²₃ threshold of the Mahalanobis consensus (99 %)", min=0.1)
+    ransac_max_iterations: int = _f(500, "RANSAC iteration cap", min=1, max=100000)
+    min_inliers: int = _f(6, "fewer inliers: no correspondence accepted this frame", min=3)
+    restrict_to_fov: bool = _f(True, "match only landmarks predicted inside the field of view")
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    filter: str = _f("fastslam2", "estimator", choices=FILTERS)
+    dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
+    n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
+    resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
+    max_landmarks: int = _f(20000, "landmarks kept at most (oldest unseen pruned first)", min=10)
+    motion_noise_scale: float = _f(1.0, "multiplier on the odometry covariance", min=0.01, max=100.0)
+
+
+@dataclass(frozen=True)
+class BudgetConfig:
+    deadline_ms: float = _f(0.0, "per-frame deadline; 0 means one frame period", min=0.0)
+    min_features: int = _f(200, "feature cap floor when degrading", min=10)
+    min_particles: int = _f(20, "particle floor when degrading", min=1)
+    recover_after_frames: int = _f(30, "frames under budget before one degradation step is undone", min=1)
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    enabled: bool = _f(True, "publish over Zenoh")
+    config_file: str = _f("", "zenoh JSON5 config (router/client mode, endpoints, TLS); overrides the below")
+    mode: str = _f("peer", "zenoh mode", choices=("peer", "client", "router"))
+    listen: list[str] = _f(["tcp/127.0.0.1:0"], "listen endpoints (loopback only by default)")
+    connect: list[str] = _f([], "endpoints to connect to")
+    multicast_scouting: bool = _f(False, "multicast scouting (off: never announce on the LAN)")
+    map_period_s: float = _f(2.0, "period of map updates", min=0.1)
+    health_period_s: float = _f(1.0, "period of health messages", min=0.1)
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    enabled: bool = _f(False, "send the pose to an autopilot")
+    url: str = _f("mavlink+udp://127.0.0.1:14550", "autopilot link when different from vehicle.url")
+    message: str = _f("odometry", "pose message", choices=("odometry", "vision_position_estimate"))
+    system_id: int = _f(1, "the vehicle's MAVLink system id", min=1, max=255)
+    set_origin: bool = _f(False, "send SET_GPS_GLOBAL_ORIGIN (needed without GPS) from the values below")
+    origin_lat_deg: float = _f(0.0, "EKF origin latitude", min=-90.0, max=90.0)
+    origin_lon_deg: float = _f(0.0, "EKF origin longitude", min=-180.0, max=180.0)
+    origin_alt_m: float = _f(0.0, "EKF origin altitude")
+    signing_key_file: str = _f("", "32-byte MAVLink2 signing key (mode 0600); empty: unsigned")
+
+
+@dataclass(frozen=True)
+class PersistenceConfig:
+    state_dir: str = _f("", "map directory; empty: $STATE_DIRECTORY, else ~/.local/state/robotd")
+    save_period_s: float = _f(30.0, "periodic map save; 0 disables periodic saves", min=0.0)
+    resume: bool = _f(False, "start from the saved map when one exists")
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    level: str = _f("INFO", "log level", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    status_period_s: float = _f(1.0, "period of the health line on stderr", min=0.1)
+
+
+@dataclass(frozen=True)
+class Config:
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    slam: SlamConfig = field(default_factory=SlamConfig)
+    budget: BudgetConfig = field(default_factory=BudgetConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _type_name(tp: Any) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
+
+
+def _convert(path: str, tp: Any, value: Any, meta: typing.Mapping[str, Any]) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (list, tuple):
+        (item_tp,) = typing.get_args(tp)[:1]
+        if not isinstance(value, list):
+            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {value!r}")
+        return [_convert(f"{path}[{i}]", item_tp, v, {}) for i, v in enumerate(value)]
+    if origin in (typing.Union, types.UnionType):
+        raise ConfigError(f"{path}: union types are not supported in config")  # pragma: no cover
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path}: expected a boolean (true/false), got {type(value).__name__} {value!r}")
+        out: Any = value
+    elif tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {value!r}")
+        out = value
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {value!r}")
+        out = float(value)
+        if not math.isfinite(out):
+            raise ConfigError(f"{path}: expected a finite number, got {out!r}")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {value!r}")
+        out = value
+    else:  # pragma: no cover - every field type is one of the above
+        raise ConfigError(f"{path}: unsupported field type {tp}")
+    if "pattern" in meta and not re.fullmatch(meta["pattern"], out):
+        raise ConfigError(f"{path}: expected a name matching {meta['pattern']}, got {out!r}")
+    if "choices" in meta and out not in meta["choices"]:
+        raise ConfigError(f"{path}: expected one of {list(meta['choices'])}, got {out!r}")
+    if "min" in meta and out < meta["min"]:
+        raise ConfigError(f"{path}: expected {_type_name(tp)} >= {meta['min']}, got {out!r}")
+    if "max" in meta and out > meta["max"]:
+        raise ConfigError(f"{path}: expected {_type_name(tp)} <= {meta['max']}, got {out!r}")
+    return out
+
+
+def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        where = prefix[:-1] if prefix else "top level"
+        raise ConfigError(
+            f"{prefix}{unknown[0]}: unknown key in {where}; known keys: {', '.join(sorted(fields))}"
+        )
+    kwargs: dict[str, Any] = {}
+    for name, value in data.items():
+        f = fields[name]
+        tp = hints[name]
+        path = f"{prefix}{name}"
+        if dataclasses.is_dataclass(tp):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{path}: expected a table [{path}], got {type(value).__name__} {value!r}")
+            kwargs[name] = _build(tp, value, path + ".")  # type: ignore[arg-type]
+        else:
+            kwargs[name] = _convert(path, tp, value, f.metadata)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Build a Config from nested dicts (what tomllib returns); validates every key."""
+    return _build(Config, data, "")  # type: ignore[no-any-return]
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """Defaults, then the TOML file (if any), then ``overrides`` (nested dicts)."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"{p}: cannot read config file: {exc.strerror or exc}") from exc
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+    if overrides:
+        data = _merge(data, overrides)
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        if path is not None:
+            raise ConfigError(f"{exc} (in {path})") from None
+        raise
+
+
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))  # pragma: no cover
+
+
+def to_toml(cfg: Config, with_docs: bool = False) -> str:
+    """The resolved tree as TOML; ``with_docs`` adds each field's documentation as a comment."""
+    lines: list[str] = []
+    for section in dataclasses.fields(cfg):
+        sub = getattr(cfg, section.name)
+        lines.append(f"[{section.name}]")
+        for f in dataclasses.fields(sub):
+            if with_docs and f.metadata.get("doc"):
+                extra = ""
+                if "choices" in f.metadata:
+                    extra = f" (one of {', '.join(map(str, f.metadata['choices']))})"
+                lines.append(f"# {f.metadata['doc']}{extra}")
+            lines.append(f"{f.name} = {_toml_value(getattr(sub, f.name))}")
+        lines.append("")
+    return "\n".join(lines)
