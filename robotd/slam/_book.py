@@ -1,0 +1,137 @@
+"""Landmark bookkeeping shared by the filters: global id -> storage slot, existence counters.
+
+Ids are global (shared by all particles) and may be arbitrary int64 values, so they map to dense
+storage slots through a dict. Existence counter (algorithms.md §8, Thrun et al. 2005 §10.3.3):
++1 when a landmark is observed, −1 when it is predicted inside the field of view and range but not
+observed; a landmark is deleted when its counter falls below 0 after the frame that created it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robotd.errors import InputError, PersistenceError
+
+
+class LandmarkBook:
+    """Slots ``0 … n_slots-1`` of the filter's landmark storage; freed slots are reused (FastSLAM)."""
+
+    def __init__(self, capacity: int = 64) -> None:
+        self.id_to_slot: dict[int, int] = {}
+        self.slot_id = np.full(capacity, -1, np.int64)  # (cap,) id per slot, -1 = free
+        self.counter = np.zeros(capacity, np.int64)  # (cap,) existence counter
+        self.n_slots = 0  # high-water mark: slots >= n_slots were never used
+        self.free: list[int] = []
+
+    @property
+    def capacity(self) -> int:
+        return int(self.slot_id.shape[0])
+
+    @property
+    def n(self) -> int:
+        return len(self.id_to_slot)
+
+    def active_slots(self) -> np.ndarray:
+        """(M,) slots in use, ascending."""
+        s = np.flatnonzero(self.slot_id[: self.n_slots] >= 0)
+        return s
+
+    def check(self, ids: np.ndarray, is_new: np.ndarray) -> None:
+        """Raise InputError (before any state change) when a new id exists or an old id is unknown."""
+        if ids.size and int(ids.min()) < 0:
+            raise InputError(f"Observations.ids: expected non-negative ids, got {int(ids.min())}")
+        for i, new in zip(ids.tolist(), is_new.tolist()):
+            known = i in self.id_to_slot
+            if new and known:
+                raise InputError(f"Observations: landmark id {i} is marked new but is already in the map")
+            if not new and not known:
+                raise InputError(f"Observations: landmark id {i} is not in the map (never initialised or pruned)")
+
+    def slots_of(self, ids: np.ndarray) -> np.ndarray:
+        """(N,) slots of known ids."""
+        return np.fromiter((self.id_to_slot[int(i)] for i in ids), np.int64, count=len(ids))
+
+    def allocate(self, ids: np.ndarray, reuse: bool = True) -> np.ndarray:
+        """Slots for new ids (reusing freed slots when ``reuse``); grows ``capacity`` as needed.
+
+        Counters start at 1: the creating observation counts. The caller grows its own arrays to
+        ``capacity`` (see :meth:`grow_to`).
+        """
+        out = np.empty(len(ids), np.int64)
+        for k, i in enumerate(ids.tolist()):
+            if reuse and self.free:
+                s = self.free.pop()
+            else:
+                s = self.n_slots
+                self.n_slots += 1
+                if s >= self.capacity:
+                    self._grow(max(2 * self.capacity, s + 1))
+            self.id_to_slot[int(i)] = s
+            self.slot_id[s] = i
+            self.counter[s] = 1
+            out[k] = s
+        return out
+
+    def _grow(self, cap: int) -> None:
+        extra = cap - self.capacity
+        self.slot_id = np.concatenate([self.slot_id, np.full(extra, -1, np.int64)])
+        self.counter = np.concatenate([self.counter, np.zeros(extra, np.int64)])
+
+    def release(self, slots: np.ndarray) -> None:
+        for s in slots.tolist():
+            del self.id_to_slot[int(self.slot_id[s])]
+            self.slot_id[s] = -1
+            self.counter[s] = 0
+            self.free.append(int(s))
+
+    def existence_update(self, observed: np.ndarray, expected: np.ndarray, born: np.ndarray) -> np.ndarray:
+        """Apply the counter rule; return the slots to delete.
+
+        Args:
+            observed: slots observed this frame (+1; new ones already start at 1).
+            expected: slots predicted visible this frame (−1 when not observed).
+            born: slots created this frame (never deleted in their first frame).
+        """
+        self.counter[observed] += 1
+        missed = np.setdiff1d(expected, np.concatenate([observed, born]))
+        self.counter[missed] -= 1
+        return missed[self.counter[missed] < 0]
+
+    def compact(self) -> np.ndarray:
+        """Renumber the active slots to 0 … n-1 (EKF storage); returns the old slots in new order."""
+        keep = self.active_slots()
+        ids = self.slot_id[keep].copy()
+        cnt = self.counter[keep].copy()
+        self.slot_id[:] = -1
+        self.counter[:] = 0
+        self.slot_id[: len(keep)] = ids
+        self.counter[: len(keep)] = cnt
+        self.n_slots = len(keep)
+        self.free = []
+        self.id_to_slot = {int(i): k for k, i in enumerate(ids.tolist())}
+        return keep
+
+    def state_dict(self) -> dict[str, np.ndarray | int]:
+        return {
+            "book_slot_id": self.slot_id[: self.n_slots].copy(),
+            "book_counter": self.counter[: self.n_slots].copy(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        try:
+            slot_id = np.asarray(state["book_slot_id"], np.int64)
+            counter = np.asarray(state["book_counter"], np.int64)
+        except KeyError as e:
+            raise PersistenceError(f"landmark book: missing key {e}") from None
+        if slot_id.shape != counter.shape or slot_id.ndim != 1:
+            raise PersistenceError(f"landmark book: expected matching 1-D arrays, got {slot_id.shape}, {counter.shape}")
+        cap = max(64, slot_id.size)
+        self.slot_id = np.full(cap, -1, np.int64)
+        self.counter = np.zeros(cap, np.int64)
+        self.slot_id[: slot_id.size] = slot_id
+        self.counter[: slot_id.size] = counter
+        self.n_slots = int(slot_id.size)
+        self.id_to_slot = {int(i): k for k, i in enumerate(slot_id.tolist()) if i >= 0}
+        if len(self.id_to_slot) != int(np.sum(slot_id >= 0)):
+            raise PersistenceError("landmark book: duplicate landmark ids in saved state")
+        self.free = [k for k in range(self.n_slots) if slot_id[k] < 0]

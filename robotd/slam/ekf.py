@@ -1,0 +1,340 @@
+"""EKF SLAM with known correspondences (algorithms.md §8; Thrun et al. 2005 ch. 10).
+
+State ``y = (x, m_1, …, m_M)`` of size ``dx + dm·M`` (2D: 3 + 2M, 3D: 6 + 3M) with full covariance.
+Landmark ``k`` of the book occupies ``y[dx + dm·k : dx + dm·(k+1)]``; deletion compacts the state.
+
+- Predict touches only the pose rows/columns: O(M).
+- Update is sequential per identified landmark with freshly evaluated Jacobians, Cholesky solves,
+  a χ² gate (counted), the Joseph form evaluated in O(n²) using the sparsity of H, and
+  symmetrisation.
+- New landmarks augment the state (Durrant-Whyte & Bailey 2006) with their cross-covariances.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from robotd.errors import EstimatorError, InputError, PersistenceError
+from robotd.geometry import wrap_angle
+from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
+from robotd.slam._book import LandmarkBook
+from robotd.slam._linalg import sym
+from robotd.slam.estimator import (
+    SlamParams,
+    VisibleFn,
+    check_finite,
+    control_from_increment,
+    split_observations,
+)
+from robotd.slam.models import (
+    CARTESIAN_2D,
+    CARTESIAN_3D,
+    RANGE_BEARING_2D,
+    MeasurementModel,
+    motion3d,
+    odometry2d,
+    pose_angle_slice,
+    velocity2d,
+    velocity2d_noise,
+)
+
+logger = logging.getLogger(__name__)
+
+FILTER_CODE = {"ekf": 0, "fastslam1": 1, "fastslam2": 2}
+
+
+def pose_cov_6x6(P: np.ndarray, dim: int, floor: float) -> np.ndarray:
+    """Embed a (3, 3) planar pose covariance over (x, y, yaw) into (6, 6) over (x, y, z, r, p, yaw)."""
+    if dim == 3:
+        return P.copy()
+    C = np.diag([0.0, 0.0, floor, floor, floor, 0.0])
+    idx = [0, 1, 5]
+    C[np.ix_(idx, idx)] = P
+    return C
+
+
+def pose_to_xyz_rpy(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y, yaw) or 6-vector -> (xyz (3,), rpy (3,))."""
+    if dim == 3:
+        return x[:3].copy(), x[3:6].copy()
+    return np.array([x[0], x[1], 0.0]), np.array([0.0, 0.0, x[2]])
+
+
+def lm_to_3d(m: np.ndarray, C: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """Planar landmarks (M, 2), (M, 2, 2) -> (M, 3), (M, 3, 3) with z = 0 and a floor variance on z."""
+    if m.shape[1] == 3:
+        return m, C
+    M = m.shape[0]
+    m3 = np.zeros((M, 3))
+    m3[:, :2] = m
+    C3 = np.zeros((M, 3, 3))
+    C3[:, :2, :2] = C
+    C3[:, 2, 2] = floor
+    return m3, C3
+
+
+class EkfSlam:
+    """EKF SLAM in 2D or 3D. Build it with :func:`robotd.slam.estimator.make_estimator`."""
+
+    name = "ekf"
+
+    def __init__(self, params: SlamParams, visible: VisibleFn) -> None:
+        self.params = params
+        self.dim = params.dim
+        self.visible = visible
+        self.dx = 3 if self.dim == 2 else 6
+        self.dm = self.dim
+        self.model: MeasurementModel = CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D
+        self.mu = np.zeros(self.dx)  # (n,) state mean
+        self.Sigma = np.zeros((self.dx, self.dx))  # (n, n) state covariance
+        self.book = LandmarkBook()
+        self.t_ns = 0
+        self.gate = params.gate_chi2_2d if self.dim == 2 else params.gate_chi2_3d
+
+    # ----------------------------------------------------------------------------------- predict
+
+    def _apply_motion(self, x_new: np.ndarray, G: np.ndarray, S: np.ndarray) -> None:
+        """Σxx ← GΣxxG^T + S, Σxm ← GΣxm (§8 predict, O(M))."""
+        dx = self.dx
+        self.mu[:dx] = x_new
+        Sig = self.Sigma
+        Sig[:dx, :dx] = sym(G @ Sig[:dx, :dx] @ G.T + S)
+        if Sig.shape[0] > dx:
+            Sig[:dx, dx:] = G @ Sig[:dx, dx:]
+            Sig[dx:, :dx] = Sig[:dx, dx:].T
+
+    def predict(self, inc: MotionIncrement) -> None:
+        """Odometry-increment predict (§6.2 / §6.3); state untouched when the input is invalid."""
+        u, M = control_from_increment(inc, self.params)
+        x = self.mu[None, : self.dx]
+        if self.dim == 2:
+            x_new, G, V = odometry2d(x, u[None])
+        else:
+            x_new, G, V = motion3d(x, u[None])
+        S = V[0] @ M @ V[0].T + self.params.process_cov_floor * np.eye(self.dx)
+        self._apply_motion(x_new[0], G[0], S)
+        self.t_ns = int(inc.t1_ns)
+
+    def predict_velocity(self, v: float, w: float, dt: float, t_ns: int | None = None) -> None:
+        """Velocity-model predict (§6.1), 2D only; S_t = V M V^T plus the final-rotation noise."""
+        if self.dim != 2:
+            raise InputError(f"predict_velocity: expected a 2D filter, got dim={self.dim}")
+        check_finite("predict_velocity", v, w, dt)
+        x_new, G, V = velocity2d(self.mu[None, :3], np.array([[v, w]], float), float(dt))
+        M, var_g = velocity2d_noise(float(v), float(w), float(dt), self.params.vel2d_alpha)
+        S = V[0] @ M @ V[0].T + np.diag([0.0, 0.0, var_g]) + self.params.process_cov_floor * np.eye(3)
+        self._apply_motion(x_new[0], G[0], S)
+        if t_ns is not None:
+            self.t_ns = int(t_ns)
+
+    # ------------------------------------------------------------------------------------ update
+
+    def update(self, obs: Observations) -> UpdateReport:
+        """Sequential EKF updates of identified landmarks, augmentation with new ones, pruning (§8)."""
+        z, Q, ids, is_new = split_observations(obs, self.dim)
+        self.book.check(ids, is_new)
+        rep = self._update(z, Q, ids, is_new, self.model)
+        self.t_ns = int(obs.t_ns)
+        return rep
+
+    def update_range_bearing(
+        self,
+        ids: np.ndarray,
+        r: np.ndarray,
+        beta: np.ndarray,
+        R_rb: np.ndarray,
+        is_new: np.ndarray | None = None,
+        t_ns: int | None = None,
+    ) -> UpdateReport:
+        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
+        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
+        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
+        if t_ns is not None:
+            self.t_ns = int(t_ns)
+        return rep
+
+    def _update(
+        self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
+    ) -> UpdateReport:
+        dx, dm = self.dx, self.dm
+        ang = pose_angle_slice(self.dim)
+        n_upd = n_gated = 0
+        observed_slots = []
+        for i in np.flatnonzero(~is_new):
+            s = self.book.id_to_slot[int(ids[i])]
+            j = dx + dm * s
+            idx = np.r_[0:dx, j : j + dm]
+            zhat, Hx, Hm = model.h(self.mu[None, :dx], self.mu[None, j : j + dm])
+            H = np.concatenate([Hx[0], Hm[0]], 1)  # (dz, dx+dm): the non-zero columns of H
+            nu = model.innovation(z[i], zhat[0])
+            PHt = self.Sigma[:, idx] @ H.T  # (n, dz) = Σ H^T
+            Psi = sym(H @ PHt[idx] + Q[i])
+            try:
+                cf = scipy.linalg.cho_factor(Psi, lower=True)
+            except np.linalg.LinAlgError:
+                raise EstimatorError(
+                    f"EKF: innovation covariance of landmark {int(ids[i])} not positive definite"
+                ) from None
+            d2 = float(nu @ scipy.linalg.cho_solve(cf, nu))
+            observed_slots.append(s)
+            if self.params.gate_enabled and d2 > self.gate:
+                n_gated += 1
+                logger.debug("EKF gate: landmark %d d²=%.2f > %.3f", int(ids[i]), d2, self.gate)
+                continue
+            K = scipy.linalg.cho_solve(cf, PHt.T).T  # (n, dz) = Σ H^T Ψ^{-1}
+            self.mu += K @ nu
+            self.mu[ang] = wrap_angle(self.mu[ang])
+            # Joseph form (I-KH)Σ(I-KH)^T + KQK^T in O(n²): A = (I-KH)Σ, then A(I-KH)^T = A - (A H^T) K^T
+            A = self.Sigma - K @ PHt.T
+            AHt = A[:, idx] @ H.T
+            self.Sigma = sym(A - AHt @ K.T + K @ Q[i] @ K.T)
+            n_upd += 1
+        new_idx = np.flatnonzero(is_new)
+        born = np.zeros(0, np.int64)
+        if new_idx.size:
+            born = self._augment(z[new_idx], Q[new_idx], ids[new_idx], model)
+        n_pruned = self._prune(np.asarray(observed_slots, np.int64), born)
+        return UpdateReport(n_updated=n_upd, n_new=int(new_idx.size), n_gated=n_gated, n_pruned=n_pruned)
+
+    def _augment(self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, model: MeasurementModel) -> np.ndarray:
+        """State augmentation (§8): μ_new = inverse model, Σnn = JxΣxxJx^T + JzQJz^T, Σn· = JxΣx·."""
+        dx, dm = self.dx, self.dm
+        k = len(ids)
+        x = np.repeat(self.mu[None, :dx], k, 0)
+        m, Jx, Jz = model.inverse(x, z)
+        n = self.mu.size
+        JxA = Jx.reshape(k * dm, dx)  # stacked Jacobians of all new landmarks w.r.t. the pose
+        cross = JxA @ self.Sigma[:dx, :]  # (k·dm, n)
+        nn = JxA @ self.Sigma[:dx, :dx] @ JxA.T
+        JQJ = np.einsum("kij,kjl,kml->kim", Jz, Q, Jz) + self.params.landmark_cov_floor * np.eye(dm)
+        for a in range(k):
+            nn[a * dm : (a + 1) * dm, a * dm : (a + 1) * dm] += JQJ[a]
+        Sig = np.empty((n + k * dm, n + k * dm))
+        Sig[:n, :n] = self.Sigma
+        Sig[n:, :n] = cross
+        Sig[:n, n:] = cross.T
+        Sig[n:, n:] = sym(nn)
+        self.Sigma = Sig
+        self.mu = np.concatenate([self.mu, m.ravel()])
+        slots = self.book.allocate(ids, reuse=False)
+        return slots
+
+    def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
+        """Existence counter (§8 bookkeeping); deletion removes the landmark's rows and columns."""
+        if not self.params.prune_enabled or self.book.n == 0:
+            return 0
+        M = self.book.n_slots
+        m = self.mu[self.dx :].reshape(M, self.dm)
+        zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(np.repeat(self.mu[None, : self.dx], M, 0), m)
+        expected = np.flatnonzero(np.asarray(self.visible(zc), bool))
+        dead = self.book.existence_update(observed, expected, born)
+        if dead.size == 0:
+            return 0
+        self.book.release(dead)
+        keep_slots = self.book.compact()
+        keep = np.r_[np.arange(self.dx), (self.dx + self.dm * keep_slots[:, None] + np.arange(self.dm)).ravel()]
+        self.mu = self.mu[keep]
+        self.Sigma = self.Sigma[np.ix_(keep, keep)]
+        logger.debug("EKF pruned %d landmarks", dead.size)
+        return int(dead.size)
+
+    # ------------------------------------------------------------------------------------ output
+
+    def estimate(self) -> PoseEstimate:
+        xyz, rpy = pose_to_xyz_rpy(self.mu[: self.dx], self.dim)
+        cov = pose_cov_6x6(self.Sigma[: self.dx, : self.dx], self.dim, self.params.pose_cov_floor_2d)
+        return PoseEstimate(self.t_ns, xyz, rpy, cov)
+
+    def landmark_ids(self) -> np.ndarray:
+        return self.book.slot_id[: self.book.n_slots].copy()
+
+    def landmarks(self) -> LandmarkMap:
+        M, dx, dm = self.book.n_slots, self.dx, self.dm
+        m = self.mu[dx:].reshape(M, dm).copy()
+        idx = dx + dm * np.arange(M)[:, None] + np.arange(dm)  # (M, dm)
+        C = self.Sigma[idx[:, :, None], idx[:, None, :]]
+        m3, C3 = lm_to_3d(m, C, self.params.pose_cov_floor_2d)
+        return LandmarkMap(self.landmark_ids(), m3, C3)
+
+    def set_particles(self, n: int) -> int:
+        """The EKF has no particles; returns 0."""
+        return 0
+
+    def covariance(self) -> np.ndarray:
+        """The full (n, n) state covariance (a view)."""
+        return self.Sigma
+
+    # ------------------------------------------------------------------------------ persistence
+
+    def state_dict(self) -> dict[str, np.ndarray | float | int]:
+        d: dict[str, np.ndarray | float | int] = {
+            "filter_code": FILTER_CODE["ekf"],
+            "dim": self.dim,
+            "t_ns": self.t_ns,
+            "mu": self.mu.copy(),
+            "Sigma": self.Sigma.copy(),
+        }
+        d.update(self.book.state_dict())
+        return d
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        _check_header(state, "ekf", self.dim)
+        mu = np.asarray(state["mu"], float)
+        Sig = np.asarray(state["Sigma"], float)
+        book = LandmarkBook()
+        book.load_state_dict(state)
+        n = self.dx + self.dm * book.n_slots
+        if mu.shape != (n,) or Sig.shape != (n, n) or book.n != book.n_slots:
+            raise PersistenceError(f"EKF state: expected mu ({n},), Sigma ({n}, {n}), got {mu.shape}, {Sig.shape}")
+        if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(Sig))):
+            raise PersistenceError("EKF state: non-finite values")
+        self.mu, self.Sigma, self.book, self.t_ns = mu.copy(), Sig.copy(), book, int(state["t_ns"])
+
+
+def _check_header(state: dict[str, Any], name: str, dim: int) -> None:
+    try:
+        code, d = int(state["filter_code"]), int(state["dim"])
+        int(state["t_ns"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise PersistenceError(f"{name} state: missing or malformed header ({e})") from None
+    if code != FILTER_CODE[name] or d != dim:
+        raise PersistenceError(f"{name} state: expected filter_code={FILTER_CODE[name]}, dim={dim}; got {code}, {d}")
+
+
+def _range_bearing_inputs(
+    dim: int,
+    book: LandmarkBook,
+    ids: np.ndarray,
+    r: np.ndarray,
+    beta: np.ndarray,
+    R_rb: np.ndarray,
+    is_new: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Validate range–bearing inputs; returns z (N, 2), Q (N, 2, 2), ids, is_new."""
+    if dim != 2:
+        raise InputError(f"update_range_bearing: expected a 2D filter, got dim={dim}")
+    ids = np.asarray(ids).astype(np.int64).ravel()
+    r = np.asarray(r, float).ravel()
+    beta = np.asarray(beta, float).ravel()
+    n = ids.size
+    if r.shape != (n,) or beta.shape != (n,):
+        raise InputError(f"update_range_bearing: expected r, beta of shape ({n},), got {r.shape}, {beta.shape}")
+    Q = np.asarray(R_rb, float)
+    if Q.shape == (2, 2):
+        Q = np.broadcast_to(Q, (n, 2, 2)).copy()
+    if Q.shape != (n, 2, 2):
+        raise InputError(f"update_range_bearing: expected R_rb of shape (2, 2) or ({n}, 2, 2), got {Q.shape}")
+    check_finite("update_range_bearing", r, beta, Q)
+    if np.any(r <= 0):
+        raise InputError(f"update_range_bearing: expected ranges > 0, got min {float(r.min())}")
+    if np.unique(ids).size != n:
+        raise InputError("update_range_bearing: expected unique ids per call")
+    if is_new is None:
+        is_new = np.array([int(i) not in book.id_to_slot for i in ids], bool)
+    is_new = np.asarray(is_new, bool).ravel()
+    book.check(ids, is_new)
+    return np.stack([r, beta], -1), Q, ids, is_new
