@@ -102,7 +102,7 @@ class ZenohConfig:
     enabled: bool = _f(True, "publish over Zenoh")
     config_file: str = _f("", "zenoh JSON5 config (router/client mode, endpoints, TLS); overrides the below")
     mode: str = _f("peer", "zenoh mode", choices=("peer", "client", "router"))
-    listen: list[str] = _f(["tcp/127.0.0.1:0"], "listen endpoints (loopback only by default)")
+    listen: list[str] = _f(["tcp/127.0.0.1:7447"], "listen endpoints (loopback only by default)")
     connect: list[str] = _f([], "endpoints to connect to")
     multicast_scouting: bool = _f(False, "multicast scouting (off: never announce on the LAN)")
     map_period_s: float = _f(2.0, "period of map updates", min=0.1)

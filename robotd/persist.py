@@ -1,0 +1,146 @@
+"""Map persistence: atomic, versioned, checked; a bad file is moved aside, never overwritten.
+
+File layout (little-endian): ``b"RBTDMAP\\x01"`` magic | u64 payload length | CBOR payload |
+u32 CRC-32 of the payload. The payload is a CBOR map with ``schema`` = ``robotd.state/1``,
+``robot``, ``saved_unix_s``, ``t_ns``, and ``state`` (the estimator's and the landmark
+database's arrays, see robotd.codec). Writes go to a temporary file in the same directory, are
+fsynced, renamed over the old file, and the directory is fsynced: a power cut leaves either the
+old or the new map, never a torn one.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+import cbor2
+
+from robotd.codec import pack_tree, unpack_tree
+from robotd.errors import PersistenceError
+
+logger = logging.getLogger(__name__)
+
+MAGIC = b"RBTDMAP\x01"
+STATE_SCHEMA = "robotd.state/1"
+MAP_FILENAME = "map.robotd"
+
+
+def default_state_dir(configured: str = "") -> Path:
+    if configured:
+        return Path(configured)
+    env = os.environ.get("STATE_DIRECTORY")
+    if env:
+        return Path(env.split(":")[0])
+    return Path(os.environ.get("XDG_STATE_HOME", Path.home() / ".local" / "state")) / "robotd"
+
+
+class MapStore:
+    """Saves and loads the robot's map and pose under ``state_dir``."""
+
+    def __init__(self, state_dir: Path, robot_id: str) -> None:
+        self.dir = Path(state_dir)
+        self.robot_id = robot_id
+        self.path = self.dir / MAP_FILENAME
+        self.saves = 0
+        self.failures = 0
+
+    def save(self, state: dict[str, Any], t_ns: int) -> Path:
+        payload = cbor2.dumps(
+            {
+                "schema": STATE_SCHEMA,
+                "robot": self.robot_id,
+                "saved_unix_s": time.time(),
+                "t_ns": int(t_ns),
+                "state": pack_tree(state),
+            }
+        )
+        blob = MAGIC + struct.pack("<Q", len(payload)) + payload + struct.pack("<I", zlib.crc32(payload))
+        tmp = self.path.with_name(f".{MAP_FILENAME}.{os.getpid()}.tmp")
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o640)
+            try:
+                view = memoryview(blob)
+                while view:
+                    n = os.write(fd, view)
+                    view = view[n:]
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(tmp, self.path)
+            dfd = os.open(self.dir, os.O_RDONLY | os.O_DIRECTORY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError as exc:
+            self.failures += 1
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+            raise PersistenceError(
+                f"{self.path}: map not saved ({exc.strerror or exc}); the previous map is kept"
+            ) from exc
+        self.saves += 1
+        return self.path
+
+    def exists(self) -> bool:
+        return self.path.exists()
+
+    def load(self) -> dict[str, Any]:
+        """The saved state. A corrupt or foreign file is moved aside and PersistenceError raised."""
+        try:
+            blob = self.path.read_bytes()
+        except FileNotFoundError as exc:
+            raise PersistenceError(f"{self.path}: no saved map") from exc
+        except OSError as exc:
+            raise PersistenceError(f"{self.path}: cannot read saved map ({exc.strerror or exc})") from exc
+        try:
+            return self._parse(blob)
+        except PersistenceError as exc:
+            aside = self.move_aside()
+            raise PersistenceError(f"{exc}; moved aside to {aside.name}, starting a new map") from None
+
+    def _parse(self, blob: bytes) -> dict[str, Any]:
+        if blob[: len(MAGIC)] != MAGIC:
+            raise PersistenceError(f"{self.path}: not a robotd map (magic {blob[:8]!r}, expected {MAGIC!r})")
+        if len(blob) < len(MAGIC) + 12:
+            raise PersistenceError(f"{self.path}: truncated ({len(blob)} bytes)")
+        (n,) = struct.unpack_from("<Q", blob, len(MAGIC))
+        start = len(MAGIC) + 8
+        if len(blob) != start + n + 4:
+            raise PersistenceError(f"{self.path}: truncated or padded ({len(blob)} bytes, header says {start + n + 4})")
+        payload = blob[start : start + n]
+        (crc,) = struct.unpack_from("<I", blob, start + n)
+        if zlib.crc32(payload) != crc:
+            raise PersistenceError(f"{self.path}: checksum mismatch (corrupt file)")
+        try:
+            msg = cbor2.loads(payload)
+        except Exception as exc:
+            raise PersistenceError(f"{self.path}: payload is not CBOR ({exc})") from exc
+        if not isinstance(msg, dict) or msg.get("schema") != STATE_SCHEMA:
+            got = msg.get("schema") if isinstance(msg, dict) else type(msg).__name__
+            raise PersistenceError(f"{self.path}: schema {got!r}, expected {STATE_SCHEMA!r}")
+        if msg.get("robot") != self.robot_id:
+            raise PersistenceError(f"{self.path}: map of robot {msg.get('robot')!r}, this is {self.robot_id!r}")
+        state = unpack_tree(msg["state"])
+        if not isinstance(state, dict):
+            raise PersistenceError(f"{self.path}: state is not a table")
+        return {"t_ns": msg.get("t_ns", 0), "saved_unix_s": msg.get("saved_unix_s"), "state": state}
+
+    def move_aside(self) -> Path:
+        stamp = time.strftime("%Y%m%dT%H%M%S")
+        aside = self.path.with_name(f"{MAP_FILENAME}.bad-{stamp}")
+        k = 1
+        while aside.exists():
+            aside = self.path.with_name(f"{MAP_FILENAME}.bad-{stamp}-{k}")
+            k += 1
+        os.replace(self.path, aside)
+        logger.error("moved the unreadable map %s aside to %s", self.path, aside)
+        return aside
