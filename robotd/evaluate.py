@@ -1,0 +1,451 @@
+"""Evaluation metrics and trajectory files (algorithms.md §11).
+
+Pure functions over arrays of poses; the only I/O is the explicit file readers/writers and
+:func:`plot_trajectory` (matplotlib, Agg backend, imported lazily).
+
+Poses are (N, 4, 4) homogeneous ``T_world_body`` matrices unless stated otherwise. Planar (SE(2))
+evaluation uses the x, y and yaw of the same matrices. Times are float seconds.
+
+- ATE after a rigid alignment (Umeyama with s ≡ 1, §5.1/§11; Sturm et al. 2012).
+- RPE over a fixed frame offset Δ (translation RMSE [m], rotation RMSE [deg]).
+- Drift in % of the ground-truth path length after aligning the first pose only.
+- NEES per step and ANEES with its two-sided 95 % χ² band (Bar-Shalom et al. 2001).
+- Map RMSE after alignment.
+- TUM trajectory files (``t x y z qx qy qz qw``, what evo reads) and KITTI pose files (12 numbers
+  per row, the row-major 3×4 [R|t] of the left camera, optical frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from robotd.errors import DatasetError, InputError
+from robotd.geometry import (
+    R_to_quat,
+    quat_to_R,
+    rot_z,
+    rotation_angle,
+    se3,
+    se3_inverse,
+    umeyama,
+    wrap_angle,
+)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Trajectory:
+    """A timed trajectory: ``t_s`` (N,) seconds and ``T`` (N, 4, 4) T_world_body."""
+
+    t_s: np.ndarray
+    T: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.T.ndim != 3 or self.T.shape[1:] != (4, 4) or self.t_s.shape != (self.T.shape[0],):
+            raise InputError(f"Trajectory: expected t_s (N,) and T (N, 4, 4), got {self.t_s.shape} and {self.T.shape}")
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.T[:, :3, 3]
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Conversions
+
+
+def poses_to_T(poses: np.ndarray) -> np.ndarray:
+    """(N, 3) planar (x, y, yaw), (N, 6) (x, y, z, roll, pitch, yaw) or (N, 4, 4) -> (N, 4, 4)."""
+    from robotd.geometry import pose6_to_T
+
+    p = np.asarray(poses, dtype=float)
+    if p.ndim == 3 and p.shape[1:] == (4, 4):
+        return p
+    if p.ndim == 2 and p.shape[1] == 3:
+        return se3(rot_z(p[:, 2]), np.column_stack([p[:, :2], np.zeros(len(p))]))
+    if p.ndim == 2 and p.shape[1] == 6:
+        return pose6_to_T(p)
+    raise InputError(f"poses: expected (N, 3), (N, 6) or (N, 4, 4), got {p.shape}")
+
+
+def _planar(T: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) -> (N, 4, 4) keeping only x, y and yaw (for SE(2) evaluation)."""
+    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    return se3(rot_z(yaw), np.column_stack([T[:, :2, 3], np.zeros(len(T))]))
+
+
+# --------------------------------------------------------------------------------------------
+# Alignment and association
+
+
+def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Match each estimate to the nearest ground-truth time within ``max_dt_s``.
+
+    Returns index arrays (idx_est, idx_gt) of equal length. ``max_dt_s`` defaults to half the
+    median ground-truth frame period (§11: nearest within half a frame period). Each ground-truth
+    sample is used at most once (the closest estimate wins).
+    """
+    t_est = np.asarray(t_est, dtype=float)
+    t_gt = np.asarray(t_gt, dtype=float)
+    if len(t_est) == 0 or len(t_gt) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.argsort(t_gt, kind="stable")
+    tg = t_gt[order]
+    if max_dt_s is None:
+        max_dt_s = 0.5 * float(np.median(np.diff(tg))) if len(tg) > 1 else np.inf
+    pos = np.clip(np.searchsorted(tg, t_est), 1, max(len(tg) - 1, 1))
+    left = np.clip(pos - 1, 0, len(tg) - 1)
+    right = np.clip(pos, 0, len(tg) - 1)
+    pick = np.where(np.abs(tg[left] - t_est) <= np.abs(tg[right] - t_est), left, right)
+    dt = np.abs(tg[pick] - t_est)
+    ok = dt <= max_dt_s + 1e-12
+    ie = np.flatnonzero(ok)
+    ig = pick[ok]
+    # one estimate per ground-truth sample: keep the closest
+    best: dict[int, int] = {}
+    for e, g in zip(ie, ig):
+        if g not in best or dt[e] < dt[best[g]]:
+            best[int(g)] = int(e)
+    ig_u = np.array(sorted(best), dtype=np.int64)
+    ie_u = np.array([best[g] for g in ig_u], dtype=np.int64)
+    srt = np.argsort(ie_u, kind="stable")
+    return ie_u[srt], order[ig_u[srt]]
+
+
+def align_rigid(est: np.ndarray, gt: np.ndarray, planar: bool = False) -> np.ndarray:
+    """The rigid transform T (4, 4) minimising Σ‖gt_i − T est_i‖² over positions (Umeyama, s ≡ 1).
+
+    ``est``, ``gt``: (N, 3) positions. ``planar``: SE(2) alignment in x, y (z left unchanged).
+    """
+    est = np.asarray(est, dtype=float)
+    gt = np.asarray(gt, dtype=float)
+    if est.shape != gt.shape or len(est) < 2:
+        raise InputError(f"align_rigid: expected two (N>=2, 3) arrays, got {est.shape} and {gt.shape}")
+    if planar:
+        _, R2, t2 = umeyama(est[:, :2], gt[:, :2], with_scale=False)
+        R = np.eye(3)
+        R[:2, :2] = R2
+        return se3(R, np.array([t2[0], t2[1], 0.0]))
+    _, R, t = umeyama(est, gt, with_scale=False)
+    return se3(R, t)
+
+
+def similarity_scale(est: np.ndarray, gt: np.ndarray) -> float:
+    """Scale of the similarity alignment est -> gt; a diagnostic only, since stereo fixes scale (§11)."""
+    s, _, _ = umeyama(np.asarray(est, float), np.asarray(gt, float), with_scale=True)
+    return float(s)
+
+
+# --------------------------------------------------------------------------------------------
+# Metrics
+
+
+def path_length(xyz: np.ndarray) -> float:
+    """Length [m] of a polyline (N, d)."""
+    xyz = np.asarray(xyz, dtype=float)
+    return float(np.sum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))) if len(xyz) > 1 else 0.0
+
+
+def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool = True) -> dict[str, float]:
+    """Absolute trajectory error after a rigid alignment (§11), associated pose pairs (N, 4, 4).
+
+    ``ate_rmse_m = sqrt(mean ‖trans(Q_i⁻¹ T P_i)‖²)``; also mean, median and max of the
+    per-pose translation error, and the heading RMSE [deg] (yaw error in the plane for planar
+    runs, the full rotation angle otherwise). ``planar`` aligns in SE(2).
+    """
+    P = np.asarray(est_T, dtype=float)
+    Q = np.asarray(gt_T, dtype=float)
+    if P.shape != Q.shape or P.ndim != 3 or len(P) == 0:
+        raise InputError(f"ate: expected two (N, 4, 4) arrays, got {P.shape} and {Q.shape}")
+    if planar:
+        P, Q = _planar(P), _planar(Q)
+    T = align_rigid(P[:, :3, 3], Q[:, :3, 3], planar=planar) if (align and len(P) > 1) else np.eye(4)
+    E = se3_inverse(Q) @ T @ P
+    e = np.linalg.norm(E[:, :3, 3], axis=1)
+    if planar:
+        rot = np.abs(np.arctan2(E[:, 1, 0], E[:, 0, 0]))
+    else:
+        rot = rotation_angle(E[:, :3, :3])
+    return {
+        "ate_rmse_m": float(np.sqrt(np.mean(e**2))),
+        "ate_mean_m": float(np.mean(e)),
+        "ate_median_m": float(np.median(e)),
+        "ate_max_m": float(np.max(e)),
+        "heading_rmse_deg": float(np.rad2deg(np.sqrt(np.mean(rot**2)))),
+        "final_error_m": float(e[-1]),
+    }
+
+
+def ate_errors(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False) -> np.ndarray:
+    """Per-pose translation error (N,) [m] after the rigid alignment used by :func:`ate`."""
+    P, Q = np.asarray(est_T, float), np.asarray(gt_T, float)
+    if planar:
+        P, Q = _planar(P), _planar(Q)
+    T = align_rigid(P[:, :3, 3], Q[:, :3, 3], planar=planar)
+    return np.linalg.norm((se3_inverse(Q) @ T @ P)[:, :3, 3], axis=1)
+
+
+def rpe(est_T: np.ndarray, gt_T: np.ndarray, delta: int = 1, planar: bool = False) -> dict[str, float]:
+    """Relative pose error over a frame offset Δ (§11): E_i = (Q_i⁻¹Q_{i+Δ})⁻¹ (P_i⁻¹P_{i+Δ}).
+
+    Returns the RMSE of the translation [m] and of the rotation angle [deg] of E_i.
+    """
+    P = np.asarray(est_T, dtype=float)
+    Q = np.asarray(gt_T, dtype=float)
+    if planar:
+        P, Q = _planar(P), _planar(Q)
+    if len(P) <= delta:
+        return {"rpe_trans_m": math.nan, "rpe_rot_deg": math.nan}
+    dP = se3_inverse(P[:-delta]) @ P[delta:]
+    dQ = se3_inverse(Q[:-delta]) @ Q[delta:]
+    E = se3_inverse(dQ) @ dP
+    t = np.linalg.norm(E[:, :3, 3], axis=1)
+    r = rotation_angle(E[:, :3, :3])
+    return {
+        "rpe_trans_m": float(np.sqrt(np.mean(t**2))),
+        "rpe_rot_deg": float(np.rad2deg(np.sqrt(np.mean(r**2)))),
+    }
+
+
+def drift_pct(est_T: np.ndarray, gt_T: np.ndarray) -> float:
+    """End-point drift in % of the ground-truth path length, first pose aligned only (§11)."""
+    P = np.asarray(est_T, dtype=float)
+    Q = np.asarray(gt_T, dtype=float)
+    L = path_length(Q[:, :3, 3])
+    if L <= 0:
+        return math.nan
+    P = Q[0] @ se3_inverse(P[0]) @ P
+    return float(100.0 * np.linalg.norm(P[-1, :3, 3] - Q[-1, :3, 3]) / L)
+
+
+def nees(err: np.ndarray, cov: np.ndarray, angle_dims: Sequence[int] = ()) -> np.ndarray:
+    """Normalised estimation error squared ε_t = e_tᵀ P_t⁻¹ e_t (§11), per step.
+
+    ``err``: (T, n) truth − estimate; ``cov``: (T, n, n). Components listed in ``angle_dims``
+    are wrapped to (−π, π] first. Uses a linear solve, not an explicit inverse.
+    """
+    e = np.array(err, dtype=float, copy=True)
+    for i in angle_dims:
+        e[:, i] = wrap_angle(e[:, i])
+    x = np.linalg.solve(np.asarray(cov, dtype=float), e[..., None])[..., 0]
+    return np.einsum("ti,ti->t", e, x)
+
+
+def anees_band(n: int, runs: int, p: float = 0.95) -> tuple[float, float]:
+    """Two-sided χ² band for the ANEES of ``runs`` Monte Carlo runs of an n-dim state (§11)."""
+    a = (1.0 - p) / 2.0
+    return float(chi2.ppf(a, n * runs) / runs), float(chi2.ppf(1.0 - a, n * runs) / runs)
+
+
+def anees(nees_runs: np.ndarray) -> np.ndarray:
+    """(R, T) NEES of R runs -> (T,) ANEES per step (mean over runs)."""
+    return np.mean(np.asarray(nees_runs, dtype=float), axis=0)
+
+
+def map_rmse(
+    est_xyz: np.ndarray, gt_xyz: np.ndarray, T_align: np.ndarray | None = None, planar: bool = False
+) -> dict[str, float | np.ndarray]:
+    """Landmark map error (M corresponding rows) after alignment.
+
+    With ``T_align`` (4, 4) the estimate is first mapped by it (e.g. the trajectory alignment);
+    otherwise the maps are aligned to each other rigidly. Returns ``map_rmse_m`` and
+    ``per_landmark_m`` (M,).
+    """
+    a = np.asarray(est_xyz, dtype=float)
+    g = np.asarray(gt_xyz, dtype=float)
+    if a.shape != g.shape or len(a) == 0:
+        raise InputError(f"map_rmse: expected two (M, 3) arrays, got {a.shape} and {g.shape}")
+    if planar:
+        a = np.column_stack([a[:, :2], np.zeros(len(a))])
+        g = np.column_stack([g[:, :2], np.zeros(len(g))])
+    if T_align is None:
+        T_align = align_rigid(a, g, planar=planar) if len(a) >= 3 else np.eye(4)
+    a2 = a @ T_align[:3, :3].T + T_align[:3, 3]
+    e = np.linalg.norm(a2 - g, axis=1)
+    return {"map_rmse_m": float(np.sqrt(np.mean(e**2))), "per_landmark_m": e}
+
+
+# --------------------------------------------------------------------------------------------
+# Files
+
+
+def write_tum(path: str | Path, t_s: np.ndarray, T: np.ndarray) -> None:
+    """Write a TUM trajectory: one line ``t x y z qx qy qz qw`` per pose (evo reads it)."""
+    T = poses_to_T(T)
+    q = R_to_quat(T[:, :3, :3])  # (w, x, y, z)
+    rows = np.column_stack([np.asarray(t_s, dtype=float), T[:, :3, 3], q[:, 1:], q[:, :1]])
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("# timestamp tx ty tz qx qy qz qw\n")
+        for r in rows:
+            fh.write(" ".join(f"{v:.9f}" if i == 0 else f"{v:.9g}" for i, v in enumerate(r)) + "\n")
+
+
+def _read_rows(path: Path, ncols: int, what: str) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(f"{what}: no such file {path}")
+    rows = []
+    with open(path, encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.replace(",", " ").split()
+            if len(parts) != ncols:
+                raise DatasetError(f"{what} {path}:{lineno}: expected {ncols} numbers, got {len(parts)}")
+            try:
+                rows.append([float(p) for p in parts])
+            except ValueError as exc:
+                raise DatasetError(f"{what} {path}:{lineno}: not a number ({exc})") from None
+    if not rows:
+        raise DatasetError(f"{what} {path}: no poses")
+    a = np.array(rows)
+    if not np.all(np.isfinite(a)):
+        raise DatasetError(f"{what} {path}: non-finite values")
+    return a
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file (``t x y z qx qy qz qw``; '#' comments) -> Trajectory."""
+    a = _read_rows(Path(path), 8, "TUM trajectory")
+    quat_wxyz = np.column_stack([a[:, 7], a[:, 4:7]])
+    if np.any(np.abs(np.linalg.norm(quat_wxyz, axis=1) - 1.0) > 1e-3):
+        bad = int(np.argmax(np.abs(np.linalg.norm(quat_wxyz, axis=1) - 1.0)))
+        raise DatasetError(f"TUM trajectory {path}: quaternion of pose {bad} is not unit")
+    return Trajectory(a[:, 0].copy(), se3(quat_to_R(quat_wxyz), a[:, 1:4]))
+
+
+def read_kitti_poses(path: str | Path, rate_hz: float = 10.0) -> Trajectory:
+    """Read a KITTI odometry pose file: 12 numbers per row, row-major [R|t] of the left camera.
+
+    The poses stay in the camera optical frame (x right, y down, z forward) relative to frame 0;
+    use ``robotd.geometry.T_optical_to_robot`` to compare with FRD estimates. KITTI has no times in
+    this file, so t = index / rate_hz.
+    """
+    a = _read_rows(Path(path), 12, "KITTI poses")
+    T = np.zeros((len(a), 4, 4))
+    T[:, :3, :] = a.reshape(-1, 3, 4)
+    T[:, 3, 3] = 1.0
+    return Trajectory(np.arange(len(a)) / rate_hz, T)
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """TUM (8 columns) or KITTI (12 columns) by the first data row."""
+    p = Path(path)
+    if not p.is_file():
+        raise DatasetError(f"trajectory: no such file {p}")
+    with open(p, encoding="utf-8") as fh:
+        for line in fh:
+            s = line.strip()
+            if s and not s.startswith("#"):
+                n = len(s.replace(",", " ").split())
+                break
+        else:
+            raise DatasetError(f"trajectory {p}: no poses")
+    if n == 8:
+        return read_tum(p)
+    if n == 12:
+        return read_kitti_poses(p)
+    raise DatasetError(f"trajectory {p}: expected 8 (TUM) or 12 (KITTI) columns, got {n}")
+
+
+def evaluate_trajectories(est: Trajectory, gt: Trajectory, planar: bool = False) -> dict[str, float]:
+    """All trajectory metrics of §11 for two timed trajectories (associated by nearest time)."""
+    ie, ig = associate(est.t_s, gt.t_s)
+    if len(ie) < 2:
+        raise InputError(
+            f"evaluate: only {len(ie)} poses associate within half a frame period "
+            f"(estimate {est.t_s[0]:.3f}…{est.t_s[-1]:.3f} s, ground truth {gt.t_s[0]:.3f}…{gt.t_s[-1]:.3f} s)"
+        )
+    P, Q = est.T[ie], gt.T[ig]
+    out: dict[str, float] = {"frames": float(len(ie))}
+    out.update(ate(P, Q, planar=planar))
+    out.update(rpe(P, Q, 1, planar=planar))
+    out["drift_pct"] = drift_pct(P, Q)
+    out["path_length_m"] = path_length(Q[:, :3, 3])
+    out["similarity_scale"] = similarity_scale(P[:, :3, 3], Q[:, :3, 3]) if len(P) >= 3 else math.nan
+    return out
+
+
+def evaluate_files(traj_path: str | Path, gt_path: str | Path, planar: bool = False) -> dict[str, float]:
+    """Metrics of an estimated trajectory file against a ground-truth file (TUM or KITTI each).
+
+    Keys: frames, ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, heading_rmse_deg,
+    final_error_m, rpe_trans_m, rpe_rot_deg (Δ = 1 frame), drift_pct, path_length_m,
+    similarity_scale. Both files must be in the same frame convention.
+    """
+    est = read_trajectory(traj_path)
+    gt = read_trajectory(gt_path)
+    out = evaluate_trajectories(est, gt, planar=planar)
+    out["frames"] = int(out["frames"])
+    logger.info(
+        "evaluated %s against %s: ATE %.3f m over %d frames", traj_path, gt_path, out["ate_rmse_m"], out["frames"]
+    )
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Plot
+
+
+def plot_trajectory(
+    est: np.ndarray | Trajectory,
+    gt: np.ndarray | Trajectory | None,
+    landmarks: np.ndarray | None,
+    out_png: str | Path,
+    *,
+    gt_landmarks: np.ndarray | None = None,
+    title: str = "",
+    align: bool = True,
+) -> Path:
+    """Top view (x right-hand, y) of the estimate against ground truth, with landmarks; writes a PNG.
+
+    ``est``/``gt``: (N, 3|6) poses, (N, 4, 4) or Trajectory (same length when ``align``; the
+    estimate is rigidly aligned to the ground truth first, §11); ``landmarks``: (M, ≥2) estimated
+    map in the estimate's frame (aligned with it). Returns the path written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = poses_to_T(est.T if isinstance(est, Trajectory) else est)
+    Q = None if gt is None else poses_to_T(gt.T if isinstance(gt, Trajectory) else gt)
+    T = np.eye(4)
+    if Q is not None and align and len(Q) == len(P) and len(P) > 1:
+        T = align_rigid(P[:, :3, 3], Q[:, :3, 3])
+    pe = P[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    fig, ax = plt.subplots(figsize=(6.4, 5.6), dpi=100)
+    # FRD world: x forward, y right; plot y to the right and x up so turns look as driven
+    if gt_landmarks is not None and len(gt_landmarks):
+        g = np.asarray(gt_landmarks, dtype=float)
+        ax.scatter(g[:, 1], g[:, 0], s=18, marker="x", c="0.6", lw=0.8, label="landmarks (truth)")
+    if landmarks is not None and len(landmarks):
+        lm = np.asarray(landmarks, dtype=float)
+        lm3 = np.column_stack([lm[:, :2], lm[:, 2] if lm.shape[1] > 2 else np.zeros(len(lm))])
+        lm3 = lm3 @ T[:3, :3].T + T[:3, 3]
+        ax.scatter(lm3[:, 1], lm3[:, 0], s=4, c="tab:orange", label="landmarks (estimate)")
+    if Q is not None:
+        ax.plot(Q[:, 1, 3], Q[:, 0, 3], "k-", lw=1.2, label="ground truth")
+    ax.plot(pe[:, 1], pe[:, 0], "-", c="tab:blue", lw=1.0, label="estimate")
+    ax.set_xlabel("y [m] (right)")
+    ax.set_ylabel("x [m] (forward at start)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    out = Path(out_png)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
