@@ -1,0 +1,661 @@
+"""Replay sources: ``kitti://DIR``, ``euroc://DIR`` and ``mcap://FILE`` (or a bare ``FILE.mcap``).
+
+Each is a :class:`drivers.StereoCamera` yielding rectified :class:`robotd.msgs.StereoFrame`s, plus a
+:class:`drivers.VehicleLink` companion. Replay drivers keep **dataset time**: ``t_ns`` is the
+dataset's own stamp (KITTI ``times.txt`` or 0.1 s × index, EuRoC nanosecond stamps, the recorded
+host-monotonic stamps of an MCAP session), strictly increasing, from the first selected frame on.
+They never substitute the replaying host's clock, so a replay is bit-for-bit repeatable.
+
+Options (keyword arguments, or the URL query, e.g. ``kitti:///data/seq?stride=2&realtime=1``):
+
+- ``start`` (0), ``stop`` (None = to the end): frame index range ``[start, stop)`` before striding;
+- ``stride`` (1): keep every n-th frame;
+- ``realtime`` (False): sleep so frames come out at the dataset rate (× ``speed``, default 1.0);
+  otherwise as fast as the consumer pulls.
+
+Dataset-specific options: EuRoC ``alpha`` (0.0, OpenCV free scaling of the rectified view) and
+``pair_tolerance_ns`` (1 ms, cam0/cam1 stamp pairing). Ground truth, where the dataset has it, is
+attached to each frame as ``truth_T_world_robot`` (robot frame FRD at the baseline centre of the
+rectified rig, world = robot frame at the first frame with truth); it is for evaluation only.
+
+Vehicle links: datasets carry no wheel odometry, so by default the dataset vehicle is **visual
+only**: ``odometry()`` yields nothing and the pipeline runs on its constant-velocity prediction.
+``gt_odometry=True`` synthesises odometry from ground truth for experiments only (every sample
+has ``source="gt-synthetic"``); see :class:`DatasetVehicle`. An MCAP recording's vehicle replays the
+recorded odometry.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import re
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qsl
+
+import cv2
+import numpy as np
+
+from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw
+from robotd.errors import DatasetError, DriverError
+from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
+from robotd.msgs import Odometry, PoseEstimate, StereoFrame
+from robotd.stereo import RectifiedStereo
+
+logger = logging.getLogger(__name__)
+
+KITTI_DT_NS = 100_000_000  # KITTI odometry runs at 10 Hz; used when times.txt is absent
+
+
+# --------------------------------------------------------------------------------------------
+# URL and option parsing
+
+
+def _split_url(url: str | Path, scheme: str) -> tuple[Path, dict[str, str]]:
+    """``scheme://PATH?k=v`` (or a bare path) -> (Path, query options).
+
+    The part after ``scheme://`` is a filesystem path (absolute with three slashes, relative with
+    two), not a network location, so ``urlsplit`` is not used on it.
+    """
+    s = str(url)
+    prefix = f"{scheme}://"
+    if s.lower().startswith(prefix):
+        s = s[len(prefix) :]
+    elif "://" in s:
+        raise DriverError(f"{url!r}: expected a {prefix} URL or a path")
+    path, _, query = s.partition("?")
+    if not path:
+        raise DriverError(f"{url!r}: expected a path after {prefix}")
+    return Path(path).expanduser(), dict(parse_qsl(query, keep_blank_values=True))
+
+
+def _as_bool(key: str, v: Any) -> bool:
+    if isinstance(v, bool):
+        return v
+    s = str(v).strip().lower()
+    if s in ("1", "true", "yes", "on", ""):
+        return True
+    if s in ("0", "false", "no", "off"):
+        return False
+    raise DriverError(f"option {key}: expected a boolean, got {v!r}")
+
+
+def _as_int(key: str, v: Any, minimum: int | None = None) -> int:
+    try:
+        i = int(v)
+    except (TypeError, ValueError):
+        raise DriverError(f"option {key}: expected an integer, got {v!r}") from None
+    if minimum is not None and i < minimum:
+        raise DriverError(f"option {key}: expected >= {minimum}, got {i}")
+    return i
+
+
+def _as_float(key: str, v: Any, minimum: float | None = None) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise DriverError(f"option {key}: expected a number, got {v!r}") from None
+    if not np.isfinite(x) or (minimum is not None and x < minimum):
+        raise DriverError(f"option {key}: expected a finite number >= {minimum}, got {v!r}")
+    return x
+
+
+@dataclass(frozen=True, slots=True)
+class ReplayOptions:
+    """Frame selection and pacing shared by every replay source (see the module docstring)."""
+
+    start: int = 0
+    stop: int | None = None
+    stride: int = 1
+    realtime: bool = False
+    speed: float = 1.0
+
+    @staticmethod
+    def pop_from(options: dict[str, Any]) -> ReplayOptions:
+        """Take the replay keys out of ``options`` (mutated), validating each."""
+        stop = options.pop("stop", None)
+        return ReplayOptions(
+            start=_as_int("start", options.pop("start", 0), 0),
+            stop=None if stop in (None, "", "none") else _as_int("stop", stop, 0),
+            stride=_as_int("stride", options.pop("stride", 1), 1),
+            realtime=_as_bool("realtime", options.pop("realtime", False)),
+            speed=_as_float("speed", options.pop("speed", 1.0), 1e-3),
+        )
+
+    def select(self, n: int) -> range:
+        stop = n if self.stop is None else min(self.stop, n)
+        return range(self.start, stop, self.stride)
+
+
+def _reject_unknown(url: str, options: dict[str, Any], known: Sequence[str] = ()) -> None:
+    extra = sorted(set(options) - set(known))
+    if extra:
+        raise DriverError(f"{url!r}: unknown option(s) {extra}; known: {sorted(known)} and start/stop/stride/realtime")
+
+
+class _Pacer:
+    """Sleeps so that dataset stamps come out at their recorded rate (× speed) on the host."""
+
+    def __init__(self, enabled: bool, speed: float) -> None:
+        self.enabled = enabled
+        self.speed = speed
+        self._t0_data: int | None = None
+        self._t0_host = 0.0
+
+    def wait(self, t_ns: int) -> None:
+        if not self.enabled:
+            return
+        if self._t0_data is None:
+            self._t0_data, self._t0_host = t_ns, time.monotonic()
+            return
+        due = self._t0_host + (t_ns - self._t0_data) * 1e-9 / self.speed
+        delay = due - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+
+
+def _read_gray(path: Path) -> np.ndarray | None:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        return None
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.dtype != np.uint8:
+        return None
+    return img
+
+
+# --------------------------------------------------------------------------------------------
+# Indexed image-pair sources (KITTI, EuRoC)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameEntry:
+    """One selectable stereo pair of a dataset index."""
+
+    t_ns: int  # dataset time
+    seq: int  # dataset frame index
+    left: Path
+    right: Path
+    truth_T_world_robot: np.ndarray | None = None  # (4, 4)
+
+
+class _ImageDatasetCamera:
+    """Common replay logic of the folder datasets: select, load, rectify, pace, count."""
+
+    url: str
+
+    def __init__(self, url: str, entries: list[FrameEntry], replay: ReplayOptions) -> None:
+        self.url = url
+        self._all = entries
+        self.entries = [entries[i] for i in replay.select(len(entries))]
+        self.replay = replay
+        self._closed = False
+        self._stats: dict[str, Any] = {"frames": 0, "read_errors": 0, "drops": 0, "gaps": 0, "selected": 0}
+        self._stats["selected"] = len(self.entries)
+
+    # StereoCamera protocol ------------------------------------------------------------------
+    def __enter__(self) -> _ImageDatasetCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._closed = True
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self._stats)
+
+    def rectified_model(self) -> RectifiedStereo:
+        raise NotImplementedError
+
+    def _rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return left, right
+
+    def truth(self) -> list[tuple[int, np.ndarray]]:
+        """(t_ns, T_world_robot) of every selected frame with ground truth, in frame order."""
+        return [(e.t_ns, e.truth_T_world_robot) for e in self.entries if e.truth_T_world_robot is not None]
+
+    def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
+        """Yield the selected frames in order; unreadable images are logged, counted and skipped."""
+        pacer = _Pacer(self.replay.realtime, self.replay.speed)
+        for e in self.entries:
+            if self._closed:
+                return
+            left, right = _read_gray(e.left), _read_gray(e.right)
+            if left is None or right is None or left.shape != right.shape:
+                self._stats["read_errors"] += 1
+                logger.warning("%s: cannot read 8-bit grey pair %s / %s; skipped", self.url, e.left, e.right)
+                continue
+            left, right = self._rectify(left, right)
+            pacer.wait(e.t_ns)
+            self._stats["frames"] += 1
+            yield StereoFrame(e.t_ns, e.seq, left, right, rectified=True, truth_T_world_robot=e.truth_T_world_robot)
+
+
+# --------------------------------------------------------------------------------------------
+# KITTI odometry
+
+
+def _kitti_calib(path: Path, size: tuple[int, int]) -> RectifiedStereo:
+    """P0/P1 of ``calib.txt`` -> the rectified rig (f, p_x, p_y, b = -P1[0,3]/P1[0,0])."""
+    rows: dict[str, np.ndarray] = {}
+    unlabelled = 0
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        # "P0: 12 numbers" in the benchmark files; some redistributions drop the labels, in P0, P1… order
+        key, sep, rest = line.partition(":")
+        if not sep:
+            key, rest, unlabelled = f"P{unlabelled}", line, unlabelled + 1
+        try:
+            rows[key.strip()] = np.array(rest.split(), dtype=float)
+        except ValueError:
+            raise DatasetError(f"{path}: row {key!r} is not 12 numbers") from None
+    missing = [k for k in ("P0", "P1") if k not in rows or rows[k].size != 12]
+    if missing:
+        raise DatasetError(f"{path}: expected rows P0: and P1: with 12 numbers each, missing/invalid {missing}")
+    P0, P1 = rows["P0"].reshape(3, 4), rows["P1"].reshape(3, 4)
+    b = -P1[0, 3] / P1[0, 0]
+    if not b > 0:
+        raise DatasetError(f"{path}: baseline -P1[0,3]/P1[0,0] = {b:.6g} m, expected > 0")
+    return RectifiedStereo(float(P0[0, 0]), float(P0[0, 2]), float(P0[1, 2]), float(b), size[0], size[1])
+
+
+def kitti_truth_to_robot(T_C0_C: np.ndarray, baseline_m: float) -> np.ndarray:
+    """KITTI left-camera poses (..., 4, 4), optical frame -> robot-frame poses T_R0_R (FRD, baseline centre).
+
+    ``T_optical_to_robot`` re-expresses both sides in FRD axes (interfaces.md §1.3); the robot
+    origin is the baseline centre, b/2 to the right of the left camera: with S the shift
+    x_R = x_Rleft - (0, b/2, 0), T_R0_R = S T_Rl0_Rl S⁻¹.
+    """
+    S = se3(np.eye(3), np.array([0.0, -baseline_m / 2.0, 0.0]))
+    return S @ T_optical_to_robot(T_C0_C) @ se3_inverse(S)
+
+
+class KittiCamera(_ImageDatasetCamera):
+    """KITTI odometry layout: image_l|image_0/, image_r|image_1/, calib.txt, optional times.txt and poses.txt."""
+
+    def __init__(self, url: str, **options: Any) -> None:
+        root, q = _split_url(url, "kitti")
+        opts = {**q, **options}
+        replay = ReplayOptions.pop_from(opts)
+        _reject_unknown(url, opts)
+        if not root.is_dir():
+            raise DatasetError(f"{url!r}: {root} is not a directory (expected a KITTI odometry sequence folder)")
+        pairs = [("image_l", "image_r"), ("image_0", "image_1")]
+        for ln, rn in pairs:
+            if (root / ln).is_dir() and (root / rn).is_dir():
+                break
+        else:
+            raise DatasetError(f"{root}: expected image_l/ + image_r/ or image_0/ + image_1/ (KITTI odometry layout)")
+        lefts = sorted(p for p in (root / ln).iterdir() if p.suffix.lower() == ".png")
+        if not lefts:
+            raise DatasetError(f"{root / ln}: expected NNNNNN.png images, found none")
+        calib = root / "calib.txt"
+        if not calib.is_file():
+            raise DatasetError(f"{root}: expected calib.txt with P0/P1 (KITTI odometry layout)")
+        first = _read_gray(lefts[0])
+        if first is None:
+            raise DatasetError(f"{lefts[0]}: not a readable 8-bit grey image")
+        self.model = _kitti_calib(calib, (first.shape[1], first.shape[0]))
+        n = len(lefts)
+        times_ns = self._times(root / "times.txt", n)
+        truth = self._poses(root / "poses.txt", n, self.model.baseline_m)
+        entries = [
+            FrameEntry(int(times_ns[i]), i, lefts[i], root / rn / lefts[i].name, None if truth is None else truth[i])
+            for i in range(n)
+        ]
+        missing = sum(not e.right.is_file() for e in entries)
+        super().__init__(url, [e for e in entries if e.right.is_file()], replay)
+        self._stats["missing_files"] = missing
+        logger.info("%s: %d KITTI pairs (%d selected), %s", url, n, len(self.entries), self.model)
+
+    @staticmethod
+    def _times(path: Path, n: int) -> np.ndarray:
+        if not path.is_file():
+            return np.arange(n, dtype=np.int64) * KITTI_DT_NS
+        t = np.loadtxt(path, dtype=float, ndmin=1)
+        if t.shape[0] < n:
+            raise DatasetError(f"{path}: expected {n} stamps (one per image), got {t.shape[0]}")
+        # seconds with 6 decimals in KITTI: round to whole microseconds before converting to ns
+        t_ns = np.round(t[:n] * 1e6).astype(np.int64) * 1000
+        if np.any(np.diff(t_ns) <= 0):
+            raise DatasetError(f"{path}: stamps are not strictly increasing")
+        return t_ns
+
+    @staticmethod
+    def _poses(path: Path, n: int, b: float) -> np.ndarray | None:
+        if not path.is_file():
+            return None
+        rows = np.loadtxt(path, dtype=float, ndmin=2)
+        if rows.shape[1] != 12 or rows.shape[0] < n:
+            raise DatasetError(f"{path}: expected {n} rows of 12 numbers (3x4 [R|t]), got {rows.shape}")
+        T = np.tile(np.eye(4), (n, 1, 1))
+        T[:, :3, :] = rows[:n].reshape(n, 3, 4)
+        # KITTI's frame 0 is the identity already; re-anchor anyway so world = robot at frame 0
+        T = se3_inverse(T[0]) @ T
+        return kitti_truth_to_robot(T, b)
+
+    def rectified_model(self) -> RectifiedStereo:
+        return self.model
+
+
+# --------------------------------------------------------------------------------------------
+# EuRoC / ASL
+
+
+def _read_sensor_yaml(path: Path) -> dict[str, Any]:
+    import yaml
+
+    if not path.is_file():
+        raise DatasetError(f"{path}: expected an ASL camera sensor.yaml (intrinsics, distortion, T_BS)")
+    text = path.read_text()
+    # OpenCV-style YAML starts with a "%YAML:1.0" directive that PyYAML rejects
+    text = re.sub(r"^%YAML:?1\.0\s*$", "", text, flags=re.M)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{path}: not valid YAML: {exc}") from None
+    for key in ("intrinsics", "distortion_coefficients", "T_BS", "resolution"):
+        if not isinstance(data, dict) or key not in data:
+            raise DatasetError(f"{path}: expected key {key!r} (ASL camera sensor.yaml)")
+    model = data.get("distortion_model", "radial-tangential")
+    if model not in ("radial-tangential", "radtan"):
+        raise DatasetError(f"{path}: distortion_model {model!r} not supported, expected radial-tangential")
+    return data
+
+
+def _euroc_list(cam_dir: Path) -> list[tuple[int, Path]]:
+    csv = cam_dir / "data.csv"
+    if not csv.is_file():
+        raise DatasetError(f"{cam_dir}: expected data.csv (ASL layout: timestamp [ns], filename)")
+    out = []
+    for k, line in enumerate(csv.read_text().splitlines()):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [p.strip() for p in line.split(",")]
+        if len(parts) < 2 or not parts[0].isdigit():
+            raise DatasetError(f"{csv}:{k + 1}: expected 'timestamp_ns,filename', got {line!r}")
+        out.append((int(parts[0]), cam_dir / "data" / parts[1]))
+    return out
+
+
+def read_euroc_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """ORB-SLAM3's EuRoC left-camera ground truth -> (t_ns (N,), T_world_cam0 (N, 4, 4)).
+
+    Rows are ``t_ns, x, y, z, qw, qx, qy, qz`` (stamps may carry a ``.000`` fraction: parsed as
+    integers, never through float, which would lose the last digits of a 19-digit stamp).
+    Quirk, checked against the EuRoC Vicon body ground truth at the same stamp composed with
+    ``T_BS`` of cam0 and against the IMU's gravity direction: the stored quaternion is the
+    **conjugate** of the camera-to-world rotation (the position is the camera centre in world),
+    so R_world_cam = quat_to_R(q)ᵀ.
+    """
+    ts: list[int] = []
+    rows: list[list[float]] = []
+    for k, line in enumerate(path.read_text().splitlines()):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise DatasetError(f"{path}:{k + 1}: expected 8 values (t_ns, x, y, z, qw, qx, qy, qz), got {len(parts)}")
+        ts.append(int(parts[0].split(".")[0]))
+        rows.append([float(v) for v in parts[1:]])
+    a = np.array(rows, dtype=float).reshape(-1, 7)
+    R = np.swapaxes(quat_to_R(a[:, 3:7]), -1, -2)
+    return np.array(ts, dtype=np.int64), se3(R, a[:, :3])
+
+
+class EurocCamera(_ImageDatasetCamera):
+    """ASL/EuRoC layout: ``mav0/cam0|cam1/{data.csv, data/*.png, sensor.yaml}``; raw images rectified here."""
+
+    def __init__(self, url: str, **options: Any) -> None:
+        root, q = _split_url(url, "euroc")
+        opts = {**q, **options}
+        replay = ReplayOptions.pop_from(opts)
+        alpha = _as_float("alpha", opts.pop("alpha", 0.0), -1.0)
+        tol_ns = _as_int("pair_tolerance_ns", opts.pop("pair_tolerance_ns", 1_000_000), 0)
+        _reject_unknown(url, opts, ("alpha", "pair_tolerance_ns"))
+        if not root.is_dir():
+            raise DatasetError(f"{url!r}: {root} is not a directory (expected an ASL/EuRoC folder with mav0/)")
+        mav = root / "mav0" if (root / "mav0").is_dir() else root
+        for cam in ("cam0", "cam1"):
+            if not (mav / cam).is_dir():
+                raise DatasetError(f"{mav}: expected {cam}/ (ASL layout mav0/cam0, mav0/cam1)")
+        s0, s1 = _read_sensor_yaml(mav / "cam0" / "sensor.yaml"), _read_sensor_yaml(mav / "cam1" / "sensor.yaml")
+        self.calibration = self._calibration(s0, s1, str(mav))
+        self.rectifier = Rectifier(self.calibration, alpha=alpha)
+        self.model = self.rectifier.model
+        self._T_R_C0 = T_robot_leftraw(self.rectifier.rectification.R1, self.model.baseline_m)
+
+        left, right = _euroc_list(mav / "cam0"), _euroc_list(mav / "cam1")
+        missing = sum(not p.is_file() for _, p in left) + sum(not p.is_file() for _, p in right)
+        left = [(t, p) for t, p in left if p.is_file()]
+        right = [(t, p) for t, p in right if p.is_file()]
+        pairs = self._pair(left, right, tol_ns)
+        truth = self._truth(root, [t for t, _, _ in pairs])
+        entries = [FrameEntry(t, i, lp, rp, truth.get(t)) for i, (t, lp, rp) in enumerate(pairs)]
+        super().__init__(url, entries, replay)
+        self._stats["missing_files"] = missing
+        self._stats["unpaired"] = len(left) + len(right) - 2 * len(pairs)
+        logger.info(
+            "%s: %d pairs (%d selected), %d listed files missing, %d unpaired, truth for %d; %s",
+            url, len(pairs), len(self.entries), missing, self._stats["unpaired"], len(truth), self.model,
+        )  # fmt: skip
+
+    @staticmethod
+    def _calibration(s0: dict[str, Any], s1: dict[str, Any], where: str) -> Any:
+        def K(s: dict[str, Any]) -> np.ndarray:
+            fu, fv, cu, cv = (float(v) for v in s["intrinsics"])
+            return np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
+
+        def T_BS(s: dict[str, Any]) -> np.ndarray:
+            T = np.asarray(s["T_BS"]["data"] if isinstance(s["T_BS"], dict) else s["T_BS"], dtype=float)
+            if T.size != 16:
+                raise DatasetError(f"{where}: T_BS must have 16 values, got {T.size}")
+            return T.reshape(4, 4)
+
+        if tuple(s0["resolution"]) != tuple(s1["resolution"]):
+            raise DatasetError(f"{where}: cam0/cam1 resolutions differ: {s0['resolution']} vs {s1['resolution']}")
+        # x_cam1 = T_C1_C0 x_cam0 with T_Ci = T_B_Ci (T_BS): T_C1_C0 = T_BS1⁻¹ T_BS0
+        T_10 = se3_inverse(T_BS(s1)) @ T_BS(s0)
+        return StereoCalibration(
+            K_left=K(s0),
+            D_left=np.asarray(s0["distortion_coefficients"], dtype=float),
+            K_right=K(s1),
+            D_right=np.asarray(s1["distortion_coefficients"], dtype=float),
+            R=T_10[:3, :3],
+            T=T_10[:3, 3],
+            image_size=(int(s0["resolution"][0]), int(s0["resolution"][1])),
+            distortion_model="radtan",
+            source=f"euroc sensor.yaml ({where})",
+        )
+
+    @staticmethod
+    def _pair(left: list[tuple[int, Path]], right: list[tuple[int, Path]], tol_ns: int) -> list[tuple[int, Path, Path]]:
+        """Pair each left stamp with the nearest right stamp within ``tol_ns``; unmatched rows drop."""
+        if not left or not right:
+            return []
+        rt = np.array([t for t, _ in right], dtype=np.int64)
+        order = np.argsort(rt)
+        rt = rt[order]
+        out, used = [], set()
+        for t, lp in sorted(left):
+            k = int(np.searchsorted(rt, t))
+            cands = [j for j in (k - 1, k) if 0 <= j < rt.size]
+            j = min(cands, key=lambda j: abs(int(rt[j]) - t))
+            if abs(int(rt[j]) - t) <= tol_ns and j not in used:
+                used.add(j)
+                out.append((t, lp, right[int(order[j])][1]))
+        return out
+
+    def _truth(self, root: Path, stamps: list[int]) -> dict[int, np.ndarray]:
+        path = root / "groundtruth_orbslam3" / "V101_GT_left_cam.txt"
+        if not path.is_file():
+            cands = sorted((root / "groundtruth_orbslam3").glob("*_left_cam.txt")) if root.is_dir() else []
+            if not cands:
+                return {}
+            path = cands[0]
+        t_gt, T_W_C = read_euroc_truth(path)
+        if t_gt.size == 0:
+            return {}
+        # camera stamps and ground-truth stamps coincide in this file; accept 1 ms of jitter
+        idx = np.searchsorted(t_gt, stamps)
+        found: dict[int, np.ndarray] = {}
+        for t, k in zip(stamps, idx):
+            for j in (k - 1, k):
+                if 0 <= j < t_gt.size and abs(int(t_gt[j]) - t) <= 1_000_000:
+                    found[t] = T_W_C[j]
+                    break
+        if not found:
+            return {}
+        # world = robot frame at the first frame with truth: T_R0_R = T_R_C (T_W_C0⁻¹ T_W_C) T_R_C⁻¹
+        first = min(found)
+        T_C0w = se3_inverse(found[first])
+        A, Ainv = self._T_R_C0, se3_inverse(self._T_R_C0)
+        return {t: A @ (T_C0w @ T) @ Ainv for t, T in found.items()}
+
+    def _rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.rectifier.rectify(left, right)  # type: ignore[no-any-return]
+
+    def rectified_model(self) -> RectifiedStereo:
+        return self.model  # type: ignore[no-any-return]
+
+
+# --------------------------------------------------------------------------------------------
+# Vehicle links for replay
+
+
+GT_SIGMA_VEL_MPS = 0.05  # default white noise on synthesised velocities (per axis, per sample)
+GT_SIGMA_RATE_RADPS = 0.005  # default white noise on synthesised body rates
+
+
+@dataclass(frozen=True, slots=True)
+class GtOdometryNoise:
+    """Noise added to ground-truth-synthesised odometry (white, per sample, robot frame FRD)."""
+
+    sigma_vel_mps: float = GT_SIGMA_VEL_MPS
+    sigma_rate_radps: float = GT_SIGMA_RATE_RADPS
+
+
+def odometry_from_truth(
+    truth: list[tuple[int, np.ndarray]], rng: np.random.Generator | None, noise: GtOdometryNoise = GtOdometryNoise()
+) -> list[Odometry]:
+    """Velocities from consecutive ground-truth poses, one sample per interval (experiments only).
+
+    For poses T_k, T_{k+1} (world <- robot) at t_k < t_{k+1}: ΔT = T_k⁻¹ T_{k+1} (robot frame at
+    t_k), v = Δp / Δt and ω = log(ΔR) / Δt (constant body rates over the interval). The sample
+    is stamped t_k and holds over [t_k, t_{k+1}) (zero-order hold, like a wheel-speed message).
+    Gaussian noise of ``noise`` is added when ``rng`` is given. ``source="gt-synthetic"``.
+    """
+    out: list[Odometry] = []
+    for (t0, T0), (t1, T1) in itertools.pairwise(truth):
+        dt = (t1 - t0) * 1e-9
+        if dt <= 0:
+            continue
+        dT = se3_inverse(T0) @ T1
+        v = dT[:3, 3] / dt
+        w = so3_log(dT[:3, :3]) / dt
+        if rng is not None:
+            v = v + rng.normal(0.0, noise.sigma_vel_mps, 3)
+            w = w + rng.normal(0.0, noise.sigma_rate_radps, 3)
+        out.append(Odometry(int(t0), np.asarray(v, float), np.asarray(w, float), source="gt-synthetic"))
+    return out
+
+
+class DatasetVehicle:
+    """A :class:`drivers.VehicleLink` for replay: visual only by default, or a list of samples.
+
+    Visual only (``samples=[]``) means **no odometry at all**: ``odometry()`` returns at once and
+    the pipeline predicts with its constant-velocity model. ``send_pose`` only counts calls.
+    """
+
+    def __init__(self, url: str, samples: list[Odometry] | None = None, realtime: bool = False) -> None:
+        self.url = url
+        self.samples = samples or []
+        self.realtime = realtime
+        self._closed = False
+        self._stats: dict[str, Any] = {"odometry": 0, "poses_sent": 0, "mode": "replay" if samples else "visual-only"}
+
+    def __enter__(self) -> DatasetVehicle:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
+        pacer = _Pacer(self.realtime, 1.0)
+        for s in self.samples:
+            if self._closed:
+                return
+            pacer.wait(s.t_ns)
+            self._stats["odometry"] += 1
+            yield s
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        self._stats["poses_sent"] += 1
+
+    def close(self) -> None:
+        self._closed = True
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self._stats)
+
+
+def _dataset_vehicle(camera: _ImageDatasetCamera, url: str, opts: dict[str, Any]) -> DatasetVehicle:
+    gt = _as_bool("gt_odometry", opts.pop("gt_odometry", False))
+    seed = _as_int("seed", opts.pop("seed", 0))
+    noise = GtOdometryNoise(
+        _as_float("sigma_vel_mps", opts.pop("sigma_vel_mps", GT_SIGMA_VEL_MPS), 0.0),
+        _as_float("sigma_rate_radps", opts.pop("sigma_rate_radps", GT_SIGMA_RATE_RADPS), 0.0),
+    )
+    if not gt:
+        return DatasetVehicle(url)
+    truth = camera.truth()
+    if len(truth) < 2:
+        raise DatasetError(f"{url!r}: gt_odometry needs ground truth for at least 2 frames, found {len(truth)}")
+    logger.warning("%s: odometry SYNTHESISED FROM GROUND TRUTH (experiments only), noise %s seed %d", url, noise, seed)
+    return DatasetVehicle(url, odometry_from_truth(truth, np.random.default_rng(seed), noise), camera.replay.realtime)
+
+
+_VEHICLE_KEYS = ("gt_odometry", "seed", "sigma_vel_mps", "sigma_rate_radps")
+
+
+def _split_vehicle_options(url: str, scheme: str, options: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    _, q = _split_url(url, scheme)
+    merged = {**q, **options}
+    veh = {k: merged.pop(k) for k in _VEHICLE_KEYS if k in merged}
+    return merged, veh
+
+
+# --------------------------------------------------------------------------------------------
+# Factories named in drivers.__init__
+
+
+def open_kitti(url: str, **options: Any) -> KittiCamera:
+    """``kitti://DIR[?start=&stop=&stride=&realtime=]`` -> a replaying :class:`KittiCamera`."""
+    return KittiCamera(url, **options)
+
+
+def open_euroc(url: str, **options: Any) -> EurocCamera:
+    """``euroc://DIR[?start=&stop=&stride=&realtime=&alpha=]`` -> a replaying :class:`EurocCamera`."""
+    return EurocCamera(url, **options)
+
+
+def open_kitti_vehicle(url: str, **options: Any) -> DatasetVehicle:
+    """Vehicle for ``kitti://DIR``: visual only, or ``gt_odometry=True`` (+ ``seed``, sigmas) for experiments."""
+    cam_opts, veh = _split_vehicle_options(url, "kitti", options)
+    return _dataset_vehicle(KittiCamera(url.split("?")[0], **cam_opts), url, veh)
+
+
+def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
+    """Vehicle for ``euroc://DIR``: visual only, or ``gt_odometry=True`` for experiments."""
+    cam_opts, veh = _split_vehicle_options(url, "euroc", options)
+    return _dataset_vehicle(EurocCamera(url.split("?")[0], **cam_opts), url, veh)
