@@ -157,6 +157,7 @@ class SerialVehicle:
                 "poses_dropped",
                 "tx_errors",
                 "version_mismatch",
+                "tick_intervals_rejected",
             ),
             0,
         )
@@ -303,6 +304,7 @@ class SerialVehicle:
                 return
             dt_us = now_us - prev[0]
             if dt_us <= 0 or dt_us > self.opts.max_tick_interval_s * 1e6:
+                self._counters["tick_intervals_rejected"] += 1
                 return
             k = self.geometry.m_per_tick / (dt_us * 1e-6)
             v, w = diff_drive(tick_delta(prev[1], msg.ticks_l) * k, tick_delta(prev[2], msg.ticks_r) * k, W)
