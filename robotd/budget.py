@@ -1,0 +1,143 @@
+"""Latency budget: stage timings, a per-frame deadline and a degradation policy that recovers.
+
+Degradation order (design.md §4): (1) cap features, halving down to ``min_features``; (2) reduce
+particles, halving down to ``min_particles``; (3) skip frames (process one in 2, then 1 in 3, …).
+A frame over its deadline, or a smoothed load above 90 % of it, moves one step down the ladder;
+``recover_after_frames`` consecutive frames below 60 % move one step back up. The daemon's
+bounded drop-oldest queues keep latency bounded meanwhile; the budget keeps the queues short.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+DEGRADE_LOAD = 0.9
+RECOVER_LOAD = 0.6
+EWMA_ALPHA = 0.2
+
+
+@dataclass(frozen=True, slots=True)
+class BudgetState:
+    """What the pipeline should do for the next frame."""
+
+    level: int  # 0 = nominal
+    max_features: int
+    n_particles: int
+    skip_every: int  # process one frame in skip_every (1 = every frame)
+
+
+class StageTimer:
+    """Rolling per-stage latency percentiles (last ``window`` frames)."""
+
+    def __init__(self, window: int = 300) -> None:
+        self.window = window
+        self._stages: dict[str, deque[float]] = {}
+
+    def add(self, stage: str, ms: float) -> None:
+        self._stages.setdefault(stage, deque(maxlen=self.window)).append(float(ms))
+
+    def percentiles(self) -> dict[str, dict[str, float]]:
+        out: dict[str, dict[str, float]] = {}
+        for k, v in self._stages.items():
+            if v:
+                a = np.fromiter(v, float)
+                out[k] = {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "n": len(a)}
+        return out
+
+
+class LatencyBudget:
+    def __init__(
+        self,
+        deadline_ms: float,
+        max_features: int,
+        n_particles: int,
+        min_features: int,
+        min_particles: int,
+        recover_after_frames: int = 30,
+        max_skip: int = 4,
+    ) -> None:
+        if deadline_ms <= 0:
+            raise ValueError(f"deadline_ms: expected > 0, got {deadline_ms}")
+        self.deadline_ms = float(deadline_ms)
+        # the ladder of states, nominal first
+        ladder: list[tuple[int, int, int]] = [(max_features, n_particles, 1)]
+        f, p = max_features, n_particles
+        while f > min_features:
+            f = max(min_features, f // 2)
+            ladder.append((f, p, 1))
+        while p > min_particles:
+            p = max(min_particles, p // 2)
+            ladder.append((f, p, 1))
+        for k in range(2, max_skip + 1):
+            ladder.append((f, p, k))
+        self._ladder = ladder
+        self.level = 0
+        self.recover_after = recover_after_frames
+        self._under = 0
+        self._ewma: float | None = None
+        self.deadline_misses = 0
+        self.frames = 0
+        self.skipped = 0
+        self.degrade_events = 0
+        self.recover_events = 0
+        self._frame_counter = 0
+
+    @property
+    def state(self) -> BudgetState:
+        f, p, k = self._ladder[self.level]
+        return BudgetState(self.level, f, p, k)
+
+    @property
+    def max_level(self) -> int:
+        return len(self._ladder) - 1
+
+    def should_process(self) -> bool:
+        """Frame skipping (the last rung): call once per arriving frame."""
+        self._frame_counter += 1
+        k = self.state.skip_every
+        if k > 1 and self._frame_counter % k:
+            self.skipped += 1
+            return False
+        return True
+
+    def record(self, frame_ms: float) -> BudgetState:
+        """Account one processed frame's work; returns the state for the next frame."""
+        self.frames += 1
+        self._ewma = frame_ms if self._ewma is None else (1 - EWMA_ALPHA) * self._ewma + EWMA_ALPHA * frame_ms
+        over = frame_ms > self.deadline_ms
+        if over:
+            self.deadline_misses += 1
+        if (over or self._ewma > DEGRADE_LOAD * self.deadline_ms) and self.level < self.max_level:
+            self.level += 1
+            self.degrade_events += 1
+            self._under = 0
+            # after a step down, judge the new level on fresh data
+            self._ewma = min(self._ewma, DEGRADE_LOAD * self.deadline_ms * 0.99)
+        elif self._ewma < RECOVER_LOAD * self.deadline_ms and self.level > 0:
+            self._under += 1
+            if self._under >= self.recover_after:
+                self.level -= 1
+                self.recover_events += 1
+                self._under = 0
+        else:
+            self._under = 0
+        return self.state
+
+    def health(self) -> dict[str, object]:
+        s = self.state
+        return {
+            "deadline_ms": self.deadline_ms,
+            "level": s.level,
+            "max_level": self.max_level,
+            "max_features": s.max_features,
+            "n_particles": s.n_particles,
+            "skip_every": s.skip_every,
+            "load_ms": None if self._ewma is None else round(self._ewma, 3),
+            "deadline_misses": self.deadline_misses,
+            "skipped_frames": self.skipped,
+            "degrade_events": self.degrade_events,
+            "recover_events": self.recover_events,
+        }

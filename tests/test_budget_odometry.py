@@ -1,0 +1,105 @@
+"""Latency budget ladder, odometry integration to frame times, drop-oldest queues."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from robotd.budget import LatencyBudget, StageTimer
+from robotd.geometry import so3_exp, so3_log
+from robotd.msgs import Odometry
+from robotd.odometry import OdometryIntegrator
+from robotd.queues import DropOldestQueue
+
+
+def test_budget_degrades_in_the_stated_order_and_recovers() -> None:
+    b = LatencyBudget(
+        33.0, max_features=1000, n_particles=100, min_features=250, min_particles=20, recover_after_frames=5, max_skip=3
+    )
+    states = [b.state]
+    for _ in range(b.max_level + 3):  # persistent overload walks down the whole ladder
+        states.append(b.record(80.0))
+    feats = [s.max_features for s in states]
+    parts = [s.n_particles for s in states]
+    skips = [s.skip_every for s in states]
+    # features first (down to the floor), then particles (down to the floor), then frame skipping
+    first_particle_drop = next(i for i, p in enumerate(parts) if p < 100)
+    first_skip = next(i for i, k in enumerate(skips) if k > 1)
+    assert feats[first_particle_drop - 1] == 250 and first_particle_drop < first_skip
+    assert parts[first_skip - 1] == 20 and states[-1].skip_every == 3
+    assert b.deadline_misses == b.max_level + 3
+    # load falls: one step back up per `recover_after_frames` quiet frames, all the way to nominal
+    for _ in range(5 * b.max_level + 10):  # a few frames first for the smoothed load to fall
+        b.record(5.0)
+    assert b.state.level == 0 and b.state.max_features == 1000 and b.state.n_particles == 100
+    assert b.recover_events == b.max_level
+
+
+def test_frame_skipping_keeps_one_in_k() -> None:
+    b = LatencyBudget(10.0, 100, 10, 100, 10, max_skip=3)
+    for _ in range(10):
+        b.record(100.0)
+    assert b.state.skip_every == 3
+    kept = sum(b.should_process() for _ in range(30))
+    assert kept == 10 and b.skipped == 20
+
+
+def test_stage_timer_percentiles() -> None:
+    t = StageTimer(window=100)
+    for v in range(1, 201):
+        t.add("detect", float(v))
+    p = t.percentiles()["detect"]
+    assert p["n"] == 100 and p["p50"] == pytest.approx(150.5) and p["p99"] > 199
+
+
+def _feed(integ: OdometryIntegrator, v: np.ndarray, w: np.ndarray, t0: int, t1: int, hz: int = 100) -> None:
+    for t in range(t0, t1 + 1, int(1e9 / hz)):
+        integ.add(Odometry(t, v, w))
+
+
+def test_integration_of_constant_twist_is_exact() -> None:
+    integ = OdometryIntegrator()
+    v, w = np.array([1.0, 0.1, 0.0]), np.array([0.0, 0.0, 0.5])
+    _feed(integ, v, w, 0, 2_000_000_000)
+    inc = integ.integrate(200_000_000, 1_200_000_000)
+    assert inc is not None
+    # exact SE(3) exponential of the constant twist over 1 s, from the closed form of a planar arc
+    th = 0.5
+    R = so3_exp(np.array([0, 0, th]))
+    V = np.array([[np.sin(th) / th, -(1 - np.cos(th)) / th, 0], [(1 - np.cos(th)) / th, np.sin(th) / th, 0], [0, 0, 1]])
+    assert np.allclose(inc.dp_R_m, V @ v, atol=1e-4)
+    assert np.allclose(inc.drot_R_rad, so3_log(R), atol=1e-9)
+    assert inc.dt_s == pytest.approx(1.0)
+
+
+def test_integration_refuses_gaps_and_uncovered_intervals() -> None:
+    integ = OdometryIntegrator(max_gap_s=0.2)
+    assert integ.integrate(0, 10) is None  # nothing yet
+    _feed(integ, np.ones(3), np.zeros(3), 0, 1_000_000_000)
+    _feed(integ, np.ones(3), np.zeros(3), 2_000_000_000, 3_000_000_000)  # 1 s hole
+    assert integ.integrate(100_000_000, 900_000_000) is not None
+    assert integ.integrate(800_000_000, 2_200_000_000) is None  # spans the hole
+    assert integ.integrate(2_900_000_000, 4_000_000_000) is None  # runs past the data
+    assert integ.gaps == 2
+    integ.add(Odometry(5, np.zeros(3), np.zeros(3)))  # late sample: dropped, counted
+    assert integ.out_of_order == 1
+
+
+def test_drop_oldest_queue_counts_and_never_blocks() -> None:
+    q: DropOldestQueue[int] = DropOldestQueue(3)
+    for i in range(10):
+        q.put(i)
+    assert q.dropped == 7 and q.drain() == [7, 8, 9]
+    assert q.get(timeout=0.01) is None
+    got: list[int | None] = []
+    th = threading.Thread(target=lambda: got.append(q.get(timeout=5)))
+    th.start()
+    time.sleep(0.05)
+    q.close()
+    th.join(1)
+    assert not th.is_alive() and got == [None]
+    with pytest.raises(ValueError):
+        DropOldestQueue(0)
