@@ -1,0 +1,239 @@
+"""Landmark identification: match a frame's measurements to map landmarks by descriptor (algorithms.md §4.3).
+
+The :class:`LandmarkDatabase` holds what is global to the map and shared by every FastSLAM
+particle: landmark ids, one descriptor per landmark (the left descriptor of its most recent
+accepted observation) and an existence counter. Positions and covariances are the filter's
+business; the caller passes them when it wants the outlier stage to check the matches.
+
+Outcome per measurement (``Correspondences.status``): IDENTIFIED (matched, passed the outlier
+stage: update landmark ``ids[i]``), NEW (no descriptor match: initialise a landmark, which gets a
+fresh global id), REJECTED (matched but failed the outlier stage, or ambiguous: neither update
+nor initialise in this frame, which avoids duplicate landmarks).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robotd.errors import ConfigError, InputError
+from robotd.frontend.stereo_match import distance_matrix, ratio_and_cross_check
+
+logger = logging.getLogger(__name__)
+
+IDENTIFIED, NEW, REJECTED = 0, 1, 2
+
+
+@dataclass(frozen=True, slots=True)
+class AssociationParams:
+    """Map-matching configuration (config key ``frontend.association``; algorithms.md §4.3, §5.5).
+
+    ratio: τ_r (None: 0.8 float descriptors, 0.75 binary). max_dist_float / max_dist_binary:
+      absolute limit on the best distance (unit-normalised Euclidean; Hamming bits); a measurement
+      whose nearest landmark is farther is NEW. Above it but failing the ratio test or the
+      cross-check the match is ambiguous: REJECTED when ``ambiguous_is_rejected`` (no duplicate
+      landmark is made for something the map may already hold), else NEW.
+    cross_check: keep mutual best matches only.
+    """
+
+    ratio: float | None = None
+    max_dist_float: float = 0.45
+    max_dist_binary: float = 60.0
+    cross_check: bool = True
+    ambiguous_is_rejected: bool = True
+
+    def __post_init__(self) -> None:
+        if self.ratio is not None and not 0.0 < self.ratio <= 1.0:
+            raise ConfigError(f"frontend.association.ratio: expected in (0, 1], got {self.ratio}")
+        if self.max_dist_float <= 0 or self.max_dist_binary <= 0:
+            raise ConfigError(
+                "frontend.association.max_dist_float/max_dist_binary: expected > 0, got "
+                f"{self.max_dist_float}, {self.max_dist_binary}"
+            )
+
+
+@dataclass(slots=True, eq=False)
+class Correspondences:
+    """The correspondence vector c_t of one frame (algorithms.md §4.3).
+
+    status: (N,) int8 IDENTIFIED / NEW / REJECTED per measurement; ids: (N,) int64 global landmark
+    id (the matched landmark for IDENTIFIED and REJECTED-after-match, the new id for NEW once
+    :meth:`LandmarkDatabase.commit` ran, −1 otherwise); dist: (N,) descriptor distance to the
+    matched landmark (inf when none).
+    """
+
+    status: np.ndarray
+    ids: np.ndarray
+    dist: np.ndarray
+    stats: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.status.shape[0])
+
+    @property
+    def matched(self) -> np.ndarray:
+        """(N,) True for measurements with a putative map match (input of the outlier stage)."""
+        return self.ids >= 0
+
+    def reject(self, mask: np.ndarray) -> None:
+        """Mark the measurements in ``mask`` (N,) bool as REJECTED (they failed the outlier stage)."""
+        self.status[mask] = REJECTED
+
+
+class LandmarkDatabase:
+    """Global landmark ids, descriptors and existence counters (shared by all particles).
+
+    Descriptors are stored normalised (:func:`robotd.frontend.stereo_match.normalise_descriptors`).
+    Ids are never reused; rows are kept in creation order.
+    """
+
+    def __init__(self, dim: int, binary: bool, first_id: int = 0) -> None:
+        self.dim = int(dim)
+        self.binary = bool(binary)
+        self.ids = np.zeros(0, np.int64)  # (M,)
+        self.desc = np.zeros((0, self.dim), np.uint8 if binary else np.float32)  # (M, D)
+        self.existence = np.zeros(0, np.int32)  # (M,) +1 per identification, −1 per predicted miss
+        self.next_id = int(first_id)
+
+    @property
+    def n(self) -> int:
+        return int(self.ids.shape[0])
+
+    def rows(self, ids: np.ndarray) -> np.ndarray:
+        """Row index of each id (ids must exist; ids are sorted because they are never reused)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        r = np.searchsorted(self.ids, ids)
+        r = np.minimum(r, max(self.n - 1, 0))
+        if ids.size and (self.n == 0 or np.any(self.ids[r] != ids)):
+            missing = ids if self.n == 0 else ids[self.ids[r] != ids]
+            raise InputError(f"LandmarkDatabase: unknown landmark ids {missing[:10].tolist()}")
+        return r
+
+    def contains(self, ids: np.ndarray) -> np.ndarray:
+        """(K,) True where the id is in the database."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if self.n == 0:
+            return np.zeros(ids.shape, bool)
+        r = np.minimum(np.searchsorted(self.ids, ids), self.n - 1)
+        return self.ids[r] == ids
+
+    def add(self, desc: np.ndarray) -> np.ndarray:
+        """Append landmarks with descriptors (K, D); returns their new global ids (K,)."""
+        desc = np.asarray(desc)
+        if desc.ndim != 2 or desc.shape[1] != self.dim:
+            raise InputError(f"LandmarkDatabase.add: expected descriptors (K, {self.dim}), got {desc.shape}")
+        k = desc.shape[0]
+        new_ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
+        self.next_id += k
+        self.ids = np.r_[self.ids, new_ids]
+        self.desc = np.concatenate([self.desc, desc.astype(self.desc.dtype)])
+        self.existence = np.r_[self.existence, np.ones(k, np.int32)]
+        return new_ids
+
+    def update(self, ids: np.ndarray, desc: np.ndarray) -> None:
+        """Replace the descriptors of identified landmarks (latest accepted observation) and count them."""
+        r = self.rows(ids)
+        self.desc[r] = desc
+        self.existence[r] += 1
+
+    def mark_missed(self, ids: np.ndarray) -> None:
+        """Decrement the existence counter of landmarks predicted visible but not identified."""
+        if len(ids):
+            self.existence[self.rows(ids)] -= 1
+
+    def remove(self, ids: np.ndarray) -> None:
+        """Delete landmarks (e.g. the filter pruned them)."""
+        keep = ~np.isin(self.ids, np.asarray(ids, dtype=np.int64))
+        self.ids, self.desc, self.existence = self.ids[keep], self.desc[keep], self.existence[keep]
+
+    def prune(self, min_existence: int) -> np.ndarray:
+        """Remove and return the ids whose existence counter fell below ``min_existence``."""
+        gone = self.ids[self.existence < min_existence]
+        self.remove(gone)
+        return gone
+
+    def identify(
+        self,
+        desc: np.ndarray,
+        candidate_ids: np.ndarray | None = None,
+        params: AssociationParams | None = None,
+    ) -> Correspondences:
+        """Match measurement descriptors (N, D) (normalised) to landmarks (§4.3).
+
+        ``candidate_ids``: restrict the search to these landmarks (e.g. those predicted inside the
+        field of view, or those whose positions the caller knows); None: all landmarks. Brute force
+        over candidates, ratio test and cross-check as for stereo. Returns statuses IDENTIFIED (a
+        putative match the outlier stage must still confirm), NEW or REJECTED (ambiguous).
+        """
+        params = params or AssociationParams()
+        desc = np.asarray(desc)
+        n = desc.shape[0]
+        if n and (desc.ndim != 2 or desc.shape[1] != self.dim):
+            raise InputError(f"LandmarkDatabase.identify: expected descriptors (N, {self.dim}), got {desc.shape}")
+        status = np.full(n, NEW, np.int8)
+        ids = np.full(n, -1, np.int64)
+        dist = np.full(n, np.inf, np.float32)
+        if candidate_ids is None:
+            rows = np.arange(self.n)
+        else:
+            cand = np.asarray(candidate_ids, dtype=np.int64)
+            known = self.contains(cand)
+            if not np.all(known):
+                logger.debug("identify: %d candidate ids not in the database ignored", int(np.sum(~known)))
+            rows = self.rows(cand[known])
+        stats = {"candidates": int(rows.size), "matched": 0, "ambiguous": 0, "new": n}
+        if n == 0 or rows.size == 0:
+            return Correspondences(status, ids, dist, stats)
+        D = distance_matrix(desc, self.desc[rows], self.binary)  # (N, C)
+        ratio = params.ratio if params.ratio is not None else (0.75 if self.binary else 0.8)
+        max_d = params.max_dist_binary if self.binary else params.max_dist_float
+        # nearest landmark per measurement decides NEW (too far) against "something similar exists"
+        nearest = D.min(axis=1)
+        near = nearest <= max_d
+        # dense pairs under the absolute limit, then the shared ratio/cross-check selector
+        ii, jj = np.nonzero(D <= max_d)
+        dd = D[ii, jj]
+        # the ratio test must see the true second-nearest, even when it lies above the limit
+        second = np.partition(D, 1, axis=1)[:, 1] if D.shape[1] > 1 else np.full(n, np.inf)
+        sel, st = ratio_and_cross_check(ii, jj, dd, rows.size, ratio, max_d, params.cross_check)
+        i_sel, j_sel, d_sel = ii[sel], jj[sel], dd[sel]
+        ok = d_sel < ratio * second[i_sel]
+        i_sel, j_sel, d_sel = i_sel[ok], j_sel[ok], d_sel[ok]
+        status[i_sel] = IDENTIFIED
+        ids[i_sel] = self.ids[rows[j_sel]]
+        dist[i_sel] = d_sel
+        ambiguous = near & (status != IDENTIFIED)
+        if params.ambiguous_is_rejected:
+            status[ambiguous] = REJECTED
+        stats.update(
+            matched=int(i_sel.size),
+            ambiguous=int(ambiguous.sum()),
+            new=int(np.sum(status == NEW)),
+            ratio_rejected=st["ratio_rejected"],
+            cross_rejected=st["cross_rejected"],
+        )
+        logger.debug(
+            "identify: %d measurements vs %d landmarks: %d matched, %d ambiguous, %d new",
+            n,
+            rows.size,
+            stats["matched"],
+            stats["ambiguous"],
+            stats["new"],
+        )
+        return Correspondences(status, ids, dist, stats)
+
+    def commit(self, corr: Correspondences, desc: np.ndarray) -> None:
+        """Apply a frame's decisions: IDENTIFIED landmarks take the new descriptor and count +1;
+        NEW measurements get fresh ids (written into ``corr.ids``); REJECTED are left alone.
+        """
+        ident = corr.status == IDENTIFIED
+        if np.any(ident):
+            self.update(corr.ids[ident], desc[ident])
+        new = corr.status == NEW
+        if np.any(new):
+            corr.ids[new] = self.add(desc[new])
+        rej = corr.status == REJECTED
+        corr.ids[rej] = -1

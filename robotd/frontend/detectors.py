@@ -1,0 +1,246 @@
+"""Feature detectors behind one interface: ORB (fast default), SIFT (OpenCV), SURF (robotd's own).
+
+``make_detector(params).detect(image, max_features) -> Features`` (algorithms.md §4.1). A per-frame
+cap keeps the cost bounded; grid bucketing spreads the kept features over the image, which matters
+for the outlier stage and the filters: a cluster of features on one parked car constrains the pose
+far less than the same number spread over the view.
+
+Descriptor conventions are those of :class:`robotd.frontend.features.Features`: SIFT (128-D) and
+SURF (64-D) float32 with Euclidean distance, ORB 32-byte packed bits with Hamming distance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+
+from robotd.errors import ConfigError, InputError
+from robotd.frontend.features import Features
+
+logger = logging.getLogger(__name__)
+
+DETECTOR_NAMES = ("orb", "sift", "surf")
+
+
+@dataclass(frozen=True, slots=True)
+class DetectorParams:
+    """Detector configuration (config key ``frontend.detector``).
+
+    name: "orb" (default: ≈4 ms per KITTI frame), "sift" (OpenCV SIFT, ≈50 ms) or "surf" (robotd's).
+    max_features: per-frame cap after bucketing.
+    bucketing: keep the strongest features per cell of a grid_rows × grid_cols grid, so that the
+      kept features cover the image (cell quota = ceil(max_features / cells); unused quota of
+      sparse cells is refilled with the strongest remaining features).
+    oversample: how many candidates (× max_features) the detector may return before bucketing.
+    orb_*: cv2.ORB knobs (FAST threshold, pyramid scale factor and levels, patch size).
+    sift_*: cv2.SIFT knobs (contrast and edge thresholds, layers per octave).
+    surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default).
+    """
+
+    name: str = "orb"
+    max_features: int = 1000
+    bucketing: bool = True
+    grid_rows: int = 4
+    grid_cols: int = 8
+    oversample: float = 4.0
+    orb_fast_threshold: int = 12
+    orb_scale_factor: float = 1.2
+    orb_n_levels: int = 8
+    orb_patch_size: int = 31
+    sift_contrast_threshold: float = 0.02
+    sift_edge_threshold: float = 10.0
+    sift_n_octave_layers: int = 3
+    surf_hessian_threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.name not in DETECTOR_NAMES:
+            raise ConfigError(f"frontend.detector.name: expected one of {DETECTOR_NAMES}, got {self.name!r}")
+        if self.max_features < 1:
+            raise ConfigError(f"frontend.detector.max_features: expected >= 1, got {self.max_features}")
+        if self.grid_rows < 1 or self.grid_cols < 1:
+            raise ConfigError(
+                f"frontend.detector.grid_rows/grid_cols: expected >= 1, got {self.grid_rows}×{self.grid_cols}"
+            )
+        if self.oversample < 1.0:
+            raise ConfigError(f"frontend.detector.oversample: expected >= 1, got {self.oversample}")
+
+
+class Detector(Protocol):
+    """Detect and describe features of one grey image."""
+
+    name: str
+    binary: bool  # True: packed-bit descriptors (Hamming); False: float32 (Euclidean)
+
+    def detect(self, image: np.ndarray, max_features: int | None = None) -> Features:
+        """(H, W) uint8 image -> at most ``max_features`` (default: params.max_features) features."""
+        ...
+
+
+def check_image(image: Any, name: str = "image") -> np.ndarray:
+    """Validate a grey image at the border: (H, W) uint8 (an (H, W, 3) BGR image is converted)."""
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"{name}: expected numpy array (H, W) uint8, got {type(image).__name__}")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise InputError(f"{name}: expected a 2-D grey image (H, W), got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise InputError(f"{name}: expected dtype uint8, got {image.dtype}")
+    return image
+
+
+def keypoints_to_arrays(kps: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """cv2.KeyPoint sequence -> xy (N, 2), size (N,), angle (N,), response (N,), all float32."""
+    n = len(kps)
+    if n == 0:
+        z = np.zeros(0, np.float32)
+        return np.zeros((0, 2), np.float32), z, z.copy(), z.copy()
+    xy = np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float32).reshape(n, 2)
+    size = np.fromiter((k.size for k in kps), np.float32, n)
+    angle = np.fromiter((k.angle for k in kps), np.float32, n)
+    response = np.fromiter((k.response for k in kps), np.float32, n)
+    return xy, size, angle, response
+
+
+def bucket_select(
+    xy: np.ndarray, response: np.ndarray, shape: tuple[int, int], max_features: int, grid_rows: int, grid_cols: int
+) -> np.ndarray:
+    """Indices of at most ``max_features`` features, spread over a grid (strongest per cell first).
+
+    ``xy``: (N, 2) [px] (column, row); ``response``: (N,); ``shape``: (H, W). Each cell keeps up to
+    ceil(max_features / cells) of its strongest features; the quota unused by sparse cells is
+    filled with the strongest of the remaining features. Returned in decreasing response order.
+    """
+    n = xy.shape[0]
+    if n <= max_features:
+        return np.argsort(-response, kind="stable")
+    h, w = shape
+    col = np.clip((xy[:, 0] * grid_cols / max(w, 1)).astype(np.int64), 0, grid_cols - 1)
+    row = np.clip((xy[:, 1] * grid_rows / max(h, 1)).astype(np.int64), 0, grid_rows - 1)
+    cell = row * grid_cols + col
+    # sort by cell, then by decreasing response; rank of each feature inside its cell
+    order = np.lexsort((-response, cell))
+    cell_sorted = cell[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(cell_sorted)) + 1]
+    counts = np.diff(np.r_[starts, n])
+    rank = np.arange(n) - np.repeat(starts, counts)
+    quota = -(-max_features // (grid_rows * grid_cols))
+    first = order[rank < quota]
+    if first.size >= max_features:
+        keep = first[np.argsort(-response[first], kind="stable")[:max_features]]
+    else:
+        rest = order[rank >= quota]
+        rest = rest[np.argsort(-response[rest], kind="stable")[: max_features - first.size]]
+        keep = np.r_[first, rest]
+    return keep[np.argsort(-response[keep], kind="stable")]
+
+
+class _OpenCVDetector:
+    """ORB or SIFT through OpenCV: detect candidates, bucket, then describe only the kept ones."""
+
+    def __init__(self, params: DetectorParams) -> None:
+        self.params = params
+        self.name = params.name
+        self.binary = params.name == "orb"
+        n_cand = int(np.ceil(params.max_features * (params.oversample if params.bucketing else 1.0)))
+        self._n_cand = n_cand
+        self._impl: Any
+        if params.name == "orb":
+            self._impl = cv2.ORB.create(
+                nfeatures=n_cand,
+                scaleFactor=params.orb_scale_factor,
+                nlevels=params.orb_n_levels,
+                edgeThreshold=params.orb_patch_size,
+                patchSize=params.orb_patch_size,
+                fastThreshold=params.orb_fast_threshold,
+            )
+        else:
+            self._impl = cv2.SIFT.create(
+                nfeatures=n_cand,
+                nOctaveLayers=params.sift_n_octave_layers,
+                contrastThreshold=params.sift_contrast_threshold,
+                edgeThreshold=params.sift_edge_threshold,
+            )
+
+    def detect(self, image: np.ndarray, max_features: int | None = None) -> Features:
+        image = check_image(image)
+        cap = self.params.max_features if max_features is None else int(max_features)
+        dim = 32 if self.binary else 128
+        if image.size == 0 or cap <= 0:
+            return Features.empty(dim, self.binary)
+        kps = self._impl.detect(image, None)
+        if not kps:
+            return Features.empty(dim, self.binary)
+        xy, _, _, resp = keypoints_to_arrays(kps)
+        if self.params.bucketing:
+            keep = bucket_select(xy, resp, image.shape[:2], cap, self.params.grid_rows, self.params.grid_cols)
+        else:
+            keep = np.argsort(-resp, kind="stable")[:cap]
+        kps = [kps[i] for i in keep]
+        kps, desc = self._impl.compute(image, kps)
+        if desc is None or not kps:
+            return Features.empty(dim, self.binary)
+        xy, size, angle, resp = keypoints_to_arrays(kps)
+        desc = np.ascontiguousarray(desc, dtype=np.uint8 if self.binary else np.float32)
+        lap = np.zeros(len(kps), np.int8)
+        return Features(xy, size, angle, resp, lap, desc, self.binary)
+
+
+class _SurfDetector:
+    """robotd's own SURF (robotd.frontend.surf); bucketing and the cap are applied here."""
+
+    def __init__(self, params: DetectorParams) -> None:
+        try:
+            from robotd.frontend import surf
+        except ImportError as exc:  # the SURF module is developed separately
+            raise ConfigError(
+                f"frontend.detector.name = 'surf': robotd.frontend.surf is not available ({exc}); use 'orb' or 'sift'"
+            ) from exc
+        self._surf: Any = surf
+        self.params = params
+        self.name = "surf"
+        self.binary = False
+        self._surf_params: Any = None
+        if params.surf_hessian_threshold is not None:
+            p_cls = getattr(surf, "SurfParams", None)
+            if p_cls is None:
+                raise ConfigError("frontend.detector.surf_hessian_threshold: robotd.frontend.surf has no SurfParams")
+            try:
+                self._surf_params = p_cls(hessian_threshold=params.surf_hessian_threshold)
+            except TypeError as exc:
+                raise ConfigError(f"frontend.detector.surf_hessian_threshold: SurfParams rejected it ({exc})") from exc
+
+    def detect(self, image: np.ndarray, max_features: int | None = None) -> Features:
+        image = check_image(image)
+        cap = self.params.max_features if max_features is None else int(max_features)
+        if image.size == 0 or cap <= 0:
+            return Features.empty(64, False)
+        f: Features = self._surf.detect_and_compute(image, self._surf_params)
+        if f.n == 0:
+            return f
+        if self.params.bucketing:
+            keep = bucket_select(f.xy, f.response, image.shape[:2], cap, self.params.grid_rows, self.params.grid_cols)
+        else:
+            keep = np.argsort(-f.response, kind="stable")[:cap]
+        return f.subset(keep)
+
+
+def make_detector(params: DetectorParams | None = None) -> Detector:
+    """The detector named by ``params.name`` (default ORB). SURF raises ConfigError if unavailable."""
+    params = params or DetectorParams()
+    if params.name == "surf":
+        return _SurfDetector(params)
+    return _OpenCVDetector(params)
+
+
+def surf_available() -> bool:
+    """True when robotd.frontend.surf can be imported (it is developed separately)."""
+    try:
+        from robotd.frontend import surf  # noqa: F401
+    except ImportError:
+        return False
+    return True

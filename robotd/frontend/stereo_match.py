@@ -1,0 +1,418 @@
+"""Stereo matching on rectified images (algorithms.md §4.1–§4.2) and triangulation (§2.2, §3.1).
+
+Candidates for a left feature are the right features that satisfy every stereo constraint:
+row |y_L − y_R| ≤ ε_y, disparity d_min ≤ x_L − x_R ≤ d_max = fb / X_min, and (SURF) the same
+Laplacian sign. The ratio test runs among those candidates only; a lone candidate must instead
+pass an absolute descriptor-distance limit. Then the cross-check keeps mutual best matches.
+
+Candidate generation uses row bucketing: right features sorted by row, a binary search per left
+feature gives the band of rows within ε_y, so only O(N·band) pairs are ever scored (≈ 1.5 % of
+the L×R pairs on KITTI), and all of it is flat numpy.
+
+Sub-pixel disparity. ORB keypoints on pyramid level k are quantised to 1.2^k px, far coarser than
+the 0.5 px σ_x the covariance model assumes (§3.1); SIFT/SURF positions are sub-pixel but the
+left and right keypoints are localised independently. So the disparity is re-measured directly
+from the images: a zero-mean SSD cost of a (2h+1)² patch around the left keypoint against the
+right image at integer disparities d₀−r … d₀+r along the same row, and a parabola through the
+minimum and its two neighbours, δ = (c₋ − c₊) / (2(c₋ − 2c₀ + c₊)) (parabola fits suit SSD costs;
+Shimizu & Okutomi 2001). Zero-mean removes the KITTI cameras' gain difference. A minimum on the
+border of the search window means the photometry disagrees with the descriptor match by ≥ r px:
+such matches are dropped (``refine_reject_edge``), which also removes many stereo mismatches.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robotd.errors import ConfigError, InputError
+from robotd.frontend.features import Features
+from robotd.stereo import RectifiedStereo, triangulate, triangulation_covariance
+
+logger = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# Descriptor distances (shared with association.py)
+
+
+def normalise_descriptors(desc: np.ndarray, binary: bool) -> np.ndarray:
+    """Float descriptors scaled to unit L2 norm (so one absolute limit fits SIFT and SURF); binary as is."""
+    if binary:
+        return np.ascontiguousarray(desc, dtype=np.uint8)
+    d = np.asarray(desc, dtype=np.float32)
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.maximum(n, 1e-12)
+
+
+def pair_distances(a: np.ndarray, b: np.ndarray, binary: bool) -> np.ndarray:
+    """Row-wise distances between (P, D) descriptor arrays: Hamming bits or Euclidean (unit-normalised)."""
+    if binary:
+        return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=1, dtype=np.int32).astype(np.float32)
+    diff = a - b
+    return np.sqrt(np.einsum("pd,pd->p", diff, diff))
+
+
+def distance_matrix(a: np.ndarray, b: np.ndarray, binary: bool, chunk: int = 256) -> np.ndarray:
+    """(N, M) distances between normalised descriptor sets ``a`` (N, D) and ``b`` (M, D)."""
+    n, m = a.shape[0], b.shape[0]
+    if n == 0 or m == 0:
+        return np.zeros((n, m), np.float32)
+    if binary:
+        out = np.empty((n, m), np.float32)
+        # chunked to keep the (chunk, M, 32) XOR buffer small
+        for s in range(0, n, chunk):
+            x = np.bitwise_xor(a[s : s + chunk, None, :], b[None, :, :])
+            out[s : s + chunk] = np.bitwise_count(x).sum(axis=2, dtype=np.int32)
+        return out
+    # |a − b|² = |a|² + |b|² − 2 a·b; both unit norm
+    g = a @ b.T
+    return np.sqrt(np.maximum(2.0 - 2.0 * g, 0.0)).astype(np.float32)
+
+
+def ratio_and_cross_check(
+    i: np.ndarray,
+    j: np.ndarray,
+    dist: np.ndarray,
+    n_j: int,
+    ratio: float,
+    max_single: float,
+    cross_check: bool = True,
+) -> tuple[np.ndarray, dict[str, int]]:
+    """Select mutual best matches from sparse candidate pairs (algorithms.md §4.1–§4.2).
+
+    ``i``, ``j``: (P,) indices of candidate pairs; ``dist``: (P,) their descriptor distances.
+    For each i the best pair is kept if dist < ratio · second-best distance, or, when it is the
+    only candidate, if dist ≤ ``max_single``. Then the cross-check keeps (i, j) only if i is also
+    j's nearest candidate. Returns the indices (into the pair arrays) of accepted pairs and counts.
+    """
+    stats = {"pairs": int(i.size), "ratio_rejected": 0, "single_rejected": 0, "cross_rejected": 0}
+    if i.size == 0:
+        return np.zeros(0, np.int64), stats
+    order = np.lexsort((dist, i))
+    i_s, d_s = i[order], dist[order]
+    first = np.r_[True, i_s[1:] != i_s[:-1]]
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.r_[starts, i_s.size])
+    best = order[starts]
+    has_second = counts > 1
+    second_d = np.full(starts.size, np.inf, dtype=np.float64)
+    second_d[has_second] = d_s[starts[has_second] + 1]
+    ok_ratio = dist[best] < ratio * second_d
+    ok_single = dist[best] <= max_single
+    ok = np.where(has_second, ok_ratio, ok_single)
+    stats["ratio_rejected"] = int(np.sum(has_second & ~ok_ratio))
+    stats["single_rejected"] = int(np.sum(~has_second & ~ok_single))
+    best = best[ok]
+    if not cross_check:
+        return best, stats
+    # cross-check: the nearest i for each j over all of j's candidate pairs
+    order_j = np.lexsort((dist, j))
+    j_s = j[order_j]
+    first_j = np.r_[True, j_s[1:] != j_s[:-1]]
+    best_i_of_j = np.full(n_j, -1, np.int64)
+    best_i_of_j[j_s[first_j]] = i[order_j[first_j]]
+    mutual = best_i_of_j[j[best]] == i[best]
+    stats["cross_rejected"] = int(np.sum(~mutual))
+    return best[mutual], stats
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters and result
+
+
+@dataclass(frozen=True, slots=True)
+class StereoMatchParams:
+    """Stereo matching configuration (config key ``frontend.stereo``; defaults of algorithms.md §5.5).
+
+    row_tol_px: ε_y of the row constraint. d_min_px, depth_min_m: disparity bounds (d_max = fb/X_min).
+    ratio: τ_r; None picks 0.8 for float descriptors (SIFT, SURF) and 0.75 for binary (ORB).
+    max_single_float / max_single_binary: absolute distance limit when one candidate survives
+      (unit-normalised Euclidean; Hamming bits).
+    use_laplacian: SURF's Laplacian-sign constraint (ignored where the sign is 0/unknown).
+    max_scale_ratio / max_angle_deg: optional size and orientation constraints (None: off).
+    cross_check: mutual best matches only.
+    refine: "patch" (ZSSD + parabola along the row, see module doc) or "keypoint" (use x_R as given).
+    patch_half_px, search_px: patch half-size h and search radius r of the refinement.
+    refine_reject_edge: drop matches whose SSD minimum lies at ±r (descriptor and photometry disagree).
+    sigma_x_px, sigma_y_px, cov_inflation: pixel noise of §3.1 and the §3.3 inflation.
+    """
+
+    row_tol_px: float = 2.0
+    d_min_px: float = 5.0
+    depth_min_m: float = 0.3
+    ratio: float | None = None
+    max_single_float: float = 0.45
+    max_single_binary: float = 60.0
+    use_laplacian: bool = True
+    max_scale_ratio: float | None = None
+    max_angle_deg: float | None = None
+    cross_check: bool = True
+    refine: str = "patch"
+    patch_half_px: int = 3
+    search_px: int = 2
+    refine_reject_edge: bool = True
+    sigma_x_px: float = 0.5
+    sigma_y_px: float = 0.5 / np.sqrt(2.0)
+    cov_inflation: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.row_tol_px < 0 or self.d_min_px <= 0 or self.depth_min_m <= 0:
+            raise ConfigError(
+                "frontend.stereo: expected row_tol_px >= 0, d_min_px > 0, depth_min_m > 0, got "
+                f"{self.row_tol_px}, {self.d_min_px}, {self.depth_min_m}"
+            )
+        if self.ratio is not None and not 0.0 < self.ratio <= 1.0:
+            raise ConfigError(f"frontend.stereo.ratio: expected in (0, 1], got {self.ratio}")
+        if self.refine not in ("patch", "keypoint"):
+            raise ConfigError(f"frontend.stereo.refine: expected 'patch' or 'keypoint', got {self.refine!r}")
+        if self.patch_half_px < 1 or self.search_px < 1:
+            raise ConfigError(
+                f"frontend.stereo.patch_half_px/search_px: expected >= 1, got {self.patch_half_px}, {self.search_px}"
+            )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StereoMatches:
+    """Triangulated stereo measurements of one frame.
+
+    xl, xr, y: (N,) [px] left column, right column, row (rectified image); xyz_R: (N, 3) [m] points
+    in the robot frame (FRD, baseline centre; eq. 3.2.14); cov_R: (N, 3, 3) [m²] first-order
+    covariance (§3.1); desc: (N, D) left descriptors (normalised as in :func:`normalise_descriptors`);
+    left_idx / right_idx: (N,) indices into the left / right Features; dist: (N,) descriptor
+    distance of the stereo match; refined: (N,) True where the sub-pixel patch refinement applied.
+    """
+
+    xl: np.ndarray
+    xr: np.ndarray
+    y: np.ndarray
+    xyz_R: np.ndarray
+    cov_R: np.ndarray
+    desc: np.ndarray
+    left_idx: np.ndarray
+    right_idx: np.ndarray
+    dist: np.ndarray
+    refined: np.ndarray
+    binary: bool = False
+    stats: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.xl.shape[0])
+
+    def subset(self, idx: np.ndarray) -> StereoMatches:
+        """The measurements at ``idx`` (indices or boolean mask)."""
+        return StereoMatches(
+            self.xl[idx],
+            self.xr[idx],
+            self.y[idx],
+            self.xyz_R[idx],
+            self.cov_R[idx],
+            self.desc[idx],
+            self.left_idx[idx],
+            self.right_idx[idx],
+            self.dist[idx],
+            self.refined[idx],
+            self.binary,
+            dict(self.stats),
+        )
+
+    @staticmethod
+    def empty(dim: int, binary: bool) -> StereoMatches:
+        z = np.zeros(0)
+        zi = np.zeros(0, np.int64)
+        return StereoMatches(
+            z,
+            z.copy(),
+            z.copy(),
+            np.zeros((0, 3)),
+            np.zeros((0, 3, 3)),
+            np.zeros((0, dim), np.uint8 if binary else np.float32),
+            zi,
+            zi.copy(),
+            np.zeros(0, np.float32),
+            np.zeros(0, bool),
+            binary,
+            {},
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Matching
+
+
+def candidate_pairs(
+    left: Features, right: Features, rig: RectifiedStereo, params: StereoMatchParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """All (i, j) left/right index pairs that satisfy the §4.2 constraints, as two (P,) arrays."""
+    if left.n == 0 or right.n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    d_min, d_max = rig.disparity_bounds(params.depth_min_m, params.d_min_px)
+    yl = left.xy[:, 1].astype(np.float64)
+    yr = right.xy[:, 1].astype(np.float64)
+    order_r = np.argsort(yr, kind="stable")
+    yr_s = yr[order_r]
+    lo = np.searchsorted(yr_s, yl - params.row_tol_px, side="left")
+    hi = np.searchsorted(yr_s, yl + params.row_tol_px, side="right")
+    cnt = hi - lo
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i = np.repeat(np.arange(left.n), cnt)
+    # position inside each left feature's band: running index minus the band's start offset
+    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    j = order_r[np.repeat(lo, cnt) + offs]
+    d = left.xy[i, 0].astype(np.float64) - right.xy[j, 0].astype(np.float64)
+    ok = (d >= d_min) & (d <= d_max)
+    if params.use_laplacian:
+        li, lj = left.laplacian[i], right.laplacian[j]
+        ok &= (li == 0) | (lj == 0) | (li == lj)
+    if params.max_scale_ratio is not None:
+        r = left.size[i] / np.maximum(right.size[j], 1e-6)
+        ok &= (r <= params.max_scale_ratio) & (r >= 1.0 / params.max_scale_ratio)
+    if params.max_angle_deg is not None:
+        ai, aj = left.angle[i], right.angle[j]
+        da = np.abs((ai - aj + 180.0) % 360.0 - 180.0)
+        ok &= (ai < 0) | (aj < 0) | (da <= params.max_angle_deg)
+    return i[ok], j[ok]
+
+
+def refine_disparity(
+    left_img: np.ndarray,
+    right_img: np.ndarray,
+    xl: np.ndarray,
+    yl: np.ndarray,
+    d0: np.ndarray,
+    half: int = 3,
+    search: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel disparity by ZSSD patch cost and a parabola fit along the row (module doc).
+
+    ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
+    (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum
+    on the search border). Where ``ok`` is False, ``d`` is ``d0``.
+    """
+    n = xl.shape[0]
+    h, w = left_img.shape
+    u = np.rint(xl).astype(np.int64)
+    v = np.rint(yl).astype(np.int64)
+    di = np.rint(d0).astype(np.int64)
+    inside = (
+        (v - half >= 0)
+        & (v + half < h)
+        & (u - half >= 0)
+        & (u + half < w)
+        & (u - di - search - half >= 0)
+        & (u - di + search + half < w)
+    )
+    d_out = np.asarray(d0, dtype=np.float64).copy()
+    ok = np.zeros(n, bool)
+    edge = np.zeros(n, bool)
+    idx = np.flatnonzero(inside)
+    if idx.size == 0:
+        return d_out, ok, edge
+    L = left_img.astype(np.float32)
+    Rimg = right_img.astype(np.float32)
+    r = np.arange(-half, half + 1)
+    k = np.arange(-search, search + 1)
+    rows = v[idx, None] + r[None, :]  # (M, P)
+    cols_l = u[idx, None] + r[None, :]
+    pl = L[rows[:, :, None], cols_l[:, None, :]]  # (M, P, P)
+    # right patch centre for disparity d0 + k is column u − d0 − k
+    cols_r = (u[idx] - di[idx])[:, None, None] - k[None, :, None] + r[None, None, :]  # (M, K, P)
+    pr = Rimg[rows[:, None, :, None], cols_r[:, :, None, :]]  # (M, K, P, P)
+    pl = pl - pl.mean(axis=(1, 2), keepdims=True)
+    pr = pr - pr.mean(axis=(2, 3), keepdims=True)
+    cost = np.sum((pr - pl[:, None]) ** 2, axis=(2, 3))  # (M, K)
+    kmin = np.argmin(cost, axis=1)
+    at_edge = (kmin == 0) | (kmin == k.size - 1)
+    kc = np.clip(kmin, 1, k.size - 2)
+    m = np.arange(idx.size)
+    c_m, c_0, c_p = cost[m, kc - 1], cost[m, kc], cost[m, kc + 1]
+    den = c_m - 2.0 * c_0 + c_p
+    delta = np.where(den > 1e-9, 0.5 * (c_m - c_p) / np.where(den > 1e-9, den, 1.0), 0.0)
+    d_new = di[idx] + k[kc] + np.clip(delta, -0.5, 0.5)
+    good = ~at_edge & (den > 1e-9)
+    # the cost was measured at the integer column u; the caller keeps the keypoint's sub-pixel
+    # column and assumes the disparity is constant over that < 0.5 px offset
+    d_out[idx[good]] = d_new[good]
+    ok[idx[good]] = True
+    edge[idx[at_edge]] = True
+    return d_out, ok, edge
+
+
+def match_stereo(
+    left: Features,
+    right: Features,
+    rig: RectifiedStereo,
+    params: StereoMatchParams | None = None,
+    left_img: np.ndarray | None = None,
+    right_img: np.ndarray | None = None,
+) -> StereoMatches:
+    """Match rectified left/right features and triangulate them (algorithms.md §2.2, §3.1, §4.2).
+
+    ``left``/``right``: Features of the rectified images (one detector); ``left_img``/``right_img``:
+    (H, W) uint8 rectified images, needed for ``refine="patch"`` (without them the keypoint
+    positions are used). Returns :class:`StereoMatches` in the robot frame.
+    """
+    params = params or StereoMatchParams()
+    if left.binary != right.binary or (left.n and right.n and left.desc.shape[1] != right.desc.shape[1]):
+        raise InputError(
+            f"match_stereo: expected features of one detector, got binary={left.binary}/{right.binary}, "
+            f"dims {left.desc.shape[1:]}/{right.desc.shape[1:]}"
+        )
+    binary = left.binary
+    dim = left.desc.shape[1] if left.desc.ndim == 2 else (32 if binary else 64)
+    i, j = candidate_pairs(left, right, rig, params)
+    dl = normalise_descriptors(left.desc, binary)
+    dr = normalise_descriptors(right.desc, binary)
+    if i.size == 0:
+        out = StereoMatches.empty(dim, binary)
+        out.stats.update({"pairs": 0})
+        return out
+    dist = pair_distances(dl[i], dr[j], binary)
+    ratio = params.ratio if params.ratio is not None else (0.75 if binary else 0.8)
+    max_single = params.max_single_binary if binary else params.max_single_float
+    sel, stats = ratio_and_cross_check(i, j, dist, right.n, ratio, max_single, params.cross_check)
+    i, j, dist = i[sel], j[sel], dist[sel]
+    xl = left.xy[i, 0].astype(np.float64)
+    yl = left.xy[i, 1].astype(np.float64)
+    xr = right.xy[j, 0].astype(np.float64)
+    yr = right.xy[j, 1].astype(np.float64)
+    y = 0.5 * (yl + yr)
+    refined = np.zeros(i.size, bool)
+    n_edge = 0
+    if params.refine == "patch" and left_img is not None and right_img is not None and i.size:
+        d, refined, edge = refine_disparity(
+            left_img, right_img, xl, yl, xl - xr, params.patch_half_px, params.search_px
+        )
+        xr = np.where(refined, xl - d, xr)
+        # the refined match lies on the left keypoint's row (the images are rectified)
+        y = np.where(refined, yl, y)
+        keep = ~edge if params.refine_reject_edge else np.ones(i.size, bool)
+        n_edge = int(np.sum(edge))
+        d_min, d_max = rig.disparity_bounds(params.depth_min_m, params.d_min_px)
+        keep &= (xl - xr >= d_min) & (xl - xr <= d_max)
+        i, j, dist, xl, xr, y, refined = i[keep], j[keep], dist[keep], xl[keep], xr[keep], y[keep], refined[keep]
+    stats["refine_edge"] = n_edge
+    stats["matches"] = int(i.size)
+    f, px, py, b = rig.f_px, rig.px, rig.py, rig.baseline_m
+    xyz = triangulate(xl, xr, y, f, px, py, b)
+    cov = triangulation_covariance(xl, xr, y, f, px, py, b, params.sigma_x_px, params.sigma_y_px, params.cov_inflation)
+    logger.debug(
+        "stereo: %d left, %d right, %d candidate pairs, %d ratio-, %d single-, %d cross-, %d refine-rejected, "
+        "%d matches",
+        left.n,
+        right.n,
+        stats["pairs"],
+        stats["ratio_rejected"],
+        stats["single_rejected"],
+        stats["cross_rejected"],
+        n_edge,
+        i.size,
+    )
+    return StereoMatches(
+        xl, xr, y, xyz, cov, dl[i], i.astype(np.int64), j.astype(np.int64), dist, refined, binary, stats
+    )
