@@ -659,3 +659,102 @@ def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
     """Vehicle for ``euroc://DIR``: visual only, or ``gt_odometry=True`` for experiments."""
     cam_opts, veh = _split_vehicle_options(url, "euroc", options)
     return _dataset_vehicle(EurocCamera(url.split("?")[0], **cam_opts), url, veh)
+
+
+# --------------------------------------------------------------------------------------------
+# MCAP recordings (robotd.record)
+
+
+class McapCamera:
+    """Replay a ``robotd record`` session: the recorded frames, same order and stamps, every time.
+
+    Options: start/stop/stride (over the recorded frames), realtime/speed. ``recorded_odometry()``
+    and :func:`open_mcap_vehicle` give the recorded odometry; :meth:`events` gives frames and
+    odometry interleaved exactly as recorded (what a deterministic single-thread replay wants).
+    """
+
+    def __init__(self, url: str | Path, **options: Any) -> None:
+        from robotd.errors import PersistenceError
+        from robotd.record import SessionReader
+
+        path, q = _split_url(url, "mcap")
+        opts = {**q, **options}
+        self.replay = ReplayOptions.pop_from(opts)
+        self.url = str(url)
+        _reject_unknown(self.url, opts)
+        if not path.is_file():
+            raise DatasetError(f"{url!r}: recording {path} not found (expected a .mcap written by robotd record)")
+        try:
+            self.reader = SessionReader(path)
+        except PersistenceError as exc:
+            raise DatasetError(str(exc)) from None
+        self.meta = self.reader.meta
+        self._closed = False
+        self._stats: dict[str, Any] = {"frames": 0, "drops": 0, "gaps": 0, "read_errors": 0}
+
+    def __enter__(self) -> McapCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._closed = True
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self._stats)
+
+    def rectified_model(self) -> RectifiedStereo:
+        return self.reader.calibration
+
+    def _selected(self, k: int) -> bool:
+        r = self.replay
+        return k >= r.start and (r.stop is None or k < r.stop) and (k - r.start) % r.stride == 0
+
+    def events(self) -> Iterator[StereoFrame | Odometry]:
+        """Frames (selected) and all odometry, interleaved in recorded order, paced if realtime."""
+        from robotd.record import TOPIC_FRAME, TOPIC_ODOMETRY
+
+        pacer = _Pacer(self.replay.realtime, self.replay.speed)
+        k = -1
+        for e in self.reader.events((TOPIC_FRAME, TOPIC_ODOMETRY)):
+            if self._closed:
+                return
+            if isinstance(e, StereoFrame):
+                k += 1
+                if self.replay.stop is not None and k >= self.replay.stop:
+                    return
+                if not self._selected(k):
+                    continue
+                pacer.wait(e.t_ns)
+                self._stats["frames"] += 1
+                yield e
+            elif isinstance(e, Odometry):
+                yield e
+
+    def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
+        for e in self.events():
+            if isinstance(e, StereoFrame):
+                yield e
+
+    def recorded_odometry(self) -> list[Odometry]:
+        return list(self.reader.odometry())
+
+    def recorded_poses(self) -> list[PoseEstimate]:
+        return list(self.reader.poses())
+
+
+def open_mcap(url: str | Path, **options: Any) -> McapCamera:
+    """``mcap://PATH`` or a bare ``PATH.mcap`` -> a replaying :class:`McapCamera`."""
+    return McapCamera(url, **options)
+
+
+def open_mcap_vehicle(url: str | Path, **options: Any) -> DatasetVehicle:
+    """The recorded odometry of ``mcap://PATH`` as a VehicleLink (``realtime`` paces it)."""
+    path, q = _split_url(url, "mcap")
+    opts = {**q, **options}
+    realtime = _as_bool("realtime", opts.pop("realtime", False))
+    _reject_unknown(str(url), opts)
+    cam = McapCamera(path)
+    samples = cam.recorded_odometry()
+    return DatasetVehicle(str(url), samples, realtime)
