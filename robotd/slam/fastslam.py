@@ -1,0 +1,551 @@
+"""FastSLAM 1.0 and 2.0 with known correspondences, 2D and 3D (algorithms.md §9, §10).
+
+One particle store, a struct of arrays:
+
+- ``pose``    (P, dx)          particle poses, world frame (dx = 3 | 6)
+- ``lm_mean`` (P, cap, dm)     landmark means per particle, world frame (dm = 2 | 3)
+- ``lm_cov``  (P, cap, dm, dm) landmark covariances
+- ``log_w``   (P,)             normalised log weights
+
+Landmark slots ``0 … n_slots-1`` are shared by all particles through the global
+:class:`~robotd.slam._book.LandmarkBook` (ids -> slots); freed slots are reused.
+
+The hot path is split into pure kernels, vectorised over particles × observations, which take
+every random number as an argument (``eps``), so that :mod:`robotd.slam._reference` (plain
+per-particle loops) can be compared with them exactly. FastSLAM 2.0's proposal incorporates the
+observations one after another (loop over observations, vectorised over particles).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from robotd.errors import InputError, PersistenceError
+from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
+from robotd.slam._book import LandmarkBook
+from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
+from robotd.slam.ekf import FILTER_CODE, _check_header, _range_bearing_inputs, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
+from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_from_increment, split_observations
+from robotd.slam.models import (
+    CARTESIAN_2D,
+    CARTESIAN_3D,
+    RANGE_BEARING_2D,
+    MeasurementModel,
+    motion3d,
+    odometry2d,
+    velocity2d,
+    velocity2d_noise,
+    wrap_pose,
+)
+from robotd.slam.resampling import (
+    effective_sample_size,
+    low_variance_indices,
+    normalize_log_weights,
+    weighted_pose_mean,
+)
+
+logger = logging.getLogger(__name__)
+
+
+# ============================================================================================
+# Pure kernels (numpy, vectorised). Shapes: P particles, N observations.
+
+
+def landmark_updates(
+    pose: np.ndarray,
+    lm_mean: np.ndarray,
+    lm_cov: np.ndarray,
+    slots: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    model: MeasurementModel,
+) -> np.ndarray:
+    """EKF update of each observed landmark in every particle, at the particle's pose (§9 step 2).
+
+    Updates ``lm_mean[:, slots]`` and ``lm_cov[:, slots]`` in place (Joseph form, symmetrised).
+
+    Args:
+        pose: (P, dx); lm_mean: (P, cap, dm); lm_cov: (P, cap, dm, dm); slots: (N,) distinct;
+        z: (N, dz) measurements (robot frame); Q: (N, dz, dz).
+
+    Returns:
+        (P,) Σ_j log N(z_j; ẑ_j, Ψ_j) with Ψ = H_m Σ_j H_m^T + Q_j (the FastSLAM 1.0 weight).
+    """
+    P, N = pose.shape[0], slots.size
+    if N == 0:
+        return np.zeros(P)
+    dx, dm, dz = model.dx, model.dm, model.dz
+    mu = lm_mean[:, slots]  # (P, N, dm)
+    C = lm_cov[:, slots]  # (P, N, dm, dm)
+    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
+    zhat, _, Hm = model.h(x, mu.reshape(P * N, dm))
+    zhat = zhat.reshape(P, N, dz)
+    Hm = Hm.reshape(P, N, dz, dm)
+    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
+    HC = Hm @ C  # (P, N, dz, dm)
+    Psi = HC @ np.swapaxes(Hm, -1, -2) + Q
+    Pinv, det = inv_det_small(Psi)
+    K = np.swapaxes(HC, -1, -2) @ Pinv  # Σ H^T Ψ^{-1}, (P, N, dm, dz)
+    mu = mu + np.einsum("pnij,pnj->pni", K, nu)
+    IKH = np.eye(dm) - K @ Hm
+    C = IKH @ C @ np.swapaxes(IKH, -1, -2) + K @ Q @ np.swapaxes(K, -1, -2)
+    lm_mean[:, slots] = mu
+    lm_cov[:, slots] = sym(C)
+    return gauss_logpdf(nu, Pinv, det).sum(1)
+
+
+def init_landmarks(
+    pose: np.ndarray,
+    lm_mean: np.ndarray,
+    lm_cov: np.ndarray,
+    slots: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    model: MeasurementModel,
+    floor: float,
+) -> None:
+    """New landmarks from each particle's pose (§9 step 3): μ = inverse(x, z), Σ = J_z Q J_z^T + floor·I."""
+    P, N = pose.shape[0], slots.size
+    if N == 0:
+        return
+    dx, dm, dz = model.dx, model.dm, model.dz
+    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
+    m, _, Jz = model.inverse(x, np.broadcast_to(z, (P, N, dz)).reshape(P * N, dz))
+    Jz = Jz.reshape(P, N, dm, dz)
+    lm_mean[:, slots] = m.reshape(P, N, dm)
+    lm_cov[:, slots] = sym(Jz @ Q @ np.swapaxes(Jz, -1, -2)) + floor * np.eye(dm)
+
+
+def fs2_weights(
+    pose_hat: np.ndarray,
+    S: np.ndarray,
+    lm_mean: np.ndarray,
+    lm_cov: np.ndarray,
+    slots: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    model: MeasurementModel,
+) -> np.ndarray:
+    """FastSLAM 2.0 log-weight increment (§10 "Importance weight"), (P,).
+
+    Σ_j log N(z_j; h(x̂, μ_j), L_j), L_j = H_x S H_x^T + H_m Σ_j H_m^T + Q_j, all at the prior x̂ and
+    the landmark estimates before the update.
+    """
+    P, N = pose_hat.shape[0], slots.size
+    if N == 0:
+        return np.zeros(P)
+    dx, dm, dz = model.dx, model.dm, model.dz
+    mu = lm_mean[:, slots]
+    C = lm_cov[:, slots]
+    x = np.broadcast_to(pose_hat[:, None, :], (P, N, dx)).reshape(P * N, dx)
+    zhat, Hx, Hm = model.h(x, mu.reshape(P * N, dm))
+    zhat = zhat.reshape(P, N, dz)
+    Hx = Hx.reshape(P, N, dz, dx)
+    Hm = Hm.reshape(P, N, dz, dm)
+    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
+    L = Hx @ S[:, None] @ np.swapaxes(Hx, -1, -2) + Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
+    Linv, det = inv_det_small(L)
+    return gauss_logpdf(nu, Linv, det).sum(1)
+
+
+def fs2_proposal(
+    pose_hat: np.ndarray,
+    S: np.ndarray,
+    lm_mean: np.ndarray,
+    lm_cov: np.ndarray,
+    slots: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    model: MeasurementModel,
+) -> tuple[np.ndarray, np.ndarray]:
+    """FastSLAM 2.0 pose proposal (§10 "Proposal"), Kalman form, observations in turn.
+
+    Args:
+        pose_hat: (P, dx) prior means x̂ = g(x, u); S: (P, dx, dx) prior covariances S_t.
+
+    Returns:
+        μ_x (P, dx) with wrapped angles, Σ_x (P, dx, dx) symmetrised.
+    """
+    dim = 2 if model.dx == 3 else 3
+    mu_x = pose_hat.copy()
+    Sx = S.copy()
+    eye = np.eye(model.dx)
+    for j in range(slots.size):
+        s = slots[j]
+        zhat, Hx, Hm = model.h(mu_x, lm_mean[:, s])
+        nu = model.innovation(np.broadcast_to(z[j], zhat.shape).copy(), zhat)
+        HmT = np.swapaxes(Hm, -1, -2)
+        HxT = np.swapaxes(Hx, -1, -2)
+        SHt = Sx @ HxT  # (P, dx, dz)
+        Psi = Hx @ SHt + Hm @ lm_cov[:, s] @ HmT + Q[j]  # H_x Σ_x H_x^T + Q̃_j
+        Pinv, _ = inv_det_small(Psi)
+        K = SHt @ Pinv  # (P, dx, dz)
+        mu_x = mu_x + np.einsum("pij,pj->pi", K, nu)
+        wrap_pose(mu_x, dim)
+        Sx = sym((eye - K @ Hx) @ Sx)
+    return mu_x, Sx
+
+
+def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -> np.ndarray:
+    """x = μ + chol(Σ) ε per particle, angles wrapped. mu (P, dx), Sigma (P, dx, dx), eps (P, dx)."""
+    try:
+        L = np.linalg.cholesky(Sigma)
+    except np.linalg.LinAlgError:
+        # Round-off can leave a proposal covariance marginally indefinite: lift its spectrum.
+        w, V = np.linalg.eigh(Sigma)
+        L = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]
+    return wrap_pose(mu + np.einsum("pij,pj->pi", L, eps), dim)
+
+
+def fastslam_step(
+    version: int,
+    pose: np.ndarray,
+    S: np.ndarray | None,
+    lm_mean: np.ndarray,
+    lm_cov: np.ndarray,
+    slots_old: np.ndarray,
+    z_old: np.ndarray,
+    Q_old: np.ndarray,
+    slots_new: np.ndarray,
+    z_new: np.ndarray,
+    Q_new: np.ndarray,
+    eps: np.ndarray | None,
+    model: MeasurementModel,
+    floor: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One FastSLAM measurement step for all particles; the landmark arrays are updated in place.
+
+    Version 1 (§9): ``pose`` are the sampled poses; landmark updates give the weights.
+    Version 2 (§10): ``pose`` are the priors x̂ with covariances ``S`` (P, dx, dx); the proposal
+    is built from the identified landmarks, a pose drawn with ``eps`` (P, dx) standard normals,
+    then the landmarks are updated at it. New landmarks are initialised from the final pose.
+
+    Returns:
+        (pose (P, dx) after the step, log-weight increment (P,)).
+    """
+    dim = 2 if model.dx == 3 else 3
+    if version == 2:
+        assert S is not None and eps is not None
+        dlogw = fs2_weights(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+        mu_x, Sx = fs2_proposal(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+        pose = sample_poses(mu_x, Sx, eps, dim)
+        landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+    else:
+        dlogw = landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+    init_landmarks(pose, lm_mean, lm_cov, slots_new, z_new, Q_new, model, floor)
+    return pose, dlogw
+
+
+def psd_sqrt(M: np.ndarray) -> np.ndarray:
+    """A square root L with L L^T = M for a PSD matrix M (n, n) (zero rows allowed)."""
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    return V * np.sqrt(np.maximum(w, 0.0))
+
+
+# ============================================================================================
+
+
+class FastSlam:
+    """FastSLAM 1.0 (``version=1``) or 2.0 (``version=2``). Build with ``make_estimator``."""
+
+    def __init__(self, params: SlamParams, rng: np.random.Generator, visible: VisibleFn, version: int = 2) -> None:
+        if version not in (1, 2):
+            raise InputError(f"FastSlam: expected version 1 or 2, got {version}")
+        self.params = params
+        self.rng = rng
+        self.visible = visible
+        self.version = version
+        self.name = "fastslam2" if version == 2 else "fastslam1"
+        self.dim = params.dim
+        self.dx = 3 if self.dim == 2 else 6
+        self.dm = self.dim
+        self.model: MeasurementModel = CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D
+        P = int(params.n_particles)
+        self.book = LandmarkBook()
+        cap = self.book.capacity
+        self.pose = np.zeros((P, self.dx))
+        self.lm_mean = np.zeros((P, cap, self.dm))
+        self.lm_cov = np.zeros((P, cap, self.dm, self.dm))
+        self.log_w = np.full(P, -np.log(P))
+        # FastSLAM 2.0: prior covariance S_t per particle since the last sampling; None = sampled
+        self.pending_S: np.ndarray | None = None
+        self.t_ns = 0
+        self.best = 0  # index of the highest-weight particle
+        self.neff = float(P)
+
+    @property
+    def n_particles(self) -> int:
+        return int(self.pose.shape[0])
+
+    # ----------------------------------------------------------------------------------- predict
+
+    def predict(self, inc: MotionIncrement) -> None:
+        """Motion update with the odometry-increment model (§6.2 / §6.3)."""
+        u, M = control_from_increment(inc, self.params)
+        self._propagate(u, M, None, 0.0)
+        self.t_ns = int(inc.t1_ns)
+
+    def predict_velocity(self, v: float, w: float, dt: float, t_ns: int | None = None) -> None:
+        """Velocity-model motion update (§6.1), 2D only."""
+        if self.dim != 2:
+            raise InputError(f"predict_velocity: expected a 2D filter, got dim={self.dim}")
+        check_finite("predict_velocity", v, w, dt)
+        M, var_g = velocity2d_noise(float(v), float(w), float(dt), self.params.vel2d_alpha)
+        self._propagate(np.array([v, w], float), M, float(dt), var_g)
+        if t_ns is not None:
+            self.t_ns = int(t_ns)
+
+    def _motion(self, x: np.ndarray, u: np.ndarray, dt: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if dt is not None:
+            return velocity2d(x, u, dt)
+        return odometry2d(x, u) if self.dim == 2 else motion3d(x, u)
+
+    def _propagate(self, u: np.ndarray, M: np.ndarray, dt: float | None, var_yaw: float) -> None:
+        """Sample (1.0) or propagate the prior (2.0). ``var_yaw``: extra final-rotation variance (§6.1)."""
+        P, dx, nu = self.n_particles, self.dx, u.size
+        floor = self.params.process_cov_floor
+        extra = np.full(dx, floor)
+        extra[2 if self.dim == 2 else 5] += var_yaw
+        if self.version == 1:
+            eps = self.rng.standard_normal((P, nu + dx))
+            uk = u + eps[:, :nu] @ psd_sqrt(M).T
+            x, _, _ = self._motion(self.pose, uk, dt)
+            self.pose = wrap_pose(x + np.sqrt(extra) * eps[:, nu:], self.dim)
+            return
+        if self.pending_S is not None:
+            # two predicts without an update: draw the pending prior before composing the next step
+            self.pose = sample_poses(self.pose, self.pending_S, self.rng.standard_normal((P, dx)), self.dim)
+        x, _, V = self._motion(self.pose, np.broadcast_to(u, (P, nu)), dt)
+        self.pose = x
+        self.pending_S = sym(V @ M @ np.swapaxes(V, -1, -2)) + np.diag(extra)
+
+    # ------------------------------------------------------------------------------------ update
+
+    def update(self, obs: Observations) -> UpdateReport:
+        """Fuse a frame of identified and new landmarks (§9 / §10), prune, maybe resample."""
+        z, Q, ids, is_new = split_observations(obs, self.dim)
+        self.book.check(ids, is_new)
+        rep = self._update(z, Q, ids, is_new, self.model)
+        self.t_ns = int(obs.t_ns)
+        return rep
+
+    def update_range_bearing(
+        self,
+        ids: np.ndarray,
+        r: np.ndarray,
+        beta: np.ndarray,
+        R_rb: np.ndarray,
+        is_new: np.ndarray | None = None,
+        t_ns: int | None = None,
+    ) -> UpdateReport:
+        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
+        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
+        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
+        if t_ns is not None:
+            self.t_ns = int(t_ns)
+        return rep
+
+    def _ensure_capacity(self) -> None:
+        cap = self.book.capacity
+        if self.lm_mean.shape[1] >= cap:
+            return
+        P, old = self.lm_mean.shape[:2]
+        mean = np.zeros((P, cap, self.dm))
+        cov = np.zeros((P, cap, self.dm, self.dm))
+        mean[:, :old] = self.lm_mean
+        cov[:, :old] = self.lm_cov
+        self.lm_mean, self.lm_cov = mean, cov
+
+    def _update(
+        self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
+    ) -> UpdateReport:
+        old = ~is_new
+        slots_old = self.book.slots_of(ids[old])
+        z_old, Q_old = z[old], Q[old]
+        P, dx = self.n_particles, self.dx
+        # every random number of this step is drawn here, before any state changes
+        eps = self.rng.standard_normal((P, dx)) if self.version == 2 else None
+        u_resample = float(self.rng.random())
+
+        S = None
+        if self.version == 2:
+            S = self.pending_S
+            if S is None:
+                S = np.tile(self.params.process_cov_floor * np.eye(dx), (P, 1, 1))
+        slots_new = self.book.allocate(ids[is_new])
+        self._ensure_capacity()
+        self.pose, dlogw = fastslam_step(
+            self.version,
+            self.pose,
+            S,
+            self.lm_mean,
+            self.lm_cov,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z[is_new],
+            Q[is_new],
+            eps,
+            model,
+            self.params.landmark_cov_floor,
+        )
+        self.pending_S = None
+
+        ln, w = normalize_log_weights(self.log_w + dlogw)
+        self.neff = effective_sample_size(w)
+        self.best = int(np.argmax(w))
+        resampled = False
+        if self.neff < self.params.resample_neff_ratio * P:
+            idx = low_variance_indices(w, u_resample)
+            self._select(idx)
+            resampled = True
+        else:
+            self.log_w = ln
+
+        n_pruned = self._prune(slots_old, slots_new)
+        return UpdateReport(
+            n_updated=int(slots_old.size),
+            n_new=int(slots_new.size),
+            n_pruned=n_pruned,
+            neff=self.neff,
+            resampled=resampled,
+        )
+
+    def _select(self, idx: np.ndarray) -> None:
+        """Replace the particle set by ``particles[idx]`` with uniform weights (copies the used slots)."""
+        n = self.book.n_slots
+        best_old = self.best
+        cap = self.lm_mean.shape[1]
+        mean = np.empty((idx.size, cap, self.dm))
+        cov = np.empty((idx.size, cap, self.dm, self.dm))
+        np.take(self.lm_mean[:, :n], idx, axis=0, out=mean[:, :n])
+        np.take(self.lm_cov[:, :n], idx, axis=0, out=cov[:, :n])
+        self.lm_mean, self.lm_cov = mean, cov
+        self.pose = self.pose[idx]
+        if self.pending_S is not None:
+            self.pending_S = self.pending_S[idx]
+        self.log_w = np.full(idx.size, -np.log(idx.size))
+        # the best particle always survives low-variance resampling (w_max >= 1/P): keep pointing at it
+        hits = np.flatnonzero(idx == best_old)
+        self.best = int(hits[0]) if hits.size else 0
+
+    def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
+        """Existence counters (§8 bookkeeping), visibility judged in the best particle."""
+        if not self.params.prune_enabled or self.book.n == 0:
+            return 0
+        active = self.book.active_slots()
+        b = self.best
+        x = np.broadcast_to(self.pose[b], (active.size, self.dx))
+        zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(x, self.lm_mean[b, active])
+        expected = active[np.asarray(self.visible(zc), bool)]
+        dead = self.book.existence_update(observed, expected, born)
+        if dead.size:
+            self.book.release(dead)
+            logger.debug("FastSLAM pruned %d landmarks", dead.size)
+        return int(dead.size)
+
+    # ------------------------------------------------------------------------------------ output
+
+    def weights(self) -> np.ndarray:
+        """(P,) normalised particle weights."""
+        return normalize_log_weights(self.log_w)[1]
+
+    def estimate(self) -> PoseEstimate:
+        """Weighted mean (circular for angles) and particle covariance (§10 "Output")."""
+        w = self.weights()
+        mean, cov = weighted_pose_mean(self.pose, w, self.dim)
+        if self.pending_S is not None:
+            # not yet sampled (2.0 between predict and update): add the prior's spread
+            cov = cov + np.einsum("p,pij->ij", w, self.pending_S)
+        xyz, rpy = pose_to_xyz_rpy(mean, self.dim)
+        return PoseEstimate(
+            self.t_ns,
+            xyz,
+            rpy,
+            pose_cov_6x6(cov, self.dim, self.params.pose_cov_floor_2d),
+            neff=self.neff,
+            n_particles=self.n_particles,
+        )
+
+    def landmark_ids(self) -> np.ndarray:
+        return self.book.slot_id[self.book.active_slots()].copy()
+
+    def landmarks(self) -> LandmarkMap:
+        """The highest-weight particle's landmarks (§10 "Output")."""
+        s = self.book.active_slots()
+        m, C = lm_to_3d(
+            self.lm_mean[self.best, s].copy(), self.lm_cov[self.best, s].copy(), self.params.pose_cov_floor_2d
+        )
+        return LandmarkMap(self.book.slot_id[s].copy(), m, C)
+
+    def set_particles(self, n: int) -> int:
+        """Resample to ``max(n, min(n_particles_min, n_particles))`` particles (low-variance); returns the count."""
+        n = max(int(n), min(int(self.params.n_particles_min), int(self.params.n_particles)))
+        if n != self.n_particles:
+            w = self.weights()
+            self._select(low_variance_indices(w, float(self.rng.random()), n))
+            self.neff = float(n)
+            logger.debug("FastSLAM particle count -> %d", n)
+        return n
+
+    # ------------------------------------------------------------------------------ persistence
+
+    def state_dict(self) -> dict[str, np.ndarray | float | int]:
+        n = self.book.n_slots
+        d: dict[str, np.ndarray | float | int] = {
+            "filter_code": FILTER_CODE[self.name],
+            "dim": self.dim,
+            "t_ns": self.t_ns,
+            "pose": self.pose.copy(),
+            "lm_mean": self.lm_mean[:, :n].copy(),
+            "lm_cov": self.lm_cov[:, :n].copy(),
+            "log_w": self.log_w.copy(),
+            "pending_S": self.pending_S.copy() if self.pending_S is not None else np.zeros((0, self.dx, self.dx)),
+            "best": self.best,
+            "neff": self.neff,
+        }
+        d.update(self.book.state_dict())
+        return d
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        _check_header(state, self.name, self.dim)
+        try:
+            pose = np.asarray(state["pose"], float)
+            mean = np.asarray(state["lm_mean"], float)
+            cov = np.asarray(state["lm_cov"], float)
+            log_w = np.asarray(state["log_w"], float)
+            pend = np.asarray(state["pending_S"], float)
+            best, neff = int(state["best"]), float(state["neff"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise PersistenceError(f"{self.name} state: missing or malformed key ({e})") from None
+        book = LandmarkBook()
+        book.load_state_dict(state)
+        P, n, dx, dm = pose.shape[0], book.n_slots, self.dx, self.dm
+        shapes_ok = (
+            pose.shape == (P, dx)
+            and mean.shape == (P, n, dm)
+            and cov.shape == (P, n, dm, dm)
+            and log_w.shape == (P,)
+            and pend.shape in ((0, dx, dx), (P, dx, dx))
+            and 0 <= best < max(P, 1)
+        )
+        if not shapes_ok or P < 1:
+            raise PersistenceError(
+                f"{self.name} state: inconsistent shapes pose {pose.shape}, lm_mean {mean.shape}, lm_cov {cov.shape}, "
+                f"log_w {log_w.shape}, pending_S {pend.shape} for {n} landmark slots"
+            )
+        for k, a in (("pose", pose), ("lm_mean", mean), ("lm_cov", cov)):
+            if not np.all(np.isfinite(a)):
+                raise PersistenceError(f"{self.name} state: non-finite values in {k}")
+        cap = book.capacity
+        self.lm_mean = np.zeros((P, cap, dm))
+        self.lm_cov = np.zeros((P, cap, dm, dm))
+        self.lm_mean[:, :n] = mean
+        self.lm_cov[:, :n] = cov
+        self.pose, self.log_w, self.book = pose.copy(), log_w.copy(), book
+        self.pending_S = pend.copy() if pend.shape[0] else None
+        self.best, self.neff, self.t_ns = best, neff, int(state["t_ns"])
