@@ -18,7 +18,8 @@ samples have 2 pairs and the thresholds are χ²₂ (§5.1).
 All RANSAC variants share one loop (§5.3): distinct random samples from an injected
 ``np.random.Generator``, degenerate samples skipped, hypotheses scored in batches (one numpy call
 for a batch of hypotheses × all pairs, 3×3 systems solved in closed form), best = most inliers
-with ties to the smaller Σd², the adaptive budget K = ⌈log(1−p)/log(1−w^m)⌉ with a cap, one
+with ties to the smaller Σd² (each new best locally optimised by a weighted re-fit on its
+inliers), the adaptive budget K = ⌈log(1−p)/log(1−w^m)⌉ with a cap, one
 re-fit on the inliers and one re-classification, and "accept none" below ``min_inliers``.
 """
 
@@ -55,6 +56,9 @@ class OutlierParams:
       d_S² ≤ sampson_chi2 · σ².
     score: "count" (inliers, ties by smaller Σd²) or "msac" (Σ min(d², χ²), Torr & Zisserman 2000).
     batch: hypotheses scored per numpy call.
+    local_optimisation: re-fit each new best hypothesis on its inliers (LO-RANSAC) before scoring
+      it against the budget, repeated while it improves (at most lo_steps times); the final
+      re-fit is Mahalanobis-weighted too (Umeyama for the Euclidean measure).
     """
 
     method: str = "similarity_mahalanobis"
@@ -70,6 +74,8 @@ class OutlierParams:
     sampson_chi2: float = 3.84
     score: str = "count"
     batch: int = 32
+    local_optimisation: bool = True
+    lo_steps: int = 4
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -267,6 +273,115 @@ def _better(cnt: int, cost: float, best_cnt: int, best_cost: float, mode: str) -
 
 
 # --------------------------------------------------------------------------------------------
+# Mahalanobis-weighted similarity fit (re-fit on inliers)
+
+
+def _skew_rows(v: np.ndarray) -> np.ndarray:
+    """(N, d) -> (N, d, k): ∂(exp(δθ) v)/∂δθ at δθ = 0, i.e. −[v]× in 3-D (k = 3), J v⊥ in 2-D (k = 1)."""
+    if v.shape[1] == 3:
+        z = np.zeros(v.shape[0])
+        x, y, w = v[:, 0], v[:, 1], v[:, 2]
+        # −[v]× = [[0, w, −y], [−w, 0, x], [y, −x, 0]]
+        return np.stack([np.stack([z, w, -y], -1), np.stack([-w, z, x], -1), np.stack([y, -x, z], -1)], -2)
+    return np.stack([-v[:, 1], v[:, 0]], -1)[:, :, None]
+
+
+def _exp_rot(w: np.ndarray) -> np.ndarray:
+    """Rotation from a 3-vector (3-D) or a 1-vector angle (2-D)."""
+    if w.size == 1:
+        c, s = math.cos(float(w[0])), math.sin(float(w[0]))
+        return np.array([[c, -s], [s, c]])
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
+
+
+def fit_similarity_mahalanobis(
+    a: np.ndarray,
+    b: np.ndarray,
+    A: np.ndarray | None,
+    B: np.ndarray | None,
+    s0: float,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    with_scale: bool = True,
+    iterations: int = 5,
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """(s, R, t) minimising Σ eᵢᵀ Cᵢ⁻¹ eᵢ, eᵢ = bᵢ − (s R aᵢ + t), by Gauss–Newton from (s0, R0, t0).
+
+    Cᵢ = Bᵢ + s0² R0 Aᵢ R0ᵀ (§5.2) is held at the start value. Unweighted least squares (Umeyama)
+    is dominated by the far points, whose depth error grows with X² (§3.2); this weighting is what
+    makes the re-fit on inliers improve the hypothesis. Perturbation: t + δt, exp(δθ) R, s·e^{δσ}.
+    ``a``, ``b``: (N, d), d = 2 or 3; ``A``, ``B``: (N, d, d) or None. Returns (s, R, t, cov) with
+    cov the inverse Gauss–Newton information over (δt, δθ[, δσ]).
+    """
+    n, d = a.shape
+    C = np.zeros((n, d, d))
+    if A is not None:
+        C += s0 * s0 * (R0 @ A @ R0.T)
+    if B is not None:
+        C += B
+    W = np.linalg.inv(C) if (A is not None or B is not None) else np.broadcast_to(np.eye(d), (n, d, d))
+    s, R, t = float(s0), R0.copy(), t0.copy()
+    k_rot = 3 if d == 3 else 1
+    npar = d + k_rot + (1 if with_scale else 0)
+    H = np.eye(npar)
+    for _ in range(max(1, iterations)):
+        sRa = s * (a @ R.T)
+        e = b - (sRa + t)
+        # e decreases by the model's increment: ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) sRa)/∂δθ, ∂e/∂δσ = −sRa
+        cols = [-np.broadcast_to(np.eye(d), (n, d, d)), -_skew_rows(sRa)]
+        if with_scale:
+            cols.append(-sRa[:, :, None])
+        J = np.concatenate(cols, axis=2)  # (N, d, npar)
+        JW = np.einsum("nki,nkl->nil", J, W)
+        H = np.einsum("nil,nlj->ij", JW, J)
+        g = np.einsum("nil,nl->i", JW, e)
+        try:
+            delta = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        t = t + delta[:d]
+        R = _exp_rot(delta[d : d + k_rot]) @ R
+        if with_scale:
+            s = s * math.exp(float(delta[-1]))
+        if float(np.linalg.norm(delta)) < 1e-10:
+            break
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.full((npar, npar), np.inf)
+    return s, R, t, 0.5 * (cov + cov.T)
+
+
+def _refit(
+    a: np.ndarray,
+    b: np.ndarray,
+    A: np.ndarray | None,
+    B: np.ndarray | None,
+    model: tuple[float, np.ndarray, np.ndarray],
+    inl: np.ndarray,
+    euclidean: bool,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Re-fit a similarity on the inliers: Umeyama for the Euclidean measure, else Mahalanobis-weighted."""
+    if euclidean:
+        return umeyama(a[inl], b[inl])
+    s, R, t, _ = fit_similarity_mahalanobis(
+        a[inl],
+        b[inl],
+        None if A is None else A[inl],
+        None if B is None else B[inl],
+        model[0],
+        model[1],
+        model[2],
+    )
+    return s, R, t
+
+
+# --------------------------------------------------------------------------------------------
 # Similarity RANSAC (§5.1–§5.3)
 
 
@@ -332,8 +447,19 @@ def ransac_similarity(
         d2 = similarity_d2(s, R, t, a, b, A, B, euclidean)
         k, cnt, cost = _best_of_batch(d2, thr, params.score)
         if _better(cnt, cost, best_cnt, best_cost, params.score):
-            best_cnt, best_cost = cnt, cost
-            best_model = (float(s[k]), R[k], t[k])
+            model = (float(s[k]), R[k], t[k])
+            if params.local_optimisation and cnt > m:
+                # LO-RANSAC (Chum et al. 2003): a 3-point hypothesis from noisy stereo points is
+                # imprecise; re-fitting it on its own inliers recovers most of the consensus
+                inl_k = d2[k] <= thr
+                for _ in range(params.lo_steps):
+                    lo = _refit(a, b, A, B, model, inl_k, euclidean)
+                    d2_lo = similarity_d2(np.array([lo[0]]), lo[1][None], lo[2][None], a, b, A, B, euclidean)
+                    _, cnt_lo, cost_lo = _best_of_batch(d2_lo, thr, params.score)
+                    if abs(lo[0] - 1.0) > params.max_scale_dev or not _better(cnt_lo, cost_lo, cnt, cost, params.score):
+                        break
+                    model, cnt, cost, inl_k = lo, cnt_lo, cost_lo, d2_lo[0] <= thr
+            best_cnt, best_cost, best_model = cnt, cost, model
             K = min(K, iteration_budget(best_cnt / n, m, params.p_success, params.max_iterations))
 
     if best_model is None:
@@ -353,7 +479,7 @@ def ransac_similarity(
     # one re-fit on all inliers and one re-classification (§5.3, step 5); keep the sample's
     # hypothesis if the re-fit is worse (it can be, since least squares is not the consensus score)
     if inl.sum() >= m + 1:
-        s1, R1, t1 = umeyama(a[inl], b[inl])
+        s1, R1, t1 = _refit(a, b, A, B, (s0, R0, t0v), inl, euclidean)
         if abs(s1 - 1.0) <= params.max_scale_dev:
             d2_1 = similarity_d2(np.array([s1]), R1[None], t1[None], a, b, A, B, euclidean)[0]
             inl1 = d2_1 <= thr

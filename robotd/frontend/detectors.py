@@ -11,6 +11,7 @@ SURF (64-D) float32 with Euclidean distance, ORB 32-byte packed bits with Hammin
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -205,14 +206,21 @@ class _SurfDetector:
         self.name = "surf"
         self.binary = False
         self._surf_params: Any = None
+        p_cls = getattr(surf, "SurfParams", None)
+        kwargs: dict[str, Any] = {}
         if params.surf_hessian_threshold is not None:
-            p_cls = getattr(surf, "SurfParams", None)
+            kwargs["hessian_threshold"] = params.surf_hessian_threshold
+        names = {f.name for f in dataclasses.fields(p_cls)} if dataclasses.is_dataclass(p_cls) else set()
+        if "max_features" in names:
+            # let SURF return the oversampled candidate set; the cap and bucketing are applied here
+            kwargs["max_features"] = int(np.ceil(params.max_features * (params.oversample if params.bucketing else 1)))
+        if kwargs:
             if p_cls is None:
-                raise ConfigError("frontend.detector.surf_hessian_threshold: robotd.frontend.surf has no SurfParams")
+                raise ConfigError("frontend.detector.surf_*: robotd.frontend.surf has no SurfParams")
             try:
-                self._surf_params = p_cls(hessian_threshold=params.surf_hessian_threshold)
+                self._surf_params = p_cls(**kwargs)
             except TypeError as exc:
-                raise ConfigError(f"frontend.detector.surf_hessian_threshold: SurfParams rejected it ({exc})") from exc
+                raise ConfigError(f"frontend.detector.surf_*: SurfParams rejected {kwargs} ({exc})") from exc
 
     def detect(self, image: np.ndarray, max_features: int | None = None) -> Features:
         image = check_image(image)

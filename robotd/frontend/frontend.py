@@ -38,9 +38,15 @@ from robotd.frontend.stereo_match import (
     match_stereo,
     ratio_and_cross_check,
 )
-from robotd.geometry import se3, se3_inverse, skew, so3_exp, so3_log
+from robotd.geometry import se3, se3_inverse, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations
-from robotd.outliers import OutlierParams, OutlierResult, detect_outliers, ransac_similarity
+from robotd.outliers import (
+    OutlierParams,
+    OutlierResult,
+    detect_outliers,
+    fit_similarity_mahalanobis,
+    ransac_similarity,
+)
 from robotd.stereo import RectifiedStereo, project
 
 logger = logging.getLogger(__name__)
@@ -103,41 +109,6 @@ class _PrevFrame:
     t_ns: int
     meas: StereoMatches
     ids: np.ndarray  # (N,) global id per measurement, −1 if rejected
-
-
-def refine_rigid_mahalanobis(
-    a: np.ndarray,
-    b: np.ndarray,
-    A: np.ndarray,
-    B: np.ndarray,
-    R0: np.ndarray,
-    t0: np.ndarray,
-    iterations: int = 5,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rigid (R, t) minimising Σ eᵢᵀ Cᵢ⁻¹ eᵢ, eᵢ = bᵢ − (R aᵢ + t), Cᵢ = Bᵢ + R Aᵢ Rᵀ (Gauss–Newton).
-
-    ``a``, ``b``: (N, 3); ``A``, ``B``: (N, 3, 3). The Cᵢ are evaluated at the start (R0) and held
-    fixed. The perturbation is R = exp(δθ) R, t = t + δt; ∂e/∂(δθ, δt) = [[R a]×, −I]. Returns
-    (R, t, cov (6, 6) over (δt, δθ) = H⁻¹), the first-order covariance of (t, rotation vector).
-    """
-    R, t = R0.copy(), t0.copy()
-    C = B + R0 @ A @ R0.T
-    W = np.linalg.inv(C)  # (N, 3, 3); small symmetric positive-definite blocks
-    H = np.eye(6)
-    for _ in range(max(1, iterations)):
-        Ra = a @ R.T
-        e = b - (Ra + t)
-        J = np.concatenate([-np.broadcast_to(np.eye(3), (a.shape[0], 3, 3)), skew(Ra)], axis=2)  # (N, 3, 6)
-        JW = np.einsum("nki,nkl->nil", J, W)  # Jᵀ W, (N, 6, 3)
-        H = np.einsum("nil,nlj->ij", JW, J)
-        g = np.einsum("nil,nl->i", JW, e)
-        delta = -np.linalg.solve(H, g)
-        t = t + delta[:3]
-        R = so3_exp(delta[3:]) @ R
-        if np.linalg.norm(delta) < 1e-10:
-            break
-    cov = np.linalg.inv(H)
-    return R, t, 0.5 * (cov + cov.T)
 
 
 def predicted_visible(
@@ -381,14 +352,17 @@ class Frontend:
             return None, None, counts
         inl = res.inliers
         counts["motion_inliers"] = int(inl.sum())
-        R, t, cov_tr = refine_rigid_mahalanobis(
+        # rigid (stereo fixes the scale), Mahalanobis-weighted re-fit on the inliers
+        _, R, t, cov_tr = fit_similarity_mahalanobis(
             meas.xyz_R[ic][inl],
             pv.meas.xyz_R[ip][inl],
             meas.cov_R[ic][inl],
             pv.meas.cov_R[ip][inl],
+            1.0,
             res.R,
             res.t,
-            p.motion_gn_iterations,
+            with_scale=False,
+            iterations=p.motion_gn_iterations,
         )
         T_pc = se3(R, t)
         motion = MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr)
