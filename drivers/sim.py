@@ -1,0 +1,598 @@
+"""``sim://``: the simulated rover. Rendered rectified stereo pairs, noisy odometry, ground truth.
+
+The daemon's built-in default source: ``robotd run`` with no configuration drives this rover
+through a textured walled yard (drivers/simworld.py) and renders what its OAK-D-like stereo rig
+sees (drivers/_render.py). Every StereoFrame carries ``truth_T_world_robot``.
+
+URL: ``sim://[WORLD]?key=value&...`` (all keys optional; one URL can serve camera and vehicle):
+
+========== ======== ===================================================================
+key        default  meaning
+========== ======== ===================================================================
+width      640      image width [px] (16..4096)
+height     400      image height [px] (16..4096)
+fps        30       frame rate [Hz] (0.1..1000)
+f          430·w/640  focal length [px] (keeps the OAK-D's ≈ 73° field of view)
+baseline   0.0755   stereo baseline [m]
+seed       1        world layout, textures and noise (integer ≥ 0)
+world      yard     world name (also accepted as the URL's host: ``sim://yard``)
+speed      1.0      mean rover speed [m/s] (0..5)
+tilt       0        terrain rocking amplitude, roll and pitch [deg] (0..10)
+duration   0        stop after this many simulated seconds; 0 = run forever
+realtime   1        1: emit at capture times on time.monotonic_ns(); 0: as fast as pulled
+noise      0.05     odometry speed noise, σ as a fraction of the speed (per sample)
+gyro_noise 0.005    gyro white noise σ [rad/s] (per sample)
+gyro_bias  0.002    gyro bias σ [rad/s], drawn once per seed and held constant
+odom_hz    50       odometry rate [Hz] (1..1000)
+img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
+========== ======== ===================================================================
+
+Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
+agree on (seed, world, speed, tilt): a process-wide registry holds the world and the start time
+``t0_ns`` taken on time.monotonic_ns() at the first open (or given as the ``t0_ns=`` option).
+Frame k is captured at ``t0_ns + round(k · 1e9 / fps)``, odometry sample j at
+``t0_ns + round(j · 1e9 / odom_hz)``. With ``realtime=1`` a frame is yielded at its capture time;
+a consumer that pulls late gets the newest frame and the skipped ones count as ``dropped``
+(the simulated camera never slows down). With ``realtime=0`` frames come as fast as they are
+pulled, with the same timestamps, so a run is reproducible.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields, replace
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+import numpy as np
+
+from drivers._render import ViewRenderer
+from drivers.simworld import WORLDS, World, build_world
+from robotd.errors import DriverError
+from robotd.geometry import R_ROBOT_OPTICAL, se3
+from robotd.msgs import Odometry, PoseEstimate, StereoFrame
+from robotd.stereo import RectifiedStereo
+
+logger = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------------------------
+# Parameters
+
+
+@dataclass(frozen=True, slots=True)
+class SimParams:
+    """Resolved ``sim://`` parameters (see the module docstring for meanings and units)."""
+
+    width: int = 640
+    height: int = 400
+    fps: float = 30.0
+    f: float = 0.0  # 0 → 430 · width / 640
+    baseline: float = 0.0755
+    seed: int = 1
+    world: str = "yard"
+    speed: float = 1.0
+    tilt: float = 0.0
+    duration: float = 0.0
+    realtime: int = 1
+    noise: float = 0.05
+    gyro_noise: float = 0.005
+    gyro_bias: float = 0.002
+    odom_hz: float = 50.0
+    img_noise: float = 2.0
+
+    @property
+    def f_px(self) -> float:
+        return self.f if self.f > 0 else 430.0 * self.width / 640.0
+
+    @property
+    def session_key(self) -> tuple[int, str, float, float]:
+        """What camera and vehicle must agree on to share a world and a clock."""
+        return (self.seed, self.world, self.speed, self.tilt)
+
+
+# key -> (parser, lower bound, upper bound); bounds inclusive, None = open
+_RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
+    "width": (int, 16, 4096),
+    "height": (int, 16, 4096),
+    "fps": (float, 0.1, 1000.0),
+    "f": (float, 1.0, 1e5),
+    "baseline": (float, 1e-3, 10.0),
+    "seed": (int, 0, 2**63 - 1),
+    "world": (str, None, None),
+    "speed": (float, 0.0, 5.0),
+    "tilt": (float, 0.0, 10.0),
+    "duration": (float, 0.0, 1e9),
+    "realtime": (int, 0, 1),
+    "noise": (float, 0.0, 1.0),
+    "gyro_noise": (float, 0.0, 1.0),
+    "gyro_bias": (float, 0.0, 1.0),
+    "odom_hz": (float, 1.0, 1000.0),
+    "img_noise": (float, 0.0, 50.0),
+}
+
+
+def _convert(url: str, key: str, raw: Any) -> Any:
+    parse, lo, hi = _RANGES[key]
+    try:
+        if parse is int and isinstance(raw, str):
+            value: Any = int(raw, 10)
+        elif parse is int and isinstance(raw, bool):
+            value = int(raw)
+        else:
+            value = parse(raw)
+    except (TypeError, ValueError):
+        raise DriverError(f"{url!r}: parameter {key}={raw!r}: expected {parse.__name__}") from None
+    if isinstance(value, float) and not math.isfinite(value):
+        raise DriverError(f"{url!r}: parameter {key}={raw!r}: expected a finite number")
+    if lo is not None and hi is not None and not lo <= value <= hi:
+        raise DriverError(f"{url!r}: parameter {key}={value!r}: expected {lo:g} ≤ {key} ≤ {hi:g}")
+    if key == "world" and value not in WORLDS:
+        raise DriverError(f"{url!r}: parameter world={value!r}: unknown world; known: {', '.join(WORLDS)}")
+    return value
+
+
+def parse_sim_url(url: str, **options: Any) -> SimParams:
+    """Parse ``sim://[WORLD]?k=v&...``; ``options`` (same names) override the URL.
+
+    Raises DriverError naming the parameter for unknown keys, bad values and repeated keys.
+    """
+    parts = urlsplit(url)
+    if parts.scheme.lower() != "sim":
+        raise DriverError(f"{url!r}: expected a sim:// URL")
+    if parts.path not in ("", "/"):
+        raise DriverError(f"{url!r}: sim:// takes no path, got {parts.path!r}")
+    values: dict[str, Any] = {}
+    if parts.netloc:
+        values["world"] = _convert(url, "world", parts.netloc)
+    try:
+        pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
+    except ValueError as exc:
+        raise DriverError(f"{url!r}: malformed query string: {exc}") from None
+    for key, raw in pairs:
+        if key not in _RANGES:
+            raise DriverError(f"{url!r}: unknown parameter {key!r}; known: {', '.join(sorted(_RANGES))}")
+        if key in values and key != "world":
+            raise DriverError(f"{url!r}: parameter {key!r} given twice")
+        values[key] = _convert(url, key, raw)
+    for key, raw in options.items():
+        if key not in _RANGES:
+            raise DriverError(f"{url!r}: unknown option {key!r}; known: {', '.join(sorted(_RANGES))}, t0_ns")
+        values[key] = _convert(url, key, raw)
+    return replace(SimParams(), **values)
+
+
+# --------------------------------------------------------------------------------------------
+# Shared sessions: one world and one clock per (seed, world, speed, tilt)
+
+
+class _Session:
+    def __init__(self, params: SimParams, t0_ns: int | None) -> None:
+        self.world: World = build_world(params.seed, params.world, params.speed, params.tilt)
+        # the clock starts once the world is built, so the first frames are not already late
+        self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
+        self.refs = 0
+        rng = np.random.default_rng([params.seed, 8])
+        self._gyro_bias_unit = rng.standard_normal(3)  # scaled by each link's gyro_bias
+
+    def gyro_bias(self, sigma: float) -> np.ndarray:
+        return sigma * self._gyro_bias_unit
+
+
+_SESSIONS: dict[tuple[int, str, float, float], _Session] = {}
+_SESSIONS_LOCK = threading.Lock()
+
+
+def _acquire(params: SimParams, t0_ns: int | None) -> _Session:
+    with _SESSIONS_LOCK:
+        key = params.session_key
+        session = _SESSIONS.get(key)
+        if session is None:
+            session = _Session(params, t0_ns)
+            _SESSIONS[key] = session
+            logger.info("sim world seed=%d %s: start t0_ns=%d", params.seed, params.world, session.t0_ns)
+        elif t0_ns is not None and int(t0_ns) != session.t0_ns:
+            raise DriverError(
+                f"sim session {key}: t0_ns={t0_ns} requested but the shared clock started at {session.t0_ns}"
+            )
+        session.refs += 1
+        return session
+
+
+def _release(params: SimParams, session: _Session) -> None:
+    with _SESSIONS_LOCK:
+        session.refs -= 1
+        if session.refs <= 0 and _SESSIONS.get(params.session_key) is session:
+            del _SESSIONS[params.session_key]
+
+
+def _pop_t0(url: str, options: dict[str, Any]) -> int | None:
+    t0 = options.pop("t0_ns", None)
+    if t0 is not None and (not isinstance(t0, int | np.integer) or isinstance(t0, bool)):
+        raise DriverError(f"{url!r}: option t0_ns={t0!r}: expected integer nanoseconds")
+    return None if t0 is None else int(t0)
+
+
+def _percentiles(samples: deque[float]) -> tuple[float, float]:
+    if not samples:
+        return float("nan"), float("nan")
+    a = np.fromiter(samples, float)
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+# --------------------------------------------------------------------------------------------
+# The rig: pure rendering of frame k (no clock), usable on its own by tests and benchmarks
+
+
+class SimRig:
+    """Renders the stereo pair of frame ``k`` of a world: deterministic for (world, params, k).
+
+    Left camera at y = −b/2, right at +b/2 in the robot frame, both looking along X_r with the
+    optical axes (x right, y down, z forward) = R_ROBOT_OPTICAL; a rectified pinhole pair.
+    """
+
+    def __init__(self, world: World, params: SimParams) -> None:
+        self.world = world
+        self.params = params
+        w, h = params.width, params.height
+        self.model = RectifiedStereo(params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, params.baseline, w, h)
+        self._renderer = ViewRenderer(world.surfaces, self.model.f_px, self.model.px, self.model.py, w, h)
+        b = params.baseline
+        self.T_robot_left = se3(R_ROBOT_OPTICAL, np.array([0.0, -b / 2.0, 0.0]))
+        self.T_robot_right = se3(R_ROBOT_OPTICAL, np.array([0.0, b / 2.0, 0.0]))
+        # sensor noise: a bank of noise fields drawn once; each frame picks fields and offsets
+        # (drawing 2 × 256k normals per frame would cost more than the rendering)
+        self._pad = 32
+        self._noise_pos: list[np.ndarray] = []
+        self._noise_neg: list[np.ndarray] = []
+        if params.img_noise > 0:
+            rng = np.random.default_rng([params.seed, 4])
+            for _ in range(6):
+                n = np.rint(rng.normal(0.0, params.img_noise, (h + self._pad, w + self._pad)))
+                n = np.clip(n, -127, 127)
+                self._noise_pos.append(np.maximum(n, 0).astype(np.uint8))
+                self._noise_neg.append(np.maximum(-n, 0).astype(np.uint8))
+
+    def frame_time_s(self, k: int) -> float:
+        return k / self.params.fps
+
+    def _add_noise(self, img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        if not self._noise_pos:
+            return img
+        i = int(rng.integers(len(self._noise_pos)))
+        dy, dx = (int(v) for v in rng.integers(0, self._pad, 2))
+        h, w = img.shape
+        # saturating uint8 arithmetic: img + max(n, 0) − max(−n, 0)
+        out = np.minimum(img.astype(np.int16) + self._noise_pos[i][dy : dy + h, dx : dx + w], 255)
+        out = np.maximum(out - self._noise_neg[i][dy : dy + h, dx : dx + w], 0)
+        return out.astype(np.uint8)
+
+    def render(self, k: int, t_ns: int) -> tuple[StereoFrame, np.ndarray]:
+        """Frame ``k`` stamped ``t_ns``, and the left camera's depth buffer (H, W) float32 [m]
+        (Z along the optical axis = X_r depth; +inf where nothing was hit)."""
+        T_world_robot = self.world.trajectory.state(self.frame_time_s(k)).T_world_robot
+        left, iz = self._renderer.render(T_world_robot @ self.T_robot_left)
+        right, _ = self._renderer.render(T_world_robot @ self.T_robot_right)
+        rng = np.random.default_rng([self.params.seed, 1, k])
+        left = self._add_noise(left, rng)
+        right = self._add_noise(right, rng)
+        with np.errstate(divide="ignore"):
+            depth = np.where(iz > 0, 1.0 / iz, np.inf).astype(np.float32)
+        return StereoFrame(t_ns, k, left, right, True, T_world_robot), depth
+
+
+# --------------------------------------------------------------------------------------------
+# Camera
+
+
+class SimCamera:
+    """``sim://`` stereo camera (StereoCamera protocol). Open with ``with`` or :func:`open_sim_camera`."""
+
+    def __init__(self, url: str, params: SimParams, t0_ns: int | None = None) -> None:
+        self.url = url
+        self.params = params
+        self._t0_request = t0_ns
+        self._session: _Session | None = None
+        self._rig: SimRig | None = None
+        self._closed = threading.Event()
+        self._lock = threading.Lock()
+        self._next_k = 0
+        self._rendered = 0
+        self._dropped = 0
+        self._render_ms: deque[float] = deque(maxlen=1000)
+
+    # lifecycle
+    def __enter__(self) -> SimCamera:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+        self._release()
+
+    def open(self) -> None:
+        """Build (or join) the shared world and clock; idempotent."""
+        with self._lock:
+            if self._session is None:
+                self._session = _acquire(self.params, self._t0_request)
+                self._rig = SimRig(self._session.world, self.params)
+                logger.info(
+                    "sim camera %s: %dx%d @ %g fps, f=%.1f px, b=%.4f m, realtime=%d",
+                    self.url,
+                    self.params.width,
+                    self.params.height,
+                    self.params.fps,
+                    self._rig.model.f_px,
+                    self.params.baseline,
+                    self.params.realtime,
+                )
+
+    def _release(self) -> None:
+        with self._lock:
+            if self._session is not None:
+                _release(self.params, self._session)
+                self._session = None
+
+    def close(self) -> None:
+        """Stop iteration (safe from another thread: ``frames()`` returns within one render)."""
+        self._closed.set()
+
+    @property
+    def t0_ns(self) -> int:
+        self.open()
+        assert self._session is not None
+        return self._session.t0_ns
+
+    def rectified_model(self) -> RectifiedStereo:
+        w, h = self.params.width, self.params.height
+        return RectifiedStereo(self.params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, self.params.baseline, w, h)
+
+    def frame_t_ns(self, k: int) -> int:
+        """Capture time of frame ``k`` on the host monotonic clock."""
+        return self.t0_ns + round(k * 1e9 / self.params.fps)
+
+    def render(self, k: int) -> tuple[StereoFrame, np.ndarray]:
+        """Frame ``k`` and its left depth buffer [m], off the clock (tests, evaluation)."""
+        self.open()
+        assert self._rig is not None
+        return self._rig.render(k, self.frame_t_ns(k))
+
+    def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
+        """Yield frames until ``duration`` is reached or :meth:`close` is called.
+
+        ``timeout_s`` is accepted for the protocol; the simulated camera always delivers.
+        """
+        self.open()
+        assert self._rig is not None
+        p = self.params
+        t0 = self.t0_ns
+        k = self._next_k
+        while not self._closed.is_set():
+            if p.realtime:
+                # the newest frame already captured; the ones the consumer missed are dropped
+                k_now = math.floor((time.monotonic_ns() - t0) * p.fps / 1e9)
+                if k_now > k:
+                    self._dropped += k_now - k
+                    logger.debug("sim camera: consumer late, dropped %d frames", k_now - k)
+                    k = k_now
+            if p.duration > 0 and k / p.fps >= p.duration:
+                return
+            t_ns = self.frame_t_ns(k)
+            start = time.perf_counter()
+            frame, _ = self._rig.render(k, t_ns)
+            self._render_ms.append((time.perf_counter() - start) * 1e3)
+            self._rendered += 1
+            if p.realtime:
+                wait_s = (t_ns - time.monotonic_ns()) / 1e9
+                if wait_s > 0 and self._closed.wait(wait_s):
+                    return
+            k += 1
+            self._next_k = k
+            yield frame
+
+    def stats(self) -> dict[str, Any]:
+        p50, p99 = _percentiles(self._render_ms)
+        return {
+            "frames": self._rendered,
+            "dropped": self._dropped,
+            "render_ms_p50": p50,
+            "render_ms_p99": p99,
+            "next_seq": self._next_k,
+            "fps": self.params.fps,
+            "errors": 0,
+            "reconnects": 0,
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Vehicle
+
+
+class SimVehicle:
+    """``sim://`` vehicle link (VehicleLink protocol): noisy wheel/gyro odometry of the rover.
+
+    Sample j (at ``t0 + j/odom_hz``) reports the truth velocity (FRD) plus noise: forward
+    σ = noise·|v|, lateral and vertical σ = 0.2·noise·|v| (slip), body rates plus a constant bias
+    (σ gyro_bias per axis, drawn once per seed) and white noise σ gyro_noise. The noise of sample j
+    depends only on (seed, j), so it does not change with how the consumer pulls.
+    """
+
+    _BLOCK = 1024
+
+    def __init__(self, url: str, params: SimParams, t0_ns: int | None = None) -> None:
+        self.url = url
+        self.params = params
+        self._t0_request = t0_ns
+        self._session: _Session | None = None
+        self._closed = threading.Event()
+        self._lock = threading.Lock()
+        self._next_j = 0
+        self._sent = 0
+        self._dropped = 0
+        self._poses = 0
+        self._last_pose_err_m = float("nan")
+        self._block_id = -1
+        self._block = np.zeros((self._BLOCK, 6))
+
+    def __enter__(self) -> SimVehicle:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+        with self._lock:
+            if self._session is not None:
+                _release(self.params, self._session)
+                self._session = None
+
+    def open(self) -> None:
+        with self._lock:
+            if self._session is None:
+                self._session = _acquire(self.params, self._t0_request)
+                logger.info(
+                    "sim vehicle %s: odometry @ %g Hz, noise=%g", self.url, self.params.odom_hz, self.params.noise
+                )
+
+    def close(self) -> None:
+        self._closed.set()
+
+    @property
+    def t0_ns(self) -> int:
+        self.open()
+        assert self._session is not None
+        return self._session.t0_ns
+
+    def sample_t_ns(self, j: int) -> int:
+        return self.t0_ns + round(j * 1e9 / self.params.odom_hz)
+
+    def truth_T_world_robot(self, t_ns: int) -> np.ndarray:
+        """Ground-truth pose (4, 4) at host time ``t_ns`` (evaluation only)."""
+        self.open()
+        assert self._session is not None
+        return self._session.world.trajectory.state(max(0.0, (t_ns - self.t0_ns) / 1e9)).T_world_robot
+
+    def sample(self, j: int) -> Odometry:
+        """Odometry sample ``j``, off the clock (deterministic)."""
+        self.open()
+        assert self._session is not None
+        p = self.params
+        truth = self._session.world.trajectory.state(j / p.odom_hz)
+        block = j // self._BLOCK
+        if block != self._block_id:
+            self._block = np.random.default_rng([p.seed, 7, block]).standard_normal((self._BLOCK, 6))
+            self._block_id = block
+        n = self._block[j % self._BLOCK]
+        v = float(np.linalg.norm(truth.vel_R_mps))
+        vel = truth.vel_R_mps + p.noise * v * np.array([1.0, 0.2, 0.2]) * n[:3]
+        rate = truth.rate_R_radps + self._session.gyro_bias(p.gyro_bias) + p.gyro_noise * n[3:]
+        return Odometry(self.sample_t_ns(j), vel, rate, "sim")
+
+    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
+        """Yield samples until ``duration`` or :meth:`close`. In real time a late consumer gets the
+        backlog (like a serial buffer), capped at one second; older samples count as dropped."""
+        self.open()
+        p = self.params
+        t0 = self.t0_ns
+        j = self._next_j
+        while not self._closed.is_set():
+            if p.duration > 0 and j / p.odom_hz >= p.duration:
+                return
+            t_ns = self.sample_t_ns(j)
+            if p.realtime:
+                now = time.monotonic_ns()
+                j_now = math.floor((now - t0) * p.odom_hz / 1e9)
+                backlog_cap = max(1, round(p.odom_hz))
+                if j_now - j > backlog_cap:
+                    self._dropped += j_now - j - backlog_cap
+                    j = j_now - backlog_cap
+                    continue
+                wait_s = (t_ns - now) / 1e9
+                if wait_s > 0 and self._closed.wait(wait_s):
+                    return
+            msg = self.sample(j)
+            j += 1
+            self._next_j = j
+            self._sent += 1
+            yield msg
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        """Accept the SLAM pose like an autopilot would; keep its position error for stats()."""
+        self._poses += 1
+        truth = self.truth_T_world_robot(pose.t_ns)
+        self._last_pose_err_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "samples": self._sent,
+            "dropped": self._dropped,
+            "poses_received": self._poses,
+            "last_pose_error_m": self._last_pose_err_m,
+            "errors": 0,
+            "reconnects": 0,
+        }
+
+
+class NullVehicle:
+    """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`;
+    poses sent are counted and dropped. The pipeline then predicts without odometry."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self._closed = threading.Event()
+        self._poses = 0
+
+    def __enter__(self) -> NullVehicle:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
+        self._closed.wait()
+        return
+        yield  # pragma: no cover - makes this a generator
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        self._poses += 1
+
+    def close(self) -> None:
+        self._closed.set()
+
+    def stats(self) -> dict[str, Any]:
+        return {"samples": 0, "poses_received": self._poses, "errors": 0, "reconnects": 0}
+
+
+# --------------------------------------------------------------------------------------------
+# Factories named in drivers/__init__.py
+
+
+def open_sim_camera(url: str, **options: Any) -> SimCamera:
+    """``sim://?width=..&fps=..`` → an unopened :class:`SimCamera` (open it with ``with``).
+
+    ``options`` override URL parameters by name; ``t0_ns`` fixes the shared clock's start.
+    """
+    t0 = _pop_t0(url, options)
+    return SimCamera(url, parse_sim_url(url, **options), t0)
+
+
+def open_sim_vehicle(url: str, **options: Any) -> SimVehicle:
+    """``sim://?seed=..&speed=..&noise=..`` → an unopened :class:`SimVehicle`."""
+    t0 = _pop_t0(url, options)
+    return SimVehicle(url, parse_sim_url(url, **options), t0)
+
+
+def open_null_vehicle(url: str, **options: Any) -> NullVehicle:
+    """``none://`` → a vehicle link that provides no odometry."""
+    parts = urlsplit(url)
+    if parts.netloc or parts.path not in ("", "/") or parts.query or options:
+        raise DriverError(f"{url!r}: none:// takes no host, path, parameters or options")
+    return NullVehicle(url)
+
+
+def param_names() -> list[str]:
+    """Every ``sim://`` URL parameter, for docs and error messages."""
+    return [f.name for f in fields(SimParams)]
