@@ -347,6 +347,18 @@ class SimCamera:
         assert self._session is not None
         return self._session.t0_ns
 
+    @property
+    def fps(self) -> float:
+        """Nominal frame rate [Hz] (the daemon sizes its latency budget from it)."""
+        return self.params.fps
+
+    @property
+    def n_frames(self) -> int | None:
+        """Frames in the stream when ``duration`` is set (non-real-time), else None (endless)."""
+        if self.params.duration <= 0:
+            return None
+        return math.ceil(self.params.duration * self.params.fps - 1e-9)
+
     def rectified_model(self) -> RectifiedStereo:
         w, h = self.params.width, self.params.height
         return RectifiedStereo(self.params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, self.params.baseline, w, h)
@@ -366,6 +378,8 @@ class SimCamera:
 
         ``timeout_s`` is accepted for the protocol; the simulated camera always delivers.
         """
+        if self._closed.is_set():
+            return
         self.open()
         assert self._rig is not None
         p = self.params
@@ -494,6 +508,8 @@ class SimVehicle:
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         """Yield samples until ``duration`` or :meth:`close`. In real time a late consumer gets the
         backlog (like a serial buffer), capped at one second; older samples count as dropped."""
+        if self._closed.is_set():
+            return
         self.open()
         p = self.params
         t0 = self.t0_ns
