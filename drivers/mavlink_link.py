@@ -1,0 +1,744 @@
+"""``mavlink+udp://`` / ``mavlink+serial://`` vehicle link (the only pymavlink importer).
+
+URLs::
+
+    mavlink+udp://127.0.0.1:14550            robotd sends first (pymavlink "udpout"); the default
+    mavlink+udp://127.0.0.1:14551?mode=in    robotd listens (loopback only unless allow_remote=1)
+    mavlink+serial:///dev/ttyACM0?baud=921600
+
+Out: the SLAM pose as ``ODOMETRY`` (frames LOCAL_FRD 20 / BODY_FRD 12, quaternion, floored
+pose covariance, NaN velocity covariance, reset_counter, estimator VIO, quality), or
+``VISION_POSITION_ESTIMATE`` with ``message=vision_position_estimate`` (MAVLink-1 links, old
+firmware). Data-driven: one message per ``send_pose``, a newer pose supersedes an unsent one and
+nothing is ever re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER /
+MAV_AUTOPILOT_INVALID from component 197 with ``system_status`` from the health. TIMESYNC
+requests are answered; our own requests estimate the autopilot clock offset.
+``SET_GPS_GLOBAL_ORIGIN`` (when ``origin`` is configured) and the message-rate requests go out
+once the autopilot heartbeat is seen and again after an autopilot reboot (SYSTEM_TIME.time_boot_ms
+drops). Link loss: no autopilot heartbeat for ``link_timeout_s`` (3 s).
+
+In: ``WHEEL_DISTANCE`` (differential drive, track width from the options; ±100 000 m wrap) gives
+forward speed; ``ATTITUDE`` gives body rates (preferred for yaw rate) and the attitude used to
+rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data flows;
+``SERVO_OUTPUT_RAW``/``RC_CHANNELS`` are the control inputs. Autopilot stamps are mapped onto
+the host clock with the TIMESYNC offset (arrival time until the first round trip).
+
+Threads (interfaces.md §1.9): one receive thread (``recv_match`` with a 0.1 s timeout), one
+transmit thread that owns every ``*_send``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import math
+import os
+import stat
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import: ODOMETRY needs MAVLink 2
+
+import numpy as np
+from pymavlink import mavutil
+
+from drivers.serial_protocol import diff_drive
+from robotd.autopilot import (
+    CovarianceFloors,
+    TimesyncFilter,
+    VelocityFromPoses,
+    odometry_fields,
+    vision_position_fields,
+)
+from robotd.errors import DriverError
+from robotd.geometry import euler_to_R
+from robotd.msgs import Odometry, PoseEstimate
+
+logger = logging.getLogger(__name__)
+
+DIALECT = "ardupilotmega"
+MAV_COMP_ID_VIO = 197
+WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
+
+# ids of the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz]
+DEFAULT_RATES_HZ: dict[str, float] = {
+    "ATTITUDE": 50.0,
+    "WHEEL_DISTANCE": 50.0,
+    "LOCAL_POSITION_NED": 10.0,
+    "SERVO_OUTPUT_RAW": 10.0,
+    "RC_CHANNELS": 5.0,
+    "SYSTEM_TIME": 1.0,
+    "EKF_STATUS_REPORT": 2.0,
+}
+
+HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
+
+
+def _mav() -> Any:
+    return mavutil.mavlink
+
+
+def mavlink_module() -> Any:
+    """The generated ardupilotmega MAVLink 2 module (for the mock autopilot and tests)."""
+    return _mav()
+
+
+def read_signing_key(path: str) -> bytes:
+    """32-byte MAVLink2 signing key from a file that only its owner may read (mode 0600)."""
+    try:
+        st = os.stat(path)
+        with open(path, "rb") as fh:
+            key = fh.read()
+    except OSError as exc:
+        raise DriverError(f"signing key {path!r}: cannot read: {exc}") from exc
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise DriverError(f"signing key {path!r}: mode {stat.S_IMODE(st.st_mode):04o}, expected 0600")
+    if len(key) != 32:
+        raise DriverError(f"signing key {path!r}: expected 32 bytes, got {len(key)}")
+    return key
+
+
+@dataclass(frozen=True, slots=True)
+class MavlinkOptions:
+    """Every option of the MAVLink link with its default (URL query keys have the same names)."""
+
+    mode: str = "out"  # udp only: "out" (robotd sends first) or "in" (robotd listens)
+    allow_remote: bool = False  # allow mode=in on a non-loopback address
+    baud: int = 921600  # serial only
+    sysid: int = 0  # 0: use the autopilot's system id (learned from its heartbeat; 1 until then)
+    compid: int = MAV_COMP_ID_VIO
+    message: str = "odometry"  # or "vision_position_estimate"
+    track_width_m: float = 0.0  # WHEEL_DISTANCE needs it (> 0) to give a yaw rate; 0 = forward speed only
+    wheel_left: int = 0  # WHEEL_DISTANCE indices (WENC_POS_Y < 0 is the left wheel)
+    wheel_right: int = 1
+    yaw_rate_source: str = "attitude"  # "attitude" (gyro) or "wheels"
+    steering_channel: int = 1  # RCMAP defaults for Rover
+    throttle_channel: int = 3
+    link_timeout_s: float = 3.0
+    heartbeat_hz: float = 1.0
+    timesync_hz: float = 1.0
+    request_rates: bool = True
+    rates_hz: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_RATES_HZ))
+    origin: tuple[float, float, float] | None = None  # (lat_deg, lon_deg, alt_m)
+    signing_key: str | None = None  # path of a 32-byte key file, mode 0600
+    allow_unsigned: bool = False
+    floor_pos_m2: float = 1e-4
+    floor_ang_rad2: float = 1e-4
+    queue_size: int = 512
+
+
+_SCALARS: dict[str, type] = {
+    "mode": str,
+    "allow_remote": bool,
+    "baud": int,
+    "sysid": int,
+    "compid": int,
+    "message": str,
+    "track_width_m": float,
+    "wheel_left": int,
+    "wheel_right": int,
+    "yaw_rate_source": str,
+    "steering_channel": int,
+    "throttle_channel": int,
+    "link_timeout_s": float,
+    "heartbeat_hz": float,
+    "timesync_hz": float,
+    "request_rates": bool,
+    "signing_key": str,
+    "allow_unsigned": bool,
+    "floor_pos_m2": float,
+    "floor_ang_rad2": float,
+    "queue_size": int,
+}
+
+
+def _to_bool(v: Any) -> bool:
+    if isinstance(v, bool):
+        return v
+    s = str(v).strip().lower()
+    if s in ("1", "true", "yes", "on"):
+        return True
+    if s in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(v)
+
+
+def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
+    """URL + options -> (pymavlink connection string, options). Errors name the URL and the key."""
+    parts = urlsplit(url)
+    values: dict[str, Any] = dict(parse_qsl(parts.query))
+    values.update(options)
+    kw: dict[str, Any] = {}
+    for key, raw in values.items():
+        if key == "origin":
+            try:
+                o = raw.split(",") if isinstance(raw, str) else list(raw)
+                lat, lon, alt = (float(x) for x in o)
+            except (TypeError, ValueError) as exc:
+                raise DriverError(f"{url!r}: origin={raw!r}: expected lat_deg,lon_deg,alt_m") from exc
+            if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+                raise DriverError(f"{url!r}: origin={raw!r}: latitude/longitude out of range")
+            kw["origin"] = (lat, lon, alt)
+        elif key == "rates_hz":
+            if not isinstance(raw, dict):
+                raise DriverError(f"{url!r}: rates_hz: expected a dict of message name -> Hz, got {raw!r}")
+            kw["rates_hz"] = {str(k).upper(): float(v) for k, v in raw.items()}
+        elif key in _SCALARS:
+            try:
+                kw[key] = _to_bool(raw) if _SCALARS[key] is bool else _SCALARS[key](raw)
+            except (TypeError, ValueError) as exc:
+                raise DriverError(f"{url!r}: option {key}={raw!r}: expected {_SCALARS[key].__name__}") from exc
+        else:
+            known = ", ".join(sorted([*_SCALARS, "origin", "rates_hz"]))
+            raise DriverError(f"{url!r}: unknown option {key!r}; known: {known}")
+    opts = MavlinkOptions(**kw)
+    if opts.message not in ("odometry", "vision_position_estimate"):
+        raise DriverError(f"{url!r}: message={opts.message!r}, expected 'odometry' or 'vision_position_estimate'")
+    if opts.yaw_rate_source not in ("attitude", "wheels"):
+        raise DriverError(f"{url!r}: yaw_rate_source={opts.yaw_rate_source!r}, expected 'attitude' or 'wheels'")
+    if not 0 <= opts.sysid <= 255 or not 1 <= opts.compid <= 255:
+        raise DriverError(f"{url!r}: sysid {opts.sysid} / compid {opts.compid} out of range")
+    for name in opts.rates_hz:
+        if not hasattr(_mav(), f"MAVLINK_MSG_ID_{name}"):
+            raise DriverError(f"{url!r}: rates_hz: unknown message {name!r}")
+    if parts.scheme == "mavlink+udp":
+        host, port = parts.hostname, parts.port
+        if not host or port is None:
+            raise DriverError(f"{url!r}: expected mavlink+udp://HOST:PORT")
+        if opts.mode not in ("in", "out"):
+            raise DriverError(f"{url!r}: mode={opts.mode!r}, expected 'in' or 'out'")
+        if opts.mode == "in" and not opts.allow_remote and not _is_loopback(host):
+            raise DriverError(f"{url!r}: refusing to listen on {host}: loopback only unless allow_remote=1")
+        return f"udp{opts.mode}:{host}:{port}", opts
+    if parts.scheme == "mavlink+serial":
+        if not parts.path:
+            raise DriverError(f"{url!r}: expected mavlink+serial:///dev/ttyX?baud=921600")
+        return parts.path, opts
+    raise DriverError(f"{url!r}: expected mavlink+udp:// or mavlink+serial://")
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True, slots=True)
+class ControlSample:
+    """Latest commanded steering/throttle, normalised from PWM ((pwm − 1500)/500), host clock."""
+
+    t_ns: int
+    throttle: float
+    steering: float
+    source: str  # "SERVO_OUTPUT_RAW" or "RC_CHANNELS"
+
+
+class MavlinkVehicle:
+    """VehicleLink to an ArduPilot/PX4 autopilot. Use as a context manager."""
+
+    def __init__(self, url: str, **options: Any) -> None:
+        self.url = url
+        self.device, self.opts = parse_mavlink_url(url, **options)
+        self._key = read_signing_key(self.opts.signing_key) if self.opts.signing_key else None
+        self.floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
+        self._conn: Any = None
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()  # guards the shared state below
+        self._cond = threading.Condition()
+        self._queue: deque[Odometry] = deque()
+        self._rx: threading.Thread | None = None
+        self._tx: threading.Thread | None = None
+        self._pending_pose: tuple[PoseEstimate, int, int] | None = None
+        self._outbox: deque[tuple[str, Any]] = deque()
+        self._timesync = TimesyncFilter()
+        self._ts_pending: dict[int, int] = {}  # our ts1 -> send time (ns)
+        self._velocity = VelocityFromPoses()
+        self._last_pose_t_ns: int | None = None
+        self._last_quality = 0
+        self._health: str | None = None  # None: derive from quality
+        self._ap_sysid: int | None = None
+        self._ap_compid = 1
+        self._last_ap_hb_mono: float | None = None
+        self._link_up = False
+        self._last_boot_ms: int | None = None
+        self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
+        self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
+        self._last_wheel_mono = -math.inf
+        self._controls: ControlSample | None = None
+        self.ekf_flags: int | None = None
+        self.origin_confirmed = False
+        self.c: dict[str, int] = dict.fromkeys(
+            (
+                "rx_messages",
+                "bad_data",
+                "heartbeats_sent",
+                "odometry_sent",
+                "vision_position_sent",
+                "poses_superseded",
+                "poses_stale",
+                "poses_withheld",
+                "timesync_requests",
+                "timesync_replies",
+                "timesync_samples",
+                "origins_sent",
+                "rate_requests",
+                "autopilot_reboots",
+                "link_losses",
+                "odometry",
+                "drops",
+                "stamped_by_arrival",
+                "wheel_wraps",
+                "tx_errors",
+            ),
+            0,
+        )
+        self.rx_types: dict[str, int] = {}
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def __enter__(self) -> MavlinkVehicle:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        sysid = self.opts.sysid or 1
+        kw: dict[str, Any] = {"source_system": sysid, "source_component": self.opts.compid, "dialect": DIALECT}
+        if not self.device.startswith("udp"):
+            kw.update(baud=self.opts.baud, autoreconnect=True)
+        try:
+            self._conn = mavutil.mavlink_connection(self.device, **kw)
+        except Exception as exc:  # pymavlink raises OSError, SerialException, ValueError...
+            raise DriverError(f"{self.url!r}: cannot open {self.device}: {exc}") from exc
+        if not hasattr(self._conn.mav, "odometry_send"):
+            raise DriverError(f"{self.url!r}: pymavlink loaded MAVLink 1 bindings (MAVLINK20 set too late)")
+        if self._key is not None:
+            allow = (lambda _mav, _msgid: True) if self.opts.allow_unsigned else (lambda _mav, _msgid: False)
+            self._conn.setup_signing(self._key, sign_outgoing=True, allow_unsigned_callback=allow)
+        self._stop.clear()
+        self._rx = threading.Thread(target=self._rx_loop, name="mavlink-rx", daemon=True)
+        self._tx = threading.Thread(target=self._tx_loop, name="mavlink-tx", daemon=True)
+        self._rx.start()
+        self._tx.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        for t in (self._tx, self._rx):
+            if t is not None:
+                t.join(timeout=2.0)
+        self._rx = self._tx = None
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+            self._conn = None
+        with self._cond:
+            self._cond.notify_all()
+
+    # -- public API ----------------------------------------------------------------------------
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        """Queue the pose for the transmit thread; a newer pose replaces an unsent one."""
+        with self._lock:
+            if self._pending_pose is not None:
+                self.c["poses_superseded"] += 1
+            self._pending_pose = (pose, int(quality), int(reset_counter))
+        self._wake.set()
+
+    def set_health(self, state: str | None) -> None:
+        """ "tracking" -> MAV_STATE_ACTIVE, "degraded" -> CRITICAL, "failed" -> FLIGHT_TERMINATION,
+        "starting" -> STANDBY; None derives it from the last quality (−1 -> CRITICAL)."""
+        if state is not None and state not in HEALTH_STATES:
+            raise DriverError(f"{self.url!r}: health {state!r}, expected one of {HEALTH_STATES}")
+        self._health = state
+
+    @property
+    def link_up(self) -> bool:
+        return self._link_up
+
+    @property
+    def autopilot_sysid(self) -> int | None:
+        return self._ap_sysid
+
+    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
+        """Yield odometry (FRD body velocity + body rates, host clock) as it arrives.
+
+        Returns on :meth:`close` or when nothing arrived for ``timeout_s``.
+        """
+        while not self._stop.is_set():
+            with self._cond:
+                if not self._queue and not self._cond.wait_for(
+                    lambda: bool(self._queue) or self._stop.is_set(), timeout_s
+                ):
+                    return
+                if not self._queue:
+                    return
+                item = self._queue.popleft()
+            yield item
+
+    def drain(self) -> list[Odometry]:
+        with self._cond:
+            items = list(self._queue)
+            self._queue.clear()
+        return items
+
+    def latest_controls(self) -> ControlSample | None:
+        return self._controls
+
+    def autopilot_to_host_ns(self, t_ap_ns: int) -> int | None:
+        """Autopilot boot-clock time [ns] on the host monotonic clock, once TIMESYNC has a sample."""
+        return self._timesync.autopilot_to_host(t_ap_ns)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            **self.c,
+            "link_up": self._link_up,
+            "state": "ok" if self._link_up else "degraded",
+            "autopilot_sysid": self._ap_sysid,
+            "timesync_offset_ns": self._timesync.offset_ns,
+            "timesync_rtt_ns": self._timesync.rtt_ns,
+            "origin_confirmed": self.origin_confirmed,
+            "ekf_flags": self.ekf_flags,
+            "queued": len(self._queue),
+            "rx_types": dict(self.rx_types),
+        }
+
+    # -- receive -------------------------------------------------------------------------------
+    def _rx_loop(self) -> None:
+        conn = self._conn
+        while not self._stop.is_set():
+            try:
+                msg = conn.recv_match(blocking=True, timeout=0.1)
+            except (OSError, ValueError) as exc:
+                if self._stop.is_set():
+                    break
+                logger.warning("%s: receive failed: %s", self.url, exc)
+                self._stop.wait(0.2)
+                continue
+            if msg is None:
+                continue
+            t_ns = time.monotonic_ns()
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                # includes signature failures and unsigned packets on a signed link
+                self.c["bad_data"] += 1
+                continue
+            self.c["rx_messages"] += 1
+            self.rx_types[kind] = self.rx_types.get(kind, 0) + 1
+            handler = getattr(self, f"_on_{kind.lower()}", None)
+            if handler is not None:
+                try:
+                    handler(msg, t_ns)
+                except (ValueError, TypeError, IndexError, ArithmeticError) as exc:
+                    logger.warning("%s: bad %s ignored: %s", self.url, kind, exc)
+
+    def _is_autopilot(self, msg: Any) -> bool:
+        src = msg.get_srcSystem()
+        return self._ap_sysid is None or src == self._ap_sysid
+
+    def _on_heartbeat(self, msg: Any, t_ns: int) -> None:
+        m = _mav()
+        if msg.autopilot == m.MAV_AUTOPILOT_INVALID or msg.type in (m.MAV_TYPE_GCS, m.MAV_TYPE_ONBOARD_CONTROLLER):
+            return  # ground stations and other companions are not the vehicle
+        if self._ap_sysid is None:
+            self._ap_sysid = msg.get_srcSystem()
+            self._ap_compid = msg.get_srcComponent()
+            if not self.opts.sysid:
+                self._conn.mav.srcSystem = self._ap_sysid  # speak as part of the vehicle
+            logger.info("%s: autopilot sysid %d compid %d", self.url, self._ap_sysid, self._ap_compid)
+            self._outbox_put("vehicle_setup", "first heartbeat")
+        elif msg.get_srcSystem() != self._ap_sysid:
+            return
+        self._last_ap_hb_mono = time.monotonic()
+        if not self._link_up:
+            self._link_up = True
+            logger.info("%s: autopilot link up", self.url)
+
+    def _on_system_time(self, msg: Any, t_ns: int) -> None:
+        if not self._is_autopilot(msg):
+            return
+        boot = int(msg.time_boot_ms)
+        last = self._last_boot_ms
+        self._last_boot_ms = boot
+        # a drop (beyond UDP reordering) means the autopilot rebooted (interfaces.md §1.6)
+        if last is not None and boot + 1000 < last:
+            self.c["autopilot_reboots"] += 1
+            logger.warning("%s: autopilot rebooted (time_boot_ms %d -> %d)", self.url, last, boot)
+            self._timesync.reset()
+            with self._lock:
+                self._wheels = None
+            self.origin_confirmed = False
+            self._outbox_put("vehicle_setup", "reboot")
+
+    def _on_timesync(self, msg: Any, t_ns: int) -> None:
+        if msg.tc1 == 0:
+            # a request (PX4 needs 500 answered round trips before it uses our time_usec)
+            self._outbox_put("timesync_reply", int(msg.ts1))
+            return
+        t0 = self._ts_pending.pop(int(msg.ts1), None)
+        if t0 is not None and self._timesync.add(t0, t_ns, int(msg.tc1)):
+            self.c["timesync_samples"] += 1
+
+    def _ap_time_to_host(self, t_ap_ns: int, t_arrival_ns: int) -> int:
+        t = self._timesync.autopilot_to_host(t_ap_ns)
+        # no offset yet, or an absurd mapping (stale offset): fall back to the arrival time
+        if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
+            self.c["stamped_by_arrival"] += 1
+            return t_arrival_ns
+        return t
+
+    def _on_attitude(self, msg: Any, t_ns: int) -> None:
+        if not self._is_autopilot(msg):
+            return
+        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
+        rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
+        if np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates)):
+            self._attitude = (t, rpy, rates)
+
+    def _fresh_attitude(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        a = self._attitude
+        if a is None or abs(t_ns - a[0]) > 200_000_000:
+            return None
+        return a[1], a[2]
+
+    def _on_wheel_distance(self, msg: Any, t_ns: int) -> None:
+        if not self._is_autopilot(msg):
+            return
+        o = self.opts
+        n = int(msg.count)
+        if max(o.wheel_left, o.wheel_right) >= n:
+            raise ValueError(f"WHEEL_DISTANCE has {n} wheels, need indices {o.wheel_left} and {o.wheel_right}")
+        t_us = int(msg.time_usec)
+        s_l, s_r = float(msg.distance[o.wheel_left]), float(msg.distance[o.wheel_right])
+        with self._lock:
+            prev, self._wheels = self._wheels, (t_us, s_l, s_r)
+        self._last_wheel_mono = time.monotonic()
+        if prev is None:
+            return
+        dt = (t_us - prev[0]) * 1e-6
+        if not 0 < dt <= 1.0:
+            return
+        ds_l, ds_r = self._unwrap_m(s_l - prev[1]), self._unwrap_m(s_r - prev[2])
+        if o.track_width_m > 0:
+            v, w_wheels = diff_drive(ds_l / dt, ds_r / dt, o.track_width_m)
+        else:
+            v, w_wheels = 0.5 * (ds_l + ds_r) / dt, math.nan
+        # mean speed over the interval: stamp it at the midpoint
+        t = self._ap_time_to_host((t_us * 1000) - int(dt * 5e8), t_ns)
+        att = self._fresh_attitude(t)
+        if o.yaw_rate_source == "attitude" and att is not None:
+            rates = att[1]
+        elif math.isfinite(w_wheels):
+            rates = np.array([0.0, 0.0, w_wheels])
+        elif att is not None:
+            rates = att[1]
+        else:
+            rates = np.zeros(3)  # forward speed only; the motion model inflates yaw noise
+        self._emit(Odometry(t, np.array([v, 0.0, 0.0]), np.asarray(rates, float), source="mavlink"))
+
+    def _unwrap_m(self, d: float) -> float:
+        if d > WHEEL_WRAP_M:
+            self.c["wheel_wraps"] += 1
+            return d - 2 * WHEEL_WRAP_M
+        if d < -WHEEL_WRAP_M:
+            self.c["wheel_wraps"] += 1
+            return d + 2 * WHEEL_WRAP_M
+        return d
+
+    def _on_local_position_ned(self, msg: Any, t_ns: int) -> None:
+        if not self._is_autopilot(msg) or time.monotonic() - self._last_wheel_mono < 1.0:
+            return  # wheel odometry flows: it is the better velocity source
+        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        att = self._fresh_attitude(t)
+        if att is None:
+            return  # cannot rotate NED into the body frame without an attitude
+        v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
+        v_R = euler_to_R(att[0]).T @ v_ned
+        if np.all(np.isfinite(v_R)):
+            self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
+
+    def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
+        o = self.opts
+        t = self._ap_time_to_host(int(msg.time_usec) * 1000, t_ns)
+        thr = getattr(msg, f"servo{o.throttle_channel}_raw", 0)
+        ste = getattr(msg, f"servo{o.steering_channel}_raw", 0)
+        if thr and ste:
+            self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "SERVO_OUTPUT_RAW")
+
+    def _on_rc_channels(self, msg: Any, t_ns: int) -> None:
+        if self._controls is not None and self._controls.source == "SERVO_OUTPUT_RAW":
+            return  # commanded outputs beat pilot sticks
+        o = self.opts
+        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        thr = getattr(msg, f"chan{o.throttle_channel}_raw", 0)
+        ste = getattr(msg, f"chan{o.steering_channel}_raw", 0)
+        if thr and ste and thr != 0xFFFF and ste != 0xFFFF:
+            self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "RC_CHANNELS")
+
+    def _on_ekf_status_report(self, msg: Any, t_ns: int) -> None:
+        self.ekf_flags = int(msg.flags)
+
+    def _on_gps_global_origin(self, msg: Any, t_ns: int) -> None:
+        self.origin_confirmed = True
+
+    def _emit(self, odo: Odometry) -> None:
+        with self._cond:
+            if len(self._queue) >= self.opts.queue_size:
+                self._queue.popleft()
+                self.c["drops"] += 1
+            self._queue.append(odo)
+            self.c["odometry"] += 1
+            self._cond.notify()
+
+    def _outbox_put(self, kind: str, arg: Any) -> None:
+        with self._lock:
+            self._outbox.append((kind, arg))
+        self._wake.set()
+
+    # -- transmit ------------------------------------------------------------------------------
+    def _tx_loop(self) -> None:
+        now = time.monotonic()
+        next_hb = now
+        next_ts = now + 0.05
+        while not self._stop.is_set():
+            now = time.monotonic()
+            try:
+                if now >= next_hb:
+                    self._send_heartbeat()
+                    next_hb = max(next_hb + 1.0 / self.opts.heartbeat_hz, now)
+                if self.opts.timesync_hz > 0 and now >= next_ts:
+                    self._send_timesync_request()
+                    next_ts = max(next_ts + 1.0 / self.opts.timesync_hz, now)
+                while True:
+                    with self._lock:
+                        item = self._outbox.popleft() if self._outbox else None
+                    if item is None:
+                        break
+                    self._do(item)
+                with self._lock:
+                    pending, self._pending_pose = self._pending_pose, None
+                if pending is not None:
+                    self._send_pose_now(*pending)
+            except (OSError, ValueError) as exc:
+                self.c["tx_errors"] += 1
+                logger.warning("%s: send failed: %s", self.url, exc)
+            self._check_link()
+            wait = min(next_hb, next_ts if self.opts.timesync_hz > 0 else next_hb) - time.monotonic()
+            self._wake.wait(max(0.0, min(wait, 0.1)))
+            self._wake.clear()
+
+    def _check_link(self) -> None:
+        hb = self._last_ap_hb_mono
+        if self._link_up and (hb is None or time.monotonic() - hb > self.opts.link_timeout_s):
+            self._link_up = False
+            self.c["link_losses"] += 1
+            logger.warning("%s: autopilot link lost (no heartbeat for %.1f s)", self.url, self.opts.link_timeout_s)
+
+    def _system_status(self) -> int:
+        m = _mav()
+        h = self._health
+        if h is None:
+            if self._last_pose_t_ns is None:
+                h = "starting"
+            else:
+                h = "tracking" if self._last_quality >= 0 else "degraded"
+        return {
+            "starting": m.MAV_STATE_STANDBY,
+            "tracking": m.MAV_STATE_ACTIVE,
+            "degraded": m.MAV_STATE_CRITICAL,
+            "failed": m.MAV_STATE_FLIGHT_TERMINATION,
+        }[h]
+
+    def _send_heartbeat(self) -> None:
+        m = _mav()
+        self._conn.mav.heartbeat_send(
+            m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._system_status()
+        )
+        self.c["heartbeats_sent"] += 1
+
+    def _send_timesync_request(self) -> None:
+        ts1 = time.monotonic_ns()
+        # keep a few outstanding requests only; a lost reply must not grow the table
+        if len(self._ts_pending) > 16:
+            self._ts_pending.pop(next(iter(self._ts_pending)))
+        self._ts_pending[ts1] = ts1
+        self._conn.mav.timesync_send(0, ts1)
+        self.c["timesync_requests"] += 1
+
+    def _do(self, item: tuple[str, Any]) -> None:
+        kind, arg = item
+        if kind == "timesync_reply":
+            self._conn.mav.timesync_send(time.monotonic_ns(), arg)
+            self.c["timesync_replies"] += 1
+        elif kind == "vehicle_setup":
+            self._send_origin()
+            if self.opts.request_rates:
+                self._request_rates()
+
+    def _send_origin(self) -> None:
+        if self.opts.origin is None or self._ap_sysid is None:
+            return
+        lat, lon, alt = self.opts.origin
+        self._conn.mav.set_gps_global_origin_send(
+            self._ap_sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), time.monotonic_ns() // 1000
+        )
+        self.c["origins_sent"] += 1
+        logger.info("%s: EKF origin sent (%.7f, %.7f, %.2f m)", self.url, lat, lon, alt)
+
+    def _request_rates(self) -> None:
+        m = _mav()
+        for name, hz in self.opts.rates_hz.items():
+            msg_id = getattr(m, f"MAVLINK_MSG_ID_{name}")
+            interval_us = -1 if hz <= 0 else round(1e6 / hz)  # -1 disables the message
+            self._conn.mav.command_long_send(
+                self._ap_sysid or 1,
+                self._ap_compid,
+                m.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                msg_id,
+                interval_us,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+            self.c["rate_requests"] += 1
+
+    def _send_pose_now(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
+            self.c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
+            return
+        self._last_pose_t_ns = pose.t_ns
+        self._last_quality = quality
+        vel = self._velocity.update(pose, reset_counter)
+        if self.opts.message == "odometry":
+            f = odometry_fields(pose, quality, reset_counter, vel_R_mps=vel, floors=self.floors)
+            self._conn.mav.odometry_send(*f.as_args())
+            self.c["odometry_sent"] += 1
+        else:
+            if quality < 0:
+                # VISION_POSITION_ESTIMATE has no quality field: a lost track stops the stream
+                self.c["poses_withheld"] += 1
+                return
+            v = vision_position_fields(pose, reset_counter, self.floors)
+            self._conn.mav.vision_position_estimate_send(*v.as_args())
+            self.c["vision_position_sent"] += 1
+
+
+def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:
+    """Factory for ``mavlink+udp://HOST:PORT`` and ``mavlink+serial:///dev/ttyX?baud=…``."""
+    return MavlinkVehicle(url, **options)

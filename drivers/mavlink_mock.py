@@ -1,0 +1,182 @@
+"""A mock ArduPilot Rover on loopback UDP, for tests and benchmarks (pymavlink via drivers.mavlink_link).
+
+It listens on ``127.0.0.1:<ephemeral>`` (``udpin``) as system ``sysid`` / component 1 and, once
+robotd has spoken, streams what a Rover with wheel encoders sends: HEARTBEAT and SYSTEM_TIME at
+1 Hz, ATTITUDE, WHEEL_DISTANCE (two wheels, cumulative metres, millisecond-resolution stamps,
+±100 000 m wrap), LOCAL_POSITION_NED and SERVO_OUTPUT_RAW. It answers TIMESYNC with its boot
+time in ns (as ArduPilot does), asks robotd for TIMESYNC itself (as PX4 does), acknowledges
+SET_MESSAGE_INTERVAL, confirms SET_GPS_GLOBAL_ORIGIN with GPS_GLOBAL_ORIGIN, can "reboot"
+(SYSTEM_TIME drops) and can fall silent (link loss). Everything received is recorded with its
+arrival time for the tests to check what ArduPilot checks.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from drivers.mavlink_link import DIALECT, mavlink_module, mavutil
+
+WHEEL_WRAP_M = 100_000.0
+
+
+@dataclass
+class Received:
+    t_ns: int
+    msg: Any
+
+
+@dataclass
+class MockAutopilot:
+    """Mock Rover. ``speed_mps``/``yaw_rate_radps`` drive the wheels (FRD: positive turns right)."""
+
+    sysid: int = 1
+    speed_mps: float = 0.5
+    yaw_rate_radps: float = 0.2
+    track_width_m: float = 0.4
+    stream_hz: float = 50.0  # ATTITUDE and WHEEL_DISTANCE
+    wheel_start_m: float = 0.0
+    signing_key: bytes | None = None
+    send_wheels: bool = True
+    send_timesync_requests: bool = True
+    received: list[Received] = field(default_factory=list)
+    timesync_replies: list[tuple[int, int, Any]] = field(default_factory=list)  # (ts1 sent, t_reply_ns, msg)
+    heartbeat_enabled: bool = True
+    bad_data: int = 0
+
+    def __post_init__(self) -> None:
+        self.conn = mavutil.mavlink_connection(
+            "udpin:127.0.0.1:0", source_system=self.sysid, source_component=1, dialect=DIALECT
+        )
+        self.port = self.conn.port.getsockname()[1]
+        if self.signing_key is not None:
+            self.conn.setup_signing(self.signing_key, sign_outgoing=True, allow_unsigned_callback=lambda *_: False)
+        self.boot_ns = time.monotonic_ns()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._s_l = self.wheel_start_m
+        self._s_r = self.wheel_start_m
+        self._yaw = 0.0
+        self._last_motion_ns = self.boot_ns
+        self._ts_sent: dict[int, int] = {}
+
+    @property
+    def url(self) -> str:
+        return f"mavlink+udp://127.0.0.1:{self.port}"
+
+    def boot_time_ns(self, t_host_ns: int | None = None) -> int:
+        """The autopilot's clock (time since boot) at host time ``t_host_ns``."""
+        return (time.monotonic_ns() if t_host_ns is None else t_host_ns) - self.boot_ns
+
+    def reboot(self) -> None:
+        """Restart the boot clock: SYSTEM_TIME.time_boot_ms drops."""
+        with self._lock:
+            self.boot_ns = time.monotonic_ns()
+
+    def messages(self, kind: str) -> list[Received]:
+        with self._lock:
+            return [r for r in self.received if r.msg.get_type() == kind]
+
+    # -- loop ----------------------------------------------------------------------------------
+    def _heard(self) -> bool:
+        return bool(self.conn.clients)
+
+    def _advance(self, t_ns: int) -> None:
+        dt = (t_ns - self._last_motion_ns) * 1e-9
+        self._last_motion_ns = t_ns
+        half = 0.5 * self.yaw_rate_radps * self.track_width_m
+        self._s_l = self._wrap(self._s_l + (self.speed_mps + half) * dt)
+        self._s_r = self._wrap(self._s_r + (self.speed_mps - half) * dt)
+        self._yaw = (self._yaw + self.yaw_rate_radps * dt + math.pi) % (2 * math.pi) - math.pi
+
+    @staticmethod
+    def _wrap(s: float) -> float:
+        if s > WHEEL_WRAP_M:
+            return s - 2 * WHEEL_WRAP_M
+        if s < -WHEEL_WRAP_M:
+            return s + 2 * WHEEL_WRAP_M
+        return s
+
+    def _send_stream(self, t_ns: int) -> None:
+        mav = self.conn.mav
+        boot_ns = self.boot_time_ns(t_ns)
+        self._advance(t_ns)
+        mav.attitude_send(boot_ns // 1_000_000, 0.0, 0.0, self._yaw, 0.0, 0.0, self.yaw_rate_radps)
+        if self.send_wheels:
+            # Rover stamps WHEEL_DISTANCE with millisecond resolution
+            t_us = (boot_ns // 1_000_000) * 1000
+            mav.wheel_distance_send(t_us, 2, [self._s_l, self._s_r] + [0.0] * 14)
+
+    def _send_slow(self, t_ns: int) -> None:
+        m = mavlink_module()
+        mav = self.conn.mav
+        boot_ns = self.boot_time_ns(t_ns)
+        if self.heartbeat_enabled:
+            mav.heartbeat_send(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+        mav.system_time_send(0, boot_ns // 1_000_000)
+        vn = self.speed_mps * math.cos(self._yaw)
+        ve = self.speed_mps * math.sin(self._yaw)
+        mav.local_position_ned_send(boot_ns // 1_000_000, 0.0, 0.0, 0.0, vn, ve, 0.0)
+        mav.servo_output_raw_send(boot_ns // 1000 & 0xFFFFFFFF, 0, 1600, 0, 1750, 0, 0, 0, 0, 0)
+        if self.send_timesync_requests:
+            ts1 = time.monotonic_ns()
+            self._ts_sent[ts1] = ts1
+            mav.timesync_send(0, ts1)
+
+    def _handle(self, msg: Any, t_ns: int) -> None:
+        m = mavlink_module()
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            self.bad_data += 1
+            return
+        with self._lock:
+            self.received.append(Received(t_ns, msg))
+        if kind == "TIMESYNC":
+            if msg.tc1 == 0:
+                self.conn.mav.timesync_send(self.boot_time_ns(), msg.ts1)  # ArduPilot: boot time in ns
+            elif msg.ts1 in self._ts_sent:
+                self.timesync_replies.append((self._ts_sent.pop(msg.ts1), t_ns, msg))
+        elif kind == "COMMAND_LONG":
+            self.conn.mav.command_ack_send(msg.command, m.MAV_RESULT_ACCEPTED)
+        elif kind == "SET_GPS_GLOBAL_ORIGIN":
+            self.conn.mav.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, msg.time_usec)
+
+    def run(self) -> None:
+        period = 1.0 / self.stream_hz
+        next_stream = next_slow = time.monotonic()
+        while not self._stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.005)
+            while msg is not None:
+                self._handle(msg, time.monotonic_ns())
+                msg = self.conn.recv_match(blocking=False)
+            if not self._heard():
+                continue  # udpin: cannot talk before robotd has spoken
+            now = time.monotonic()
+            t_ns = time.monotonic_ns()
+            if now >= next_stream:
+                self._send_stream(t_ns)
+                next_stream = max(next_stream + period, now - period)
+            if now >= next_slow:
+                self._send_slow(t_ns)
+                next_slow = max(next_slow + 1.0, now)
+
+    def start(self) -> MockAutopilot:
+        self._thread = threading.Thread(target=self.run, name="mock-autopilot", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.conn.close()
+
+    def __enter__(self) -> MockAutopilot:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
