@@ -1,0 +1,214 @@
+"""Detectors and stereo matching (algorithms.md §2.2, §4.1–§4.2)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from robotd.errors import ConfigError, InputError
+from robotd.frontend.detectors import DetectorParams, bucket_select, make_detector, surf_available
+from robotd.frontend.features import Features
+from robotd.frontend.stereo_match import (
+    StereoMatchParams,
+    candidate_pairs,
+    distance_matrix,
+    match_stereo,
+    normalise_descriptors,
+    pair_distances,
+    ratio_and_cross_check,
+    refine_disparity,
+)
+from robotd.stereo import RectifiedStereo
+
+DETECTORS = ["orb", "sift", pytest.param("surf", marks=pytest.mark.skipif(not surf_available(), reason="no SURF"))]
+
+
+def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A smooth random texture (blurred noise), the kind of surface stereo refinement works on."""
+    img = cv2.GaussianBlur(rng.uniform(0, 255, (h, w)).astype(np.float32), (0, 0), 1.5)
+    img = (img - img.min()) / (img.max() - img.min()) * 255.0
+    return img
+
+
+def _middlebury(shared_data):
+    d = shared_data("stereo-calib", "middlebury-cones")
+    left = cv2.imread(str(d / "left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(d / "right.png"), cv2.IMREAD_GRAYSCALE)
+    gt = cv2.imread(str(d / "disp_left.tif"), cv2.IMREAD_UNCHANGED)
+    # the pair has no metric calibration: any f, b give the same disparities; d_max = fb/0.3 = 150 px
+    rig = RectifiedStereo(450.0, 225.0, 187.0, 0.1, left.shape[1], left.shape[0])
+    return left, right, gt, rig
+
+
+@pytest.mark.parametrize("name", DETECTORS)
+def test_detector_interface(name, rng):
+    img = np.clip(_texture(rng, 240, 320), 0, 255).astype(np.uint8)
+    det = make_detector(DetectorParams(name=name, max_features=300))
+    f = det.detect(img)
+    assert 0 < f.n <= 300
+    assert f.xy.shape == (f.n, 2) and f.desc.shape[0] == f.n
+    assert f.binary == (name == "orb") == det.binary
+    assert f.desc.dtype == (np.uint8 if name == "orb" else np.float32)
+    assert np.all((f.xy >= 0) & (f.xy < [320, 240]))
+    assert det.detect(img, max_features=50).n <= 50
+    # featureless and empty images give empty feature sets, not crashes
+    assert det.detect(np.zeros((240, 320), np.uint8)).n == 0
+    assert det.detect(np.zeros((0, 0), np.uint8)).n == 0
+
+
+def test_detector_bad_inputs():
+    with pytest.raises(ConfigError, match="frontend.detector.name"):
+        DetectorParams(name="akaze")
+    with pytest.raises(ConfigError, match="max_features"):
+        DetectorParams(max_features=0)
+    det = make_detector(DetectorParams())
+    with pytest.raises(InputError, match="uint8"):
+        det.detect(np.zeros((10, 10), np.float32))
+    with pytest.raises(InputError, match="2-D"):
+        det.detect(np.zeros((4, 10, 10), np.uint8))
+
+
+def test_surf_missing_gives_clear_error(monkeypatch):
+    import sys
+
+    import robotd.frontend
+
+    monkeypatch.setitem(sys.modules, "robotd.frontend.surf", None)  # import now raises ImportError
+    monkeypatch.delattr(robotd.frontend, "surf", raising=False)
+    with pytest.raises(ConfigError, match="surf"):
+        make_detector(DetectorParams(name="surf"))
+
+
+def test_bucketing_spreads_and_caps(rng):
+    # 2000 features, 90 % of them crowded into one corner with high responses
+    xy = np.r_[rng.uniform(0, 50, (1800, 2)), rng.uniform(0, [640, 400], (200, 2))].astype(np.float32)
+    resp = np.r_[rng.uniform(10, 20, 1800), rng.uniform(0, 1, 200)].astype(np.float32)
+    keep = bucket_select(xy, resp, (400, 640), 256, 4, 8)
+    assert keep.size == 256 and np.unique(keep).size == 256
+    col = np.minimum((xy[keep, 0] * 8 / 640).astype(int), 7)
+    row = np.minimum((xy[keep, 1] * 4 / 400).astype(int), 3)
+    cells = np.unique(row * 8 + col)
+    assert cells.size >= 28  # nearly every cell is represented
+    # within a cell the strongest are kept: the quota is 8 per cell
+    in_corner = keep[(xy[keep, 0] < 50) & (xy[keep, 1] < 50)]
+    assert np.min(resp[in_corner]) >= np.sort(resp[:1800])[-in_corner.size]
+
+
+def test_distances_match_reference(rng):
+    a = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (15, 32), dtype=np.uint8)
+    ref = np.unpackbits(a[:, None] ^ b[None], axis=2).sum(2)
+    np.testing.assert_array_equal(distance_matrix(a, b, True), ref)
+    np.testing.assert_array_equal(pair_distances(a[:15], b, True), ref[np.arange(15), np.arange(15)])
+    fa = normalise_descriptors(rng.normal(size=(20, 64)), False)
+    fb = normalise_descriptors(rng.normal(size=(15, 64)), False)
+    ref_f = np.linalg.norm(fa[:, None] - fb[None], axis=2)
+    np.testing.assert_allclose(distance_matrix(fa, fb, False), ref_f, atol=1e-5)
+
+
+def test_ratio_and_cross_check_by_hand():
+    # left 0: best right 0 (1.0) vs 2nd 3.0 -> ratio ok; left 1: 2.0 vs 2.1 -> ratio fails;
+    # left 2: lone candidate right 1 at 5.0 (> max_single 4) -> rejected;
+    # left 3: best right 0 at 0.5 (beats left 0) -> left 0 loses the cross-check
+    i = np.array([0, 0, 1, 1, 2, 3])
+    j = np.array([0, 2, 2, 3, 1, 0])
+    d = np.array([1.0, 3.0, 2.0, 2.1, 5.0, 0.5])
+    sel, st = ratio_and_cross_check(i, j, d, 4, 0.8, 4.0)
+    assert sorted(zip(i[sel].tolist(), j[sel].tolist())) == [(3, 0)]
+    assert st["ratio_rejected"] == 1 and st["single_rejected"] == 1 and st["cross_rejected"] == 1
+    sel, _ = ratio_and_cross_check(i, j, d, 4, 0.8, 4.0, cross_check=False)
+    assert sorted(zip(i[sel].tolist(), j[sel].tolist())) == [(0, 0), (3, 0)]
+
+
+def _features(xy: np.ndarray, lap: np.ndarray | None = None) -> Features:
+    n = xy.shape[0]
+    return Features(
+        xy.astype(np.float32),
+        np.full(n, 10, np.float32),
+        np.zeros(n, np.float32),
+        np.ones(n, np.float32),
+        np.zeros(n, np.int8) if lap is None else lap.astype(np.int8),
+        np.zeros((n, 64), np.float32),
+        False,
+    )
+
+
+def test_candidate_pairs_match_brute_force(rng):
+    rig = RectifiedStereo(400.0, 320.0, 200.0, 0.1, 640, 400)  # d_max = 40/0.3 = 133 px
+    L = _features(rng.uniform(0, [640, 400], (150, 2)), rng.choice([-1, 1], 150))
+    R = _features(rng.uniform(0, [640, 400], (170, 2)), rng.choice([-1, 1], 170))
+    p = StereoMatchParams()
+    i, j = candidate_pairs(L, R, rig, p)
+    got = set(zip(i.tolist(), j.tolist()))
+    ref = set()
+    for a in range(L.n):
+        for b in range(R.n):
+            d = L.xy[a, 0] - R.xy[b, 0]
+            if abs(L.xy[a, 1] - R.xy[b, 1]) <= 2 and 5 <= d <= 40 / 0.3 and L.laplacian[a] == R.laplacian[b]:
+                ref.add((a, b))
+    assert got == ref and len(ref) > 0
+
+
+def test_refine_disparity_recovers_subpixel_shift(rng):
+    base = _texture(rng, 120, 400)
+    for shift in (7.25, 12.5, 20.8):
+        # right image = left image shifted left by `shift` px (true disparity), by exact interpolation
+        M = np.float32([[1, 0, -shift], [0, 1, 0]])  # right(x) = left(x + shift)
+        right = cv2.warpAffine(base, M, (400, 120), flags=cv2.INTER_CUBIC)
+        L8, R8 = np.clip(base, 0, 255).astype(np.uint8), np.clip(right, 0, 255).astype(np.uint8)
+        xl = rng.uniform(60, 340, 200)
+        yl = rng.uniform(10, 110, 200)
+        d0 = shift + rng.uniform(-1.0, 1.0, 200)  # descriptor-level disparity, off by up to 1 px
+        d, ok, edge = refine_disparity(L8, R8, xl, yl, d0)
+        assert ok.mean() > 0.95 and not edge.any()
+        assert np.median(np.abs(d[ok] - shift)) < 0.1
+        # a descriptor disparity 3.5 px off puts the photometric minimum outside the ±2 px window
+        _, ok_far, edge_far = refine_disparity(L8, R8, xl, yl, np.full(200, shift + 3.5))
+        assert edge_far.mean() > 0.9 and not np.any(ok_far & edge_far)
+
+
+def test_stereo_middlebury_rows_disparity_and_depth(shared_data):
+    left, right, gt, rig = _middlebury(shared_data)
+    det = make_detector(DetectorParams(name="sift", max_features=1500))
+    fl, fr = det.detect(left), det.detect(right)
+    m = match_stereo(fl, fr, rig, StereoMatchParams(), left, right)
+    assert m.n > 300
+    # row constraint and positive disparity within bounds
+    assert np.all(np.abs(fl.xy[m.left_idx, 1] - fr.xy[m.right_idx, 1]) <= 2.0)
+    d = m.xl - m.xr
+    assert np.all(d >= 5.0) and np.all(d <= rig.fb / 0.3)
+    # triangulated depth against ground-truth disparity for most matches
+    g = gt[np.rint(m.y).astype(int), np.rint(m.xl).astype(int)]
+    ok = g > 0
+    assert ok.mean() > 0.8
+    X_gt = rig.fb / g[ok]
+    rel = np.abs(m.xyz_R[ok, 0] - X_gt) / X_gt
+    assert np.mean(rel < 0.05) > 0.9
+    assert np.median(np.abs(d[ok] - g[ok])) < 0.25
+    # covariances are symmetric positive definite
+    assert np.all(np.linalg.eigvalsh(m.cov_R) > 0)
+
+
+def test_patch_refinement_beats_orb_keypoints_on_middlebury(shared_data):
+    left, right, gt, rig = _middlebury(shared_data)
+    det = make_detector(DetectorParams(name="orb", max_features=1500))
+    fl, fr = det.detect(left), det.detect(right)
+    med = {}
+    for ref in ("keypoint", "patch"):
+        m = match_stereo(fl, fr, rig, StereoMatchParams(refine=ref), left, right)
+        g = gt[np.rint(m.y).astype(int), np.rint(m.xl).astype(int)]
+        ok = g > 0
+        med[ref] = float(np.median(np.abs((m.xl - m.xr)[ok] - g[ok])))
+    assert med["patch"] < 0.6 * med["keypoint"]
+
+
+def test_stereo_bad_and_empty_inputs():
+    rig = RectifiedStereo(400.0, 320.0, 200.0, 0.1, 640, 400)
+    e = Features.empty(64)
+    m = match_stereo(e, e, rig)
+    assert m.n == 0 and m.xyz_R.shape == (0, 3) and m.cov_R.shape == (0, 3, 3)
+    with pytest.raises(InputError, match="one detector"):
+        match_stereo(_features(np.zeros((3, 2))), Features.empty(32, binary=True), rig)
+    with pytest.raises(ConfigError, match="refine"):
+        StereoMatchParams(refine="magic")
