@@ -45,6 +45,7 @@ from drivers.serial_protocol import (
     cobs_encode,
     encode_body,
 )
+from robotd.errors import RobotdError
 
 logger = logging.getLogger(__name__)
 
@@ -295,10 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         geometry = WheelGeometry(args.wheel_radius, args.ticks_per_rev, args.track_width)
-    except ValueError as exc:
-        print(f"mcu-sim: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:  # RobotdError from validation
+    except RobotdError as exc:
         print(f"mcu-sim: {exc}", file=sys.stderr)
         return 2
     master, slave, path = open_pty()
