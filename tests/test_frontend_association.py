@@ -1,0 +1,103 @@
+"""Landmark database and identification (algorithms.md §4.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robotd.errors import ConfigError, InputError
+from robotd.frontend.association import (
+    IDENTIFIED,
+    NEW,
+    REJECTED,
+    AssociationParams,
+    Correspondences,
+    LandmarkDatabase,
+)
+from robotd.frontend.stereo_match import normalise_descriptors
+
+
+def _unit(rng: np.random.Generator, n: int, d: int = 64) -> np.ndarray:
+    return normalise_descriptors(rng.normal(size=(n, d)), False)
+
+
+def test_identify_new_then_identified(rng):
+    db = LandmarkDatabase(64, binary=False)
+    desc = _unit(rng, 30)
+    c = db.identify(desc)
+    assert np.all(c.status == NEW)
+    db.commit(c, desc)
+    np.testing.assert_array_equal(c.ids, np.arange(30))
+    assert db.n == 30 and db.next_id == 30
+    # the same landmarks seen again with a little descriptor noise, shuffled, plus 10 unseen ones
+    perm = rng.permutation(30)
+    seen = normalise_descriptors(desc[perm] + 0.02 * rng.normal(size=(30, 64)), False)
+    fresh = _unit(rng, 10)
+    c2 = db.identify(np.r_[seen, fresh])
+    assert np.all(c2.status[:30] == IDENTIFIED)
+    np.testing.assert_array_equal(c2.ids[:30], perm)
+    assert np.all(c2.status[30:] == NEW) and np.all(c2.ids[30:] == -1)
+    db.commit(c2, np.r_[seen, fresh])
+    np.testing.assert_array_equal(c2.ids[30:], np.arange(30, 40))  # global ids are never reused
+    # the stored descriptor is the latest accepted observation's; the counter went up
+    np.testing.assert_allclose(db.desc[db.rows(perm)], seen)
+    assert np.all(db.existence[:30] == 2) and np.all(db.existence[30:] == 1)
+
+
+def test_candidate_restriction_and_ambiguity(rng):
+    db = LandmarkDatabase(64, binary=False)
+    base = _unit(rng, 5)
+    twin = normalise_descriptors(base[:1] + 0.01 * rng.normal(size=(1, 64)), False)
+    desc = np.r_[base, twin]  # landmark 5 looks like landmark 0 (repeated texture)
+    db.commit(db.identify(desc), desc)
+    # a measurement halfway between landmark 0 and its twin, and one of landmark 1
+    q = normalise_descriptors(np.r_[0.5 * (base[:1] + twin), base[1:2]], False)
+    c = db.identify(q)
+    # landmark 0 has a near-twin: the ratio test cannot decide; it is rejected, not made new
+    assert c.status[0] == REJECTED and c.status[1] == IDENTIFIED and c.ids[1] == 1
+    assert db.identify(q, params=AssociationParams(ambiguous_is_rejected=False)).status[0] == NEW
+    # restricted to landmarks predicted in view (the twin is not), the match is unambiguous
+    c = db.identify(q, candidate_ids=np.array([0, 1, 2]))
+    assert np.all(c.status == IDENTIFIED) and c.ids.tolist() == [0, 1]
+    # unknown candidate ids are ignored
+    c = db.identify(q, candidate_ids=np.array([1, 99]))
+    assert c.status[1] == IDENTIFIED and c.status[0] != IDENTIFIED
+
+
+def test_binary_descriptors_and_cross_check(rng):
+    db = LandmarkDatabase(32, binary=True)
+    desc = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    db.commit(db.identify(desc), desc)
+    # two measurements both nearest to landmark 3; the cross-check keeps the closer one only
+    m = np.stack([desc[3], desc[3]])
+    m[1, :2] ^= 0xFF  # 16 bits away
+    c = db.identify(m)
+    assert c.status[0] == IDENTIFIED and c.ids[0] == 3
+    assert c.status[1] != IDENTIFIED
+
+
+def test_reject_commit_existence_and_prune(rng):
+    db = LandmarkDatabase(64, binary=False)
+    desc = _unit(rng, 6)
+    db.commit(db.identify(desc), desc)
+    c = db.identify(desc)
+    c.reject(np.array([True, False, False, False, False, False]))
+    db.commit(c, desc)
+    assert c.ids[0] == -1 and db.n == 6  # rejected: neither updated nor initialised
+    assert db.existence[0] == 1 and db.existence[1] == 2
+    db.mark_missed(np.array([0, 0, 0]))
+    assert db.existence[0] == 0  # repeated ids in one call count once
+    gone = db.prune(1)
+    assert gone.tolist() == [0] and db.n == 5 and not db.contains(np.array([0]))[0]
+
+
+def test_bad_inputs(rng):
+    db = LandmarkDatabase(64, binary=False)
+    with pytest.raises(InputError, match=r"\(N, 64\)"):
+        db.identify(np.zeros((3, 32), np.float32))
+    with pytest.raises(InputError, match="unknown landmark ids"):
+        db.rows(np.array([5]))
+    with pytest.raises(ConfigError, match="ratio"):
+        AssociationParams(ratio=1.5)
+    empty = db.identify(np.zeros((0, 64), np.float32))
+    assert isinstance(empty, Correspondences) and empty.n == 0
