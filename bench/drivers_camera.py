@@ -41,7 +41,7 @@ def oak_host_run(n_pairs: int, rate_hz: float | None, calib_json: Path | None) -
     images = [rng.integers(0, 256, (400, 640), dtype=np.uint8) for _ in range(4)]
     rectifier = None
     if calib_json is not None and calib_json.is_file():
-        rectifier = Rectifier(calibration_from_handler(dai.CalibrationHandler(str(calib_json)), (640, 400)))
+        rectifier = Rectifier(calibration_from_handler(dai.CalibrationHandler(str(calib_json)), (640, 400)))  # type: ignore[call-overload]
 
     class Source(dai.node.ThreadedHostNode):
         def __init__(self) -> None:
@@ -85,7 +85,7 @@ def oak_host_run(n_pairs: int, rate_hz: float | None, calib_json: Path | None) -
             self.pipeline.stop()
             self._stack.close()
 
-    cam = OakCamera("oak://", session_factory=Session, queue_size=8)
+    cam = OakCamera("oak://", session_factory=Session, queue_size=8)  # type: ignore[arg-type]
     cam.open()
     expected = n_pairs / rate_hz if rate_hz else 0.0
     timer = threading.Timer(expected + 5.0, cam.close)
