@@ -65,8 +65,11 @@ def match_features(
     # full distance matrix: a few thousand features make this cheap and keep the masks exact
     dist = descriptor_distances(desc_l, desc_r)
     dist[~allowed] = np.inf
-    order = np.argsort(dist, axis=1)[:, :2]
+    # the two nearest per row without a full sort (argsort of 4000x4000 costs seconds)
+    order = np.argpartition(dist, 1, axis=1)[:, :2]
     rows = np.arange(n_l)
+    swap = dist[rows, order[:, 1]] < dist[rows, order[:, 0]]
+    order[swap] = order[swap][:, ::-1]
     d1 = dist[rows, order[:, 0]]
     d2 = dist[rows, order[:, 1]]
     ok = np.isfinite(d1) & (d1 < ratio * d2)  # d2 = inf (single candidate) passes: ratio undefined
@@ -88,10 +91,15 @@ def descriptor_distances(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
         for s in range(0, len(a), 256):  # chunks bound the (chunk, Nb, bytes) temporary
             out[s : s + 256] = np.bitwise_count(a[s : s + 256, None, :] ^ b[None, :, :]).sum(-1)
         return out
-    a = desc_a.astype(float)
-    b = desc_b.astype(float)
-    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
-    return np.sqrt(np.clip(d2, 0.0, None))
+    # float32 is plenty for ranking SIFT distances and halves the time of the big product
+    a = desc_a.astype(np.float32)
+    b = desc_b.astype(np.float32)
+    d2 = a @ b.T
+    d2 *= -2.0
+    d2 += (a * a).sum(1)[:, None]
+    d2 += (b * b).sum(1)[None, :]
+    np.maximum(d2, 0.0, out=d2)
+    return np.sqrt(d2, out=d2)
 
 
 def epipolar_inliers(xy_l: np.ndarray, xy_r: np.ndarray, threshold_px: float = 1.5) -> np.ndarray:

@@ -15,6 +15,7 @@ from drivers.oak.calibration import (
     import_oak_calibration,
     load_oak_eeprom_json,
     read_device_calibration,
+    stereo_calibration_from_handler,
 )
 from robotd.errors import DriverError
 
@@ -25,6 +26,7 @@ __all__ = [
     "load_oak_eeprom_json",
     "open_oak_camera",
     "read_device_calibration",
+    "stereo_calibration_from_handler",
 ]
 
 

@@ -136,3 +136,8 @@ def import_oak_calibration(source: str, width: int = 640, height: int = 400) -> 
     if source.lower().endswith(".json") or Path(source).is_file():
         return load_oak_eeprom_json(source, width, height)
     return read_device_calibration(source, width, height)
+
+
+def stereo_calibration_from_handler(handler: Any, size: tuple[int, int]) -> StereoCalibration:
+    """Adapter for ``drivers.oak.camera``: :func:`calibration_from_handler` with size = (width, height)."""
+    return calibration_from_handler(handler, int(size[0]), int(size[1]), source="OAK device calibration")
