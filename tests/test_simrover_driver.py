@@ -226,3 +226,25 @@ def test_send_pose_reports_the_error_against_truth():
         veh.send_pose(PoseEstimate(t_ns, xyz, np.zeros(3), np.eye(6)), quality=80, reset_counter=0)
         assert veh.stats()["last_pose_error_m"] == pytest.approx(0.5)
         assert veh.stats()["poses_received"] == 1
+
+
+def test_render_benchmark_prints_exactly_one_json_object(capsys: pytest.CaptureFixture[str]):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "sim_render.py"
+    spec = importlib.util.spec_from_file_location("bench_sim_render", path)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    import cv2
+
+    threads = cv2.getNumThreads()
+    try:
+        assert bench.main(["--pairs", "3", "--width", "160", "--height", "100", "--json"]) == 0
+    finally:
+        cv2.setNumThreads(threads)  # the benchmark sets OpenCV's process-wide thread count
+    out = capsys.readouterr().out.strip()
+    res = json.loads(out)
+    assert res["pairs"] == 3 and res["ms_per_pair_p50"] > 0 and res["pairs_per_s"] > 0
