@@ -260,3 +260,14 @@ def test_factory_calibration_in_metres(shared_data) -> None:
     model = Rectifier(cal).model
     assert model.baseline_m == pytest.approx(0.0755, abs=2e-4)
     assert (model.width, model.height) == (640, 400) and 380 < model.f_px < 460
+
+
+def test_driver_uses_the_oak_calibration_module_consistently(shared_data) -> None:
+    from drivers.oak.camera import _load_calibration
+
+    path = shared_data("oakd-calibration", "BW1098OBC_14442C10218CCCD200.json")
+    handler = dai.CalibrationHandler(str(path))
+    ours, used = calibration_from_handler(handler, (640, 400)), _load_calibration(handler, (640, 400))
+    np.testing.assert_allclose(used.K_left, ours.K_left, rtol=1e-9)
+    np.testing.assert_allclose(used.T, ours.T, atol=1e-9)  # both in metres
+    np.testing.assert_allclose(used.R, ours.R, atol=1e-7)  # theirs re-orthonormalises the float32 EEPROM R
