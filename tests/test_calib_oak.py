@@ -72,3 +72,13 @@ def test_open_oak_camera_without_camera_module(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setitem(sys.modules, "drivers.oak.camera", None)
     with pytest.raises(DriverError, match=r"drivers\.oak\.camera"):
         open_oak_camera("oak://")
+
+
+def test_json_stdout_is_one_object_in_a_fresh_process(shared_data, tmp_path: Path) -> None:
+    """depthai prints import-time warnings on stdout; --json output must stay parseable."""
+    import subprocess
+
+    argv = ["import-oak", str(shared_data(*OAK_JSON)), "--out", str(tmp_path / "o.yaml"), "--json"]
+    r = subprocess.run([sys.executable, "-m", "calib.cli", *argv], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["baseline_m"] == pytest.approx(0.0755, abs=0.001)

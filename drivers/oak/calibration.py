@@ -9,8 +9,12 @@ convention of :class:`StereoCalibration`. Distortion is OpenCV's 14-coefficient 
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +28,33 @@ logger = logging.getLogger(__name__)
 CM_PER_M = 100.0
 
 
-def _dai() -> Any:
+@contextlib.contextmanager
+def _native_stdout_to_stderr() -> Iterator[None]:
+    """Send file descriptor 1 to stderr for the duration.
+
+    depthai's native logger prints its import-time warnings ("USB protocol not available") to
+    **stdout**, which would corrupt the one JSON object ``robotd-calib ... --json`` prints.
+    """
     try:
-        import depthai as dai
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError):  # no real fd 1 (embedded interpreters): nothing to protect
+        yield
+        return
+    try:
+        os.dup2(2, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _dai() -> Any:
+    if "depthai" in sys.modules:
+        return sys.modules["depthai"]
+    try:
+        with _native_stdout_to_stderr():
+            import depthai as dai
     except ImportError as exc:  # pragma: no cover - depthai is a declared dependency
         raise DriverError(f"depthai is not installed ({exc}); it is needed for OAK calibrations") from exc
     return dai
