@@ -372,18 +372,17 @@ class MavlinkVehicle:
         return self._ap_sysid
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
-        """Yield odometry (FRD body velocity + body rates, host clock) as it arrives.
+        """Yield odometry samples (FRD body velocity + body rates, host clock) as they arrive.
 
-        Returns on :meth:`close` or when nothing arrived for ``timeout_s``.
+        Returns only when :meth:`close` is called: a quiet or reconnecting link keeps the
+        iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
         """
         while not self._stop.is_set():
             with self._cond:
-                if not self._queue and not self._cond.wait_for(
-                    lambda: bool(self._queue) or self._stop.is_set(), timeout_s
-                ):
-                    return
                 if not self._queue:
-                    return
+                    self._cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout_s)
+                if not self._queue:
+                    continue
                 item = self._queue.popleft()
             yield item
 
@@ -451,6 +450,8 @@ class MavlinkVehicle:
         m = _mav()
         if msg.autopilot == m.MAV_AUTOPILOT_INVALID or msg.type in (m.MAV_TYPE_GCS, m.MAV_TYPE_ONBOARD_CONTROLLER):
             return  # ground stations and other companions are not the vehicle
+        if self.opts.sysid and msg.get_srcSystem() != self.opts.sysid:
+            return  # a configured vehicle id: other vehicles on the network are not ours
         if self._ap_sysid is None:
             self._ap_sysid = msg.get_srcSystem()
             self._ap_compid = msg.get_srcComponent()

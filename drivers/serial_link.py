@@ -342,19 +342,17 @@ class SerialVehicle:
 
     # -- VehicleLink ---------------------------------------------------------------------------
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
-        """Yield odometry samples (FRD velocity + body rates, host clock) as they arrive.
+        """Yield odometry samples (FRD body velocity + body rates, host clock) as they arrive.
 
-        Returns when :meth:`close` is called or when nothing arrived for ``timeout_s`` (call it
-        again to continue; the link keeps reconnecting in the background).
+        Returns only when :meth:`close` is called: a quiet or reconnecting link keeps the
+        iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
         """
         while not self._stop.is_set():
             with self._cond:
-                if not self._queue and not self._cond.wait_for(
-                    lambda: bool(self._queue) or self._stop.is_set(), timeout_s
-                ):
-                    return
                 if not self._queue:
-                    return
+                    self._cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout_s)
+                if not self._queue:
+                    continue
                 item = self._queue.popleft()
             yield item
 

@@ -291,3 +291,19 @@ def test_url_errors() -> None:
         open_vehicle("mavlink+udp://127.0.0.1")
     with pytest.raises(DriverError, match="unknown message 'NOPE'"):
         open_vehicle("mavlink+udp://127.0.0.1:14550", rates_hz={"NOPE": 1})
+
+
+def test_odometry_iterator_ends_on_close() -> None:
+    import threading
+
+    got: list = []
+    with MockAutopilot(stream_hz=20) as ap:
+        link = MavlinkVehicle(ap.url)
+        link.open()
+        consumer = threading.Thread(target=lambda: got.extend(link.odometry(timeout_s=0.01)))
+        consumer.start()
+        assert wait_for(lambda: len(got) >= 5, 3.0)
+        assert consumer.is_alive()
+        link.close()
+        consumer.join(timeout=2.0)
+        assert not consumer.is_alive()

@@ -234,3 +234,20 @@ def test_unplug_then_reconnect_to_a_new_pty(tmp_path: Path) -> None:
             sim2.stop()
             os.close(master2)
             os.close(slave2)
+
+
+def test_odometry_iterator_survives_quiet_periods_and_ends_on_close() -> None:
+    import threading
+
+    got: list = []
+    with mcu(rate_hz=4, control_hz=0) as (_sim, path, _):
+        link = SerialVehicle(f"serial://{path}?{QUERY}", wheel_source="velocity")
+        link.open()
+        # the stream is quieter (4 Hz) than the iterator's timeout: it must keep waiting, not return
+        consumer = threading.Thread(target=lambda: got.extend(link.odometry(timeout_s=0.05)))
+        consumer.start()
+        assert wait_for(lambda: len(got) >= 3, 3.0)
+        assert consumer.is_alive()
+        link.close()
+        consumer.join(timeout=2.0)
+        assert not consumer.is_alive()
