@@ -55,7 +55,7 @@ from robotd.autopilot import (
     odometry_fields,
     vision_position_fields,
 )
-from robotd.errors import DriverError
+from robotd.errors import DriverError, RobotdError
 from robotd.geometry import euler_to_R
 from robotd.msgs import Odometry, PoseEstimate
 
@@ -298,6 +298,7 @@ class MavlinkVehicle:
                 "stamped_by_arrival",
                 "wheel_wraps",
                 "tx_errors",
+                "bad_values",
             ),
             0,
         )
@@ -439,8 +440,10 @@ class MavlinkVehicle:
             if handler is not None:
                 try:
                     handler(msg, t_ns)
-                except (ValueError, TypeError, IndexError, ArithmeticError) as exc:
-                    logger.warning("%s: bad %s ignored: %s", self.url, kind, exc)
+                except (RobotdError, ValueError, TypeError, IndexError, ArithmeticError) as exc:
+                    # a message with values we cannot use (NaN, too few wheels): count, keep reading
+                    self.c["bad_values"] += 1
+                    logger.debug("%s: bad %s ignored: %s", self.url, kind, exc)
 
     def _is_autopilot(self, msg: Any) -> bool:
         src = msg.get_srcSystem()

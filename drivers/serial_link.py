@@ -48,7 +48,7 @@ from drivers.serial_protocol import (
     seq_gap,
     tick_delta,
 )
-from robotd.errors import DriverError
+from robotd.errors import DriverError, RobotdError
 from robotd.msgs import Odometry, PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -158,6 +158,7 @@ class SerialVehicle:
                 "tx_errors",
                 "version_mismatch",
                 "tick_intervals_rejected",
+                "bad_values",
             ),
             0,
         )
@@ -252,7 +253,12 @@ class SerialVehicle:
                 continue
             t_arrival = time.monotonic_ns()
             for fr in self._decoder.feed(data):
-                self._handle(fr, t_arrival)
+                try:
+                    self._handle(fr, t_arrival)
+                except RobotdError as exc:
+                    # a well-framed message with bad values (NaN speeds...): count it, keep reading
+                    self._counters["bad_values"] += 1
+                    logger.debug("%s: frame seq %d rejected: %s", self.url, fr.seq, exc)
 
     def _handle(self, fr: Frame, t_arrival_ns: int) -> None:
         if self._last_seq is not None:

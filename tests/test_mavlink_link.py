@@ -307,3 +307,21 @@ def test_odometry_iterator_ends_on_close() -> None:
         link.close()
         consumer.join(timeout=2.0)
         assert not consumer.is_alive()
+
+
+def test_bad_input_values_are_counted_not_fatal() -> None:
+    with MockAutopilot(send_wheels=False) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            t_us = ap.boot_time_ns() // 1000
+            ap.conn.mav.wheel_distance_send(t_us, 2, [0.0, 0.0] + [0.0] * 14)
+            ap.conn.mav.wheel_distance_send(t_us + 20_000, 2, [float("nan"), 0.0] + [0.0] * 14)
+            ap.conn.mav.wheel_distance_send(t_us + 40_000, 1, [0.0] * 16)  # one wheel: indices 0, 1 impossible
+            assert wait_for(lambda: link.stats()["bad_values"] == 2, 2.0)
+            n0 = link.stats()["rx_messages"]
+            assert wait_for(lambda: link.stats()["rx_messages"] > n0 + 5, 2.0)  # the receiver lives on
+
+
+def test_mavlink_serial_missing_device() -> None:
+    with pytest.raises(DriverError, match="cannot open /nonexistent/ttyACM9"):
+        open_vehicle("mavlink+serial:///nonexistent/ttyACM9?baud=57600").open()

@@ -251,3 +251,15 @@ def test_odometry_iterator_survives_quiet_periods_and_ends_on_close() -> None:
         link.close()
         consumer.join(timeout=2.0)
         assert not consumer.is_alive()
+
+
+def test_nan_wheel_speeds_are_counted_not_fatal() -> None:
+    from drivers.serial_protocol import WHEEL_VEL_VALID, WheelOdometry
+
+    with mcu(rate_hz=50) as (sim, path, _):
+        with SerialVehicle(f"serial://{path}?{QUERY}", wheel_source="velocity") as link:
+            assert wait_for(lambda: link.stats()["odometry"] > 3)
+            sim.send(WheelOdometry(WHEEL_VEL_VALID, 0, 0, float("nan"), 0.5))
+            assert wait_for(lambda: link.stats()["bad_values"] == 1)
+            n0 = link.stats()["odometry"]
+            assert wait_for(lambda: link.stats()["odometry"] > n0 + 3)  # the reader lives on
