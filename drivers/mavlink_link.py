@@ -500,7 +500,8 @@ class MavlinkVehicle:
         if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
             self.c["stamped_by_arrival"] += 1
             return t_arrival_ns
-        return t
+        # within the offset's error (half a round trip) a stamp may land after its arrival: clamp
+        return min(t, t_arrival_ns)
 
     def _on_attitude(self, msg: Any, t_ns: int) -> None:
         if not self._is_autopilot(msg):
