@@ -60,13 +60,41 @@ def test_hessian_kernel_matches_dense_box_filters(rng: np.random.Generator, octa
     ny, nx = (57 - 1) // step + 1, (64 - 1) // step + 1
     det = np.empty((4, ny, nx), np.float32)
     trace = np.empty_like(det)
-    K.hessian_layers(S.integral_image(img), sizes, step, ny, nx, S.HESSIAN_WEIGHT, det, trace)
+    lo, hi_i, hi_j = S.candidate_ranges(sizes, step, img.shape, ny, nx)
+    cand = np.empty((2 * ny * nx, 3), np.int64)
+    K.hessian_layers(
+        S.integral_image(img), sizes, step, ny, nx, S.HESSIAN_WEIGHT, det, trace, 1.0, lo, hi_i, hi_j, cand
+    )
     for k, L in enumerate(sizes):
         ref_det, ref_trace = S.hessian_layer_reference(img, int(L), step)
         assert np.any(ref_det != 0), f"filter {L} fits nowhere: test image too small"
         # float32 output of float64 arithmetic: relative 1e-5 of the map's range.
         np.testing.assert_allclose(det[k], ref_det, rtol=1e-5, atol=1e-5 * np.abs(ref_det).max())
         np.testing.assert_allclose(trace[k], ref_trace, rtol=1e-5, atol=1e-5 * np.abs(ref_trace).max())
+
+
+@pytest.mark.parametrize(("octave", "shape"), [(0, (150, 180)), (2, (320, 360))])
+def test_maxima_kernel_matches_numpy_reference(rng: np.random.Generator, octave: int, shape: tuple[int, int]) -> None:
+    img = smooth_texture(rng, shape, blur=1.5 * 2**octave)
+    # Plateaus and exact ties: quantise part of the image so neighbouring responses repeat.
+    img[:40] = (img[:40] // 64) * 64
+    sizes = np.array([S.filter_size(octave, k) for k in range(4)], np.int64)
+    step = 2**octave
+    ny, nx = (shape[0] - 1) // step + 1, (shape[1] - 1) // step + 1
+    det = np.empty((4, ny, nx), np.float32)
+    trace = np.empty_like(det)
+    lo, hi_i, hi_j = S.candidate_ranges(sizes, step, shape, ny, nx)
+    cand = np.empty((2 * ((ny + 1) // 2) * ((nx + 1) // 2), 3), np.int64)
+    n = K.hessian_layers(
+        S.integral_image(img), sizes, step, ny, nx, S.HESSIAN_WEIGHT, det, trace, 5.0, lo, hi_i, hi_j, cand
+    )
+    ref = S.local_maxima_reference(det, lo, hi_i, hi_j, 5.0)
+    assert len(ref) > 5
+    np.testing.assert_array_equal(cand[:n], ref)
+    # Every reported sample really is >= all 26 neighbours and above the threshold.
+    for k, i, j in ref:
+        block = det[k - 1 : k + 2, i - 1 : i + 2, j - 1 : j + 2]
+        assert det[k, i, j] == block.max() and det[k, i, j] > 5.0
 
 
 def test_filter_sizes_follow_bay() -> None:

@@ -1,9 +1,10 @@
 """numba kernels of the SURF hot loops (Bay et al., CVIU 2008); the readable algorithm is in ``surf.py``.
 
-Two kernels only, to keep the first-call compile short (about 2 s each on the reference machine, then
-cached on disk):
+Two kernels only, to keep the first-call compile short (a few seconds in all, then cached on disk;
+the helpers are ``inline="always"`` and compile as part of their caller):
 
-- :func:`hessian_layers`: the box-filter Hessian responses of one octave, every layer in one pass.
+- :func:`hessian_layers`: the box-filter Hessian responses of one octave, every layer, and the
+  octave's 3x3x3 local maxima.
 - :func:`orient_and_describe`: per keypoint, the dominant orientation and the 64/128-D descriptor.
 
 Both read a float64 integral image ``ii`` of shape (H+1, W+1) with a zero first row and column, so
@@ -53,8 +54,14 @@ def hessian_layers(
     weight: float,
     det_out: np.ndarray,
     trace_out: np.ndarray,
-) -> None:
-    """Fill ``det_out``/``trace_out`` (n_layers, ny, nx) float32 with the SURF Hessian responses.
+    threshold: float,
+    lo: np.ndarray,
+    hi_i: np.ndarray,
+    hi_j: np.ndarray,
+    cand_out: np.ndarray,
+) -> int:
+    """Fill ``det_out``/``trace_out`` (n_layers, ny, nx) float32 with the SURF Hessian responses, then
+    write the octave's local maxima as (layer, i, j) rows into ``cand_out`` and return their count.
 
     Layer k uses the box filters of side ``L = sizes[k]`` (odd, lobe ``l = L/3``) centred on the pixel
     (x, y) = (j*step, i*step). Bay et al. §3.1 / thesis eq. (4.1.13)–(4.1.14):
@@ -67,6 +74,10 @@ def hessian_layers(
     each response normalised by the filter area L^2 (so a threshold does not depend on scale and is
     in the units of OpenCV's ``hessianThreshold``). Samples where the filter does not fit inside the
     image are left at 0 (never a detection: thresholds are positive).
+
+    Maxima: see :func:`_scan_maxima`; ``lo``, ``hi_i``, ``hi_j`` (n_layers,) are the inclusive index
+    ranges searched per layer, ``cand_out`` (capacity, 3) int64 with capacity >= (n_layers - 2) *
+    ceil(ny / 2) * ceil(nx / 2) (maxima of one layer are never 8-adjacent).
     """
     h = ii.shape[0] - 1
     w = ii.shape[1] - 1
@@ -126,6 +137,47 @@ def hessian_layers(
                 dyy *= inv_area
                 det_row[j] = dxx * dyy - (weight * dxy) * (weight * dxy)
                 trace_row[j] = dxx + dyy
+    return _scan_maxima(det_out, threshold, lo, hi_i, hi_j, cand_out)
+
+
+@numba.njit(inline="always")
+def _scan_maxima(
+    det: np.ndarray, threshold: float, lo: np.ndarray, hi_i: np.ndarray, hi_j: np.ndarray, cand_out: np.ndarray
+) -> int:
+    """Samples of the interior layers above ``threshold`` that are maxima of their 3x3x3 neighbourhood.
+
+    Bay et al. §3.3. Ties would suppress both samples of a blob centred exactly between two; so a
+    sample must exceed the neighbours before it in (layer, row, column) order and at least equal
+    those after it, and exactly one of two tied samples survives. Output in that order.
+    """
+    n = 0
+    for k in range(1, det.shape[0] - 1):
+        for i in range(lo[k], hi_i[k] + 1):
+            for j in range(lo[k], hi_j[k] + 1):
+                v = det[k, i, j]
+                if v <= threshold:
+                    continue
+                is_max = True
+                for dl in range(-1, 2):
+                    for di in range(-1, 2):
+                        for dj in range(-1, 2):
+                            if dl == 0 and di == 0 and dj == 0:
+                                continue
+                            u = det[k + dl, i + di, j + dj]
+                            before = dl < 0 or (dl == 0 and (di < 0 or (di == 0 and dj < 0)))
+                            if (before and v <= u) or (not before and v < u):
+                                is_max = False
+                                break
+                        if not is_max:
+                            break
+                    if not is_max:
+                        break
+                if is_max:
+                    cand_out[n, 0] = k
+                    cand_out[n, 1] = i
+                    cand_out[n, 2] = j
+                    n += 1
+    return n
 
 
 @numba.njit(inline="always")

@@ -133,59 +133,74 @@ class _Keypoints:
     laplacian: np.ndarray  # (N,) int8
 
 
-def _octave_keypoints(
-    det: np.ndarray, trace: np.ndarray, sizes: np.ndarray, step: int, shape: tuple[int, int], threshold: float
-) -> _Keypoints | None:
-    """Maxima of one octave's det stack (n_layers, ny, nx), refined to sub-pixel/sub-scale."""
+def candidate_ranges(
+    sizes: np.ndarray, step: int, shape: tuple[int, int], ny: int, nx: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inclusive grid-index ranges (lo, hi_i, hi_j), each (n_layers,), searched for maxima per layer.
+
+    Layer k needs layer k+1 (its largest neighbour filter) to fit inside the image at the 3x3
+    neighbours of the centre, so the range is that of layer k+1 shrunk by one sample.
+    """
     h, w = shape
-    n_layers, ny, nx = det.shape
-    # Candidate layer k needs layer k+1 (the largest filter) valid at the 3x3 neighbours of the
-    # centre, so the index range shrinks by one beyond the valid region of layer k+1.
-    lo_idx = np.empty(n_layers, np.int64)
+    n_layers = len(sizes)
+    lo = np.empty(n_layers, np.int64)
     hi_i = np.empty(n_layers, np.int64)
     hi_j = np.empty(n_layers, np.int64)
     for k in range(n_layers):
         half = int(sizes[min(k + 1, n_layers - 1)]) // 2
-        lo_idx[k] = -(-half // step) + 1
+        lo[k] = -(-half // step) + 1
         hi_i[k] = min((h - 1 - half) // step, ny - 1) - 1
         hi_j[k] = min((w - 1 - half) // step, nx - 1) - 1
-    ls, is_, js = [], [], []
+    return lo, hi_i, hi_j
+
+
+def local_maxima_reference(
+    det: np.ndarray, lo: np.ndarray, hi_i: np.ndarray, hi_j: np.ndarray, threshold: float
+) -> np.ndarray:
+    """(M, 3) int64 rows (layer, i, j) of the 3x3x3 maxima of ``det`` (n_layers, ny, nx): numpy
+    version of the kernel's scan (Bay §3.3, same tie rule), in (layer, i, j) order. For the tests.
+    """
+    n_layers, ny, nx = det.shape
+    flat = det.reshape(-1)
+    parts = []
     for k in range(1, n_layers - 1):
-        a, bi, bj = int(lo_idx[k]), int(hi_i[k]), int(hi_j[k])
+        a, bi, bj = int(lo[k]), int(hi_i[k]), int(hi_j[k])
         if bi < a or bj < a:
             continue
-        sub = det[k, a : bi + 1, a : bj + 1]
-        ii, jj = np.nonzero(sub > threshold)
-        ls.append(np.full(ii.shape, k))
-        is_.append(ii + a)
-        js.append(jj + a)
-    if not ls:
-        return None
-    layer = np.concatenate(ls)
-    i = np.concatenate(is_)
-    j = np.concatenate(js)
-    if layer.size == 0:
-        return None
-    # Strict maximum over the 26 neighbours (Bay §3.3). Flat indices make each neighbour one take;
-    # the 8 in-layer neighbours go first and prune most candidates before the other 18.
-    flat = det.reshape(-1)
-    idx = (layer * ny + i) * nx + j
+        ii, jj = np.nonzero(det[k, a : bi + 1, a : bj + 1] > threshold)
+        parts.append((k * ny + ii + a) * nx + jj + a)
+    idx = np.concatenate(parts) if parts else np.zeros(0, np.int64)
     v = flat[idx]
-    in_layer = [(0, di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
-    across = [(dl, di, dj) for dl in (-1, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)]
-    for group in (in_layer, across):
-        keep = np.ones(idx.shape, bool)
-        for dl, di, dj in group:
-            off = (dl * ny + di) * nx + dj
-            # Ties (a blob centred exactly between two samples) would suppress both under a strict
-            # test: a sample must beat the neighbours before it in raster order and at least equal
-            # those after it, so exactly one of two tied samples survives.
-            keep &= (v > flat[idx + off]) if off < 0 else (v >= flat[idx + off])
-        idx, v = idx[keep], v[keep]
-    layer, rem = np.divmod(idx, ny * nx)
+    keep = np.ones(idx.shape, bool)
+    for dl in (-1, 0, 1):
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                off = (dl * ny + di) * nx + dj
+                if off == 0:
+                    continue
+                # Ties: beat the neighbours before in raster order, at least equal those after.
+                keep &= (v > flat[idx + off]) if off < 0 else (v >= flat[idx + off])
+    layer, rem = np.divmod(idx[keep], ny * nx)
     i, j = np.divmod(rem, nx)
-    if layer.size == 0:
+    return np.stack([layer, i, j], axis=1).astype(np.int64)
+
+
+def _octave_keypoints(
+    det: np.ndarray,
+    trace: np.ndarray,
+    sizes: np.ndarray,
+    step: int,
+    cand: np.ndarray,
+    lo: np.ndarray,
+    hi_i: np.ndarray,
+    hi_j: np.ndarray,
+    threshold: float,
+) -> _Keypoints | None:
+    """Refine one octave's maxima ``cand`` (M, 3) rows (layer, i, j) to sub-pixel/sub-scale keypoints."""
+    n_layers = det.shape[0]
+    if len(cand) == 0:
         return None
+    layer, i, j = cand[:, 0].copy(), cand[:, 1].copy(), cand[:, 2].copy()
 
     offset, value, ok = _quadratic_fit(det, layer, i, j)
     # Brown & Lowe: an offset beyond half a sample means the extremum is nearer the neighbour: move
@@ -200,7 +215,7 @@ def _octave_keypoints(
         nj, ni, nl = j[move] + step_[:, 0], i[move] + step_[:, 1], layer[move] + step_[:, 2]
         inside = (nl >= 1) & (nl <= n_layers - 2)
         nl_c = np.clip(nl, 1, n_layers - 2)
-        inside &= (ni >= lo_idx[nl_c]) & (ni <= hi_i[nl_c]) & (nj >= lo_idx[nl_c]) & (nj <= hi_j[nl_c])
+        inside &= (ni >= lo[nl_c]) & (ni <= hi_i[nl_c]) & (nj >= lo[nl_c]) & (nj <= hi_j[nl_c])
         idx = np.flatnonzero(move)
         ok[idx[~inside]] = False
         idx = idx[inside]
@@ -283,8 +298,13 @@ def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray |
         nx = (w - 1) // step + 1
         det = np.empty((n_layers, ny, nx), np.float32)
         trace = np.empty((n_layers, ny, nx), np.float32)
-        _k.hessian_layers(ii, sizes, step, ny, nx, HESSIAN_WEIGHT, det, trace)
-        kp = _octave_keypoints(det, trace, sizes, step, (h, w), p.hessian_threshold)
+        lo, hi_i, hi_j = candidate_ranges(sizes, step, (h, w), ny, nx)
+        # Maxima of one layer are never 8-adjacent, which bounds their number.
+        cand = np.empty(((n_layers - 2) * ((ny + 1) // 2) * ((nx + 1) // 2), 3), np.int64)
+        n_cand = _k.hessian_layers(
+            ii, sizes, step, ny, nx, HESSIAN_WEIGHT, det, trace, p.hessian_threshold, lo, hi_i, hi_j, cand
+        )
+        kp = _octave_keypoints(det, trace, sizes, step, cand[:n_cand], lo, hi_i, hi_j, p.hessian_threshold)
         if kp is not None:
             found.append(kp)
     if not found:
