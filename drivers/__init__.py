@@ -70,6 +70,10 @@ _VEHICLES: dict[str, tuple[str, str]] = {
     "serial": ("drivers.serial_link", "open_serial_vehicle"),
     "mavlink+udp": ("drivers.mavlink_link", "open_mavlink_vehicle"),
     "mavlink+serial": ("drivers.mavlink_link", "open_mavlink_vehicle"),
+    # replay sources: datasets are visual only unless gt_odometry=1 (experiments only)
+    "kitti": ("drivers.dataset", "open_kitti_vehicle"),
+    "euroc": ("drivers.dataset", "open_euroc_vehicle"),
+    "mcap": ("drivers.dataset", "open_mcap_vehicle"),
 }
 
 

@@ -79,27 +79,52 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from robotd.replay import record
+    from robotd.daemon import Daemon
 
     cfg = _load(args)
     configure_logging(args.log_level or cfg.log.level)
-    summary = record(cfg, args.out, duration_s=args.duration, max_frames=args.max_frames)
+    daemon = Daemon(cfg, duration_s=args.duration, record_path=args.out)
+    code = daemon.run()
     if args.json:
-        print(json.dumps(summary, sort_keys=True))
-    return 0
+        print(json.dumps(daemon.record_summary(), sort_keys=True))
+    return code
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from robotd.evaluate import evaluate_files
+    import numpy as np
+
+    from robotd.evaluate import Trajectory, evaluate_trajectories, plot_trajectory, read_trajectory
+    from robotd.geometry import T_optical_to_robot
 
     configure_logging(args.log_level or "WARNING")
-    result = evaluate_files(args.traj, args.gt, plot_png=args.plot)
+    est = read_trajectory(args.traj)
+    gt = read_trajectory(args.gt)
+    if _is_kitti_poses(args.gt):
+        # KITTI poses are the left camera in its optical frame: re-express them in robotd's FRD axes
+        gt = Trajectory(gt.t_s, np.stack([T_optical_to_robot(T) for T in gt.T]))
+    result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar))
+    result["frames"] = int(result["frames"])
+    plot = args.plot or (str(Path(args.traj).with_suffix(".png")) if not args.no_plot else None)
+    if plot:
+        from robotd.evaluate import associate
+
+        ie, ig = associate(est.t_s, gt.t_s)
+        plot_trajectory(est.T[ie], gt.T[ig], None, plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
+        result["plot"] = plot
     if args.json:
         print(json.dumps(result, sort_keys=True))
     else:
         for k in sorted(result):
             print(f"{k:>22}: {result[k]}")
     return 0
+
+
+def _is_kitti_poses(path: str) -> bool:
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.strip() and not line.lstrip().startswith("#"):
+                return len(line.split()) == 12
+    return False
 
 
 def cmd_experiments(args: argparse.Namespace) -> int:
@@ -156,14 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.add_argument("out", help="OUT.mcap")
-    sp.add_argument("--duration", type=float, default=10.0)
-    sp.add_argument("--max-frames", type=int, default=0)
+    sp.add_argument("--duration", type=float, default=10.0, help="seconds to record (0: until SIGTERM)")
     sp.add_argument("--json", action="store_true")
 
     sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)
     sp.add_argument("traj", help="estimated trajectory (TUM)")
     sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")
-    sp.add_argument("--plot", metavar="PNG", help="write a plot of the path against ground truth")
+    sp.add_argument("--plot", metavar="PNG", help="plot file (default: TRAJ with .png)")
+    sp.add_argument("--no-plot", action="store_true", help="do not write a plot")
+    sp.add_argument("--planar", action="store_true", help="SE(2) alignment (2D runs)")
     sp.add_argument("--json", action="store_true")
 
     sp = add("experiments", cmd_experiments, "reproduce the thesis's simulation experiments", config=False)

@@ -73,7 +73,9 @@ class FrontendConfig:
     sigma_y_px: float = _f(0.3535533905932738, "pixel noise of the mean row", min=0.01, max=10.0)
     cov_inflation: float = _f(1.0, "multiplier on the measurement covariance", min=0.1, max=100.0)
     outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_DETECTORS)
-    chi2_consensus: float = _f(11.345, "χ²₃ threshold of the Mahalanobis consensus (99 %)", min=0.1)
+    consensus_confidence: float = _f(
+        0.99, "χ² level of the Mahalanobis consensus (0.99: 11.345 in 3D)", min=0.5, max=0.99999
+    )
     ransac_max_iterations: int = _f(500, "RANSAC iteration cap", min=1, max=100000)
     min_inliers: int = _f(6, "fewer inliers: no correspondence accepted this frame", min=3)
     restrict_to_fov: bool = _f(True, "match only landmarks predicted inside the field of view")
@@ -202,9 +204,7 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         where = prefix[:-1] if prefix else "top level"
-        raise ConfigError(
-            f"{prefix}{unknown[0]}: unknown key in {where}; known keys: {', '.join(sorted(fields))}"
-        )
+        raise ConfigError(f"{prefix}{unknown[0]}: unknown key in {where}; known keys: {', '.join(sorted(fields))}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         f = fields[name]

@@ -1,0 +1,260 @@
+"""``Pipeline.step(frame, increment) -> StepResult``: the data flow of design.md §1 in a screenful.
+
+Pure with respect to I/O: no threads, sockets, files or wall clocks inside (perf_counter only
+measures stage times). The daemon, replay, the benchmarks and the tests call the same ``step``,
+so a run replays bit for bit from its recorded inputs and seed.
+
+Motion prior, in order of preference (algorithms.md §6, "Where the control comes from"): the
+vehicle's odometry integrated to the frame time; without it (visual only, as the thesis ran),
+the frame-to-frame motion the outlier stage recovered from the images; failing that, a
+constant-velocity prediction. Ground truth never reaches the filter.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from robotd.config import Config
+from robotd.frontend.association import LandmarkDatabase
+from robotd.frontend.detectors import DetectorParams, make_detector
+from robotd.frontend.frontend import Frontend, FrontendParams
+from robotd.frontend.stereo_match import StereoMatchParams
+from robotd.geometry import euler_to_R, se3, se3_inverse
+from robotd.msgs import MotionIncrement, PoseEstimate, StepResult, StereoFrame
+from robotd.outliers import OutlierParams
+from robotd.slam.estimator import Estimator, SlamParams, make_estimator
+from robotd.stereo import RectifiedStereo
+
+logger = logging.getLogger(__name__)
+
+LOST_AFTER_FRAMES = 5  # frames without accepted correspondences before tracking is declared lost
+
+
+def frontend_params_from_config(cfg: Config, max_features: int | None = None) -> FrontendParams:
+    f = cfg.frontend
+    det = DetectorParams(
+        name=f.detector,
+        max_features=max_features or f.max_features,
+        bucketing=f.bucketing,
+        grid_rows=f.grid_rows,
+        grid_cols=f.grid_cols,
+    )
+    stereo = StereoMatchParams(
+        row_tol_px=f.row_tolerance_px,
+        d_min_px=f.disparity_min_px,
+        depth_min_m=f.depth_min_m,
+        sigma_x_px=f.sigma_x_px,
+        sigma_y_px=f.sigma_y_px,
+        cov_inflation=f.cov_inflation,
+    )
+    method = f.outliers
+    outl = OutlierParams(
+        method="none" if method == "none" else method,
+        confidence=f.consensus_confidence,
+        max_iterations=f.ransac_max_iterations,
+        min_inliers=f.min_inliers,
+    )
+    return FrontendParams(detector=det, stereo=stereo, outliers=outl)
+
+
+def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:
+    n_min = max(1, min(cfg.budget.min_particles, cfg.slam.n_particles))
+    kw: dict[str, Any] = {
+        "filter": cfg.slam.filter,
+        "dim": cfg.slam.dim,
+        "n_particles": cfg.slam.n_particles,
+        "n_particles_min": n_min,
+        "resample_neff_ratio": cfg.slam.resample_neff_ratio,
+    }
+    if rig is not None:
+        # the pruning field of view and range follow the rig and the disparity limits (§2.2)
+        kw["fov_h_rad"] = float(2 * np.arctan2(rig.width / 2.0, rig.f_px))
+        kw["fov_v_rad"] = float(2 * np.arctan2(rig.height / 2.0, rig.f_px))
+        kw["min_range_m"] = cfg.frontend.depth_min_m
+        kw["max_range_m"] = max(cfg.frontend.depth_min_m * 1.01, rig.fb / cfg.frontend.disparity_min_px)
+    return SlamParams(**kw)
+
+
+def pose_to_T(pose: PoseEstimate) -> np.ndarray:
+    return se3(euler_to_R(pose.rpy_rad), pose.xyz_W_m)
+
+
+@dataclass
+class PipelineCounters:
+    frames: int = 0
+    visual_priors: int = 0
+    odometry_priors: int = 0
+    constant_velocity_priors: int = 0
+    frames_without_correspondences: int = 0
+    lost_events: int = 0
+
+
+class Pipeline:
+    """Frontend + estimator for one rig. ``step`` is called once per stereo frame."""
+
+    def __init__(self, cfg: Config, rig: RectifiedStereo, rng: np.random.Generator) -> None:
+        self.cfg = cfg
+        self.rig = rig
+        self.rng = rng
+        self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
+        self._restrict_fov = cfg.frontend.restrict_to_fov
+        self.estimator: Estimator = make_estimator(slam_params_from_config(cfg, rig), rng)
+        self.counters = PipelineCounters()
+        self._last_t_ns: int | None = None
+        self._last_T: np.ndarray | None = None  # T_world_robot of the previous output
+        self._last_inc: MotionIncrement | None = None
+        self._no_corr = 0
+        self.tracking = True
+        self.max_features = cfg.frontend.max_features
+
+    # ---------------------------------------------------------------- degradation hooks
+    def set_max_features(self, n: int) -> None:
+        n = int(n)
+        if n != self.max_features:
+            self.max_features = n
+            self.frontend.detector = make_detector(frontend_params_from_config(self.cfg, n).detector)
+
+    def set_particles(self, n: int) -> int:
+        return self.estimator.set_particles(int(n))
+
+    # ---------------------------------------------------------------- the step
+    def step(self, frame: StereoFrame, increment: MotionIncrement | None = None) -> StepResult:
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        lm = self.estimator.landmarks()
+        prior = self.estimator.estimate()
+        fr = self.frontend.process(
+            frame.left,
+            frame.right,
+            frame.t_ns,
+            lm,
+            pose_to_T(prior) if self._restrict_fov and lm.n else None,
+        )
+        timings.update(fr.timings_ms)
+
+        t0 = time.perf_counter()
+        if self._last_t_ns is not None:
+            inc = self._choose_increment(increment, fr, frame.t_ns)
+            if inc is not None:
+                self.estimator.predict(inc)
+                self._last_inc = inc
+        report = self.estimator.update(fr.observations)
+        db = self.frontend.database
+        if report.n_pruned and db is not None:
+            # the filter's existence counter is the master; the descriptor database follows it
+            db.remove(np.setdiff1d(db.ids, self.estimator.landmark_ids()))
+        timings["filter"] = (time.perf_counter() - t0) * 1e3
+
+        pose = self.estimator.estimate()
+        n_identified = int(np.count_nonzero(~fr.observations.is_new))
+        has_map = lm.n > 0
+        if has_map and n_identified == 0:
+            self._no_corr += 1
+            self.counters.frames_without_correspondences += 1
+        else:
+            self._no_corr = 0
+        was_tracking = self.tracking
+        self.tracking = self._no_corr < LOST_AFTER_FRAMES and bool(np.all(np.isfinite(pose.cov)))
+        if was_tracking and not self.tracking:
+            self.counters.lost_events += 1
+            logger.warning("tracking lost: no accepted correspondences for %d frames", self._no_corr)
+
+        self._last_t_ns = frame.t_ns
+        self._last_T = pose_to_T(pose)
+        self.counters.frames += 1
+        timings["total"] = (time.perf_counter() - t_start) * 1e3
+        counts = dict(fr.counts)
+        counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
+        counts["identified"] = n_identified
+        return StepResult(frame.t_ns, pose, report, timings, counts, self.tracking)
+
+    def _choose_increment(self, odo: MotionIncrement | None, fr: Any, t_ns: int) -> MotionIncrement | None:
+        assert self._last_t_ns is not None
+        if odo is not None:
+            self.counters.odometry_priors += 1
+            return odo
+        vis = fr.motion
+        if vis is not None and vis.t0_ns == self._last_t_ns:
+            self.counters.visual_priors += 1
+            return vis
+        if self._last_inc is not None:
+            # constant velocity: repeat the last increment, scaled to this interval
+            self.counters.constant_velocity_priors += 1
+            dt_last = max(self._last_inc.t1_ns - self._last_inc.t0_ns, 1)
+            k = (t_ns - self._last_t_ns) / dt_last
+            return MotionIncrement(
+                self._last_t_ns, t_ns, self._last_inc.dp_R_m * k, self._last_inc.drot_R_rad * k, np.zeros((6, 6))
+            )
+        return None
+
+    # ---------------------------------------------------------------- quality and persistence
+    def quality(self, result: StepResult) -> int:
+        """MAVLink quality: -1 lost, else 1..100 from accepted correspondences and N_eff/N."""
+        if not result.tracking:
+            return -1
+        inl = result.counts.get("identified", 0)
+        q = min(1.0, inl / 30.0)
+        pose = result.pose
+        if np.isfinite(pose.neff) and pose.n_particles > 0:
+            q *= 0.5 + 0.5 * min(1.0, pose.neff / pose.n_particles)
+        return int(np.clip(round(100 * q), 1, 100))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "estimator_name": self.estimator.name,
+            "dim": self.estimator.dim,
+            "estimator": self.estimator.state_dict(),
+            "database": _db_state(self.frontend.database),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        from robotd.errors import PersistenceError
+
+        if state.get("estimator_name") != self.estimator.name or state.get("dim") != self.estimator.dim:
+            raise PersistenceError(
+                f"saved map is from {state.get('estimator_name')!r} in {state.get('dim')}D, "
+                f"this run uses {self.estimator.name!r} in {self.estimator.dim}D"
+            )
+        self.estimator.load_state_dict(state["estimator"])
+        db = state.get("database")
+        if db:
+            self.frontend.database = _db_from_state(db)
+        self.frontend.reset()
+
+    def relative_to_last(self, T_world_robot: np.ndarray) -> np.ndarray | None:
+        if self._last_T is None:
+            return None
+        return se3_inverse(self._last_T) @ T_world_robot
+
+
+def _db_state(db: LandmarkDatabase | None) -> dict[str, Any]:
+    if db is None:
+        return {}
+    return {
+        "dim": db.dim,
+        "binary": db.binary,
+        "ids": db.ids.copy(),
+        "desc": db.desc.copy(),
+        "existence": db.existence.copy(),
+        "next_id": db.next_id,
+    }
+
+
+def _db_from_state(st: dict[str, Any]) -> LandmarkDatabase:
+    from robotd.errors import PersistenceError
+
+    try:
+        db = LandmarkDatabase(int(st["dim"]), bool(st["binary"]), first_id=int(st["next_id"]))
+        db.ids = np.asarray(st["ids"], np.int64)
+        db.desc = np.asarray(st["desc"], db.desc.dtype)
+        db.existence = np.asarray(st["existence"], np.int32)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise PersistenceError(f"saved landmark database is incomplete: {exc}") from exc
+    if db.desc.shape != (db.ids.shape[0], db.dim) or db.existence.shape != db.ids.shape:
+        raise PersistenceError("saved landmark database: ids, descriptors and counters disagree in length")
+    return db
