@@ -341,6 +341,38 @@ def test_mask_keeps_only_features_inside(rng: np.random.Generator) -> None:
     assert S.detect_and_compute(img, mask=np.zeros_like(mask)).n == 0
 
 
+def test_select_chooses_features_before_description(rng: np.random.Generator) -> None:
+    img = smooth_texture(rng, (200, 240))
+    full = S.detect_and_compute(img, S.SurfParams(max_features=0))
+    seen: list[int] = []
+
+    def every_other(xy: np.ndarray, response: np.ndarray) -> np.ndarray:
+        seen.append(len(xy))
+        assert np.all(np.diff(response) <= 0)
+        return np.arange(0, len(xy), 2)[::-1]  # a caller may reorder too
+
+    sub = S.detect_and_compute(img, S.SurfParams(max_features=0), select=every_other)
+    assert seen == [full.n]
+    idx = np.arange(0, full.n, 2)[::-1]
+    np.testing.assert_array_equal(sub.xy, full.xy[idx])
+    np.testing.assert_array_equal(sub.desc, full.desc[idx])
+    with pytest.raises(InputError, match="select returned a mask of shape"):
+        S.detect_and_compute(img, select=lambda xy, r: np.ones(3, bool))
+
+
+def test_two_threads_give_the_sequential_result(rng: np.random.Generator) -> None:
+    """The kernels release the GIL and share no state: left and right images may run concurrently."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    imgs = [smooth_texture(rng, (240, 320)) for _ in range(4)]
+    sequential = [S.detect_and_compute(i) for i in imgs]
+    with ThreadPoolExecutor(2) as pool:
+        parallel = list(pool.map(S.detect_and_compute, imgs))
+    for a, b in zip(sequential, parallel):
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.desc, b.desc)
+
+
 def test_extended_descriptor_refines_the_basic_one(rng: np.random.Generator) -> None:
     """The 128-D sums split the 64-D ones by sign, so adding the halves gives back the 64-D vector."""
     img = smooth_texture(rng, (160, 200))
