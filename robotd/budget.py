@@ -9,6 +9,7 @@ bounded drop-oldest queues keep latency bounded meanwhile; the budget keeps the 
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from dataclasses import dataclass
 
@@ -30,20 +31,24 @@ class BudgetState:
 
 
 class StageTimer:
-    """Rolling per-stage latency percentiles (last ``window`` frames)."""
+    """Rolling per-stage latency percentiles (last ``window`` frames); safe across threads."""
 
     def __init__(self, window: int = 300) -> None:
         self.window = window
         self._stages: dict[str, deque[float]] = {}
+        self._lock = threading.Lock()
 
     def add(self, stage: str, ms: float) -> None:
-        self._stages.setdefault(stage, deque(maxlen=self.window)).append(float(ms))
+        with self._lock:
+            self._stages.setdefault(stage, deque(maxlen=self.window)).append(float(ms))
 
     def percentiles(self) -> dict[str, dict[str, float]]:
         out: dict[str, dict[str, float]] = {}
-        for k, v in self._stages.items():
+        with self._lock:
+            snapshot = {k: list(v) for k, v in self._stages.items()}
+        for k, v in snapshot.items():
             if v:
-                a = np.fromiter(v, float)
+                a = np.asarray(v, float)
                 out[k] = {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "n": len(a)}
         return out
 

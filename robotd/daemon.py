@@ -62,6 +62,7 @@ class Published:
     truth: np.ndarray | None
     quality: int
     frame_seq: int
+    landmarks: Any = None  # LandmarkMap snapshot, taken by the SLAM thread when a map update is due
 
 
 @dataclass
@@ -119,6 +120,8 @@ class Daemon:
         self._last_frame_seq: int | None = None
         self._first_truth_inv: np.ndarray | None = None
         self._ready = False
+        self._save_request = threading.Event()
+        self._save_q: DropOldestQueue[tuple[int, dict[str, Any]]] = DropOldestQueue(1)
         self.resumed = False
         self.exit_code = 0
 
@@ -245,6 +248,9 @@ class Daemon:
         assert self.pipeline is not None and self.budget is not None
         pipeline, budget = self.pipeline, self.budget
         last_t: int | None = None
+        next_map = 0.0
+        # Only this thread touches the pipeline and the estimator: map snapshots for the publisher
+        # and state snapshots for saving are taken here, between steps.
         while not self.stop_event.is_set():
             frame = self.frame_q.get(timeout=0.2)
             if frame is None:
@@ -289,13 +295,20 @@ class Daemon:
             if self.writer is not None:
                 self.writer.write_pose(result.pose)
                 self.recorded["poses"] += 1
-            self.pub_q.put(Published(result, frame.truth_T_world_robot, pipeline.quality(result), frame.seq))
+            lm = None
+            now = time.monotonic()
+            if now >= next_map:
+                next_map = now + self.cfg.zenoh.map_period_s
+                lm = pipeline.estimator.landmarks()
+            if self._save_request.is_set():
+                self._save_request.clear()
+                self._save_q.put((frame.t_ns, pipeline.state_dict()))
+            self.pub_q.put(Published(result, frame.truth_T_world_robot, pipeline.quality(result), frame.seq, lm))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
         from robotd.publish import pose_to_json
 
-        next_map = 0.0
         seq = 0
         while True:
             item = self.pub_q.get(timeout=0.2)
@@ -319,11 +332,8 @@ class Daemon:
                 self.publisher.publish_pose(
                     pose_to_json(res.pose, self.cfg.robot.id, seq, item.quality, self.stats.reset_counter, latency_ms)
                 )
-                now = time.monotonic()
-                if now >= next_map:
-                    next_map = now + self.cfg.zenoh.map_period_s
-                    assert self.pipeline is not None
-                    self.publisher.update_map(res.t_ns, self.pipeline.estimator.landmarks())
+                if item.landmarks is not None:
+                    self.publisher.update_map(res.t_ns, item.landmarks)
             if self.vehicle is not None:
                 try:
                     self.vehicle.send_pose(res.pose, item.quality, self.stats.reset_counter)
@@ -460,22 +470,34 @@ class Daemon:
                 self.notifier.status(line[:200])
             if now >= next_save:
                 next_save = now + cfg.persistence.save_period_s
-                self.save_map()
+                self._save_request.set()
+            snap = self._save_q.get(timeout=0)
+            if snap is not None:
+                self._write_map(*snap)
         if self.stop_event.is_set() and not self.stop_reason:
             self.stop_reason = "stop requested"
 
-    def save_map(self) -> bool:
-        if self.store is None or self.pipeline is None or self.stats.steps == 0:
+    def _write_map(self, t_ns: int, state: dict[str, Any]) -> bool:
+        """Write a state snapshot (taken by the SLAM thread, or after it stopped) to disk."""
+        if self.store is None:
             return False
         try:
-            # the SLAM thread mutates the estimator; copy the state under no lock is unsafe, so
-            # state_dict() must return copies (the estimators do) and we accept one-frame skew.
-            path = self.store.save(self.pipeline.state_dict(), time.monotonic_ns())
-            logger.info("map saved to %s (%d landmarks)", path, self.pipeline.estimator.landmark_ids().shape[0])
-            return True
+            path = self.store.save(state, t_ns)
         except PersistenceError as exc:
             logger.error("%s", exc)
             return False
+        n = len(state.get("database", {}).get("ids", ()))
+        logger.info("map saved to %s (%d landmarks)", path, n)
+        return True
+
+    def save_final_map(self) -> bool:
+        """At shutdown, once the SLAM thread has stopped: nothing else touches the estimator."""
+        if self.pipeline is None or self.stats.steps == 0:
+            return False
+        if any(t.name == "robotd-slam" and t.is_alive() for t in self.threads):
+            logger.error("map not saved at shutdown: the SLAM thread is still running")
+            return False
+        return self._write_map(time.monotonic_ns(), self.pipeline.state_dict())
 
     def _shutdown(self) -> None:
         t0 = time.monotonic()
@@ -491,7 +513,7 @@ class Daemon:
             t.join(JOIN_TIMEOUT_S)
             if t.is_alive():
                 logger.warning("thread %s did not stop within %.1f s", t.name, JOIN_TIMEOUT_S)
-        self.save_map()
+        self.save_final_map()
         lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
         logger.info(
             "stopped after %d steps: latency p50 %.1f ms p99 %.1f ms, %d frames dropped, shutdown %.2f s",
