@@ -38,6 +38,7 @@ PARAMS: dict[str, surf.SurfParams] = {
     "default (init_sample 1)": surf.SurfParams(),
     "init_sample 2": surf.SurfParams(init_sample=2),
     "upright": surf.SurfParams(upright=True),
+    "threshold 50": surf.SurfParams(hessian_threshold=50.0),
     "threshold 300": surf.SurfParams(hessian_threshold=300.0),
 }
 

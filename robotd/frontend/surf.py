@@ -127,7 +127,9 @@ def _validate(image: object, mask: object) -> tuple[np.ndarray, np.ndarray | Non
 
 
 @dataclass(frozen=True, slots=True)
-class _Keypoints:
+class SurfKeypoints:
+    """Detected keypoints before description (the output of :func:`detect`), strongest first."""
+
     xy: np.ndarray  # (N, 2) float64 [px]
     size: np.ndarray  # (N,) float64 [px] filter side L
     response: np.ndarray  # (N,) float64
@@ -196,7 +198,7 @@ def _octave_keypoints(
     hi_i: np.ndarray,
     hi_j: np.ndarray,
     threshold: float,
-) -> _Keypoints | None:
+) -> SurfKeypoints | None:
     """Refine one octave's maxima ``cand`` (M, 3) rows (layer, i, j) to sub-pixel/sub-scale keypoints."""
     n_layers = det.shape[0]
     if len(cand) == 0:
@@ -238,7 +240,7 @@ def _octave_keypoints(
     xy = np.stack([(j + offset[:, 0]) * step, (i + offset[:, 1]) * step], axis=1).astype(np.float64)
     size = sizes[layer].astype(np.float64) + offset[:, 2] * d_size
     lap = np.where(trace[layer, i, j] < 0, -1, 1).astype(np.int8)
-    return _Keypoints(xy, size, value, lap)
+    return SurfKeypoints(xy, size, value, lap)
 
 
 def _quadratic_fit(
@@ -281,14 +283,14 @@ def _quadratic_fit(
     return offset, value, ok
 
 
-def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray | None = None) -> _Keypoints:
+def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray | None = None) -> SurfKeypoints:
     """Detect SURF keypoints (steps 1-5) of a validated (H, W) uint8 image, sorted by response."""
     p = params or SurfParams()
     h, w = image.shape
     if ii is None:
         ii = integral_image(image)
     n_layers = p.n_octave_layers + 2
-    found: list[_Keypoints] = []
+    found: list[SurfKeypoints] = []
     for o in range(p.n_octaves):
         step = p.init_sample * (2**o)
         sizes = np.array([filter_size(o, k) for k in range(n_layers)], np.int64)
@@ -309,7 +311,7 @@ def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray |
         if kp is not None:
             found.append(kp)
     if not found:
-        return _Keypoints(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int8))
+        return SurfKeypoints(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, np.int8))
     xy = np.concatenate([k.xy for k in found])
     size = np.concatenate([k.size for k in found])
     response = np.concatenate([k.response for k in found])
@@ -317,7 +319,7 @@ def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray |
     order = np.argsort(-response, kind="stable")
     xy, size, response, lap = xy[order], size[order], response[order], lap[order]
     keep = _distinct(xy, size, lap)
-    return _Keypoints(xy[keep], size[keep], response[keep], lap[keep])
+    return SurfKeypoints(xy[keep], size[keep], response[keep], lap[keep])
 
 
 def _distinct(xy: np.ndarray, size: np.ndarray, lap: np.ndarray) -> np.ndarray:
