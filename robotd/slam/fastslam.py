@@ -275,6 +275,7 @@ class FastSlam:
         self.t_ns = 0
         self.best = 0  # index of the highest-weight particle
         self.neff = float(P)
+        self._numba_step = _load_numba(params) if params.use_numba else None
 
     @property
     def n_particles(self) -> int:
@@ -377,7 +378,8 @@ class FastSlam:
                 S = np.tile(self.params.process_cov_floor * np.eye(dx), (P, 1, 1))
         slots_new = self.book.allocate(ids[is_new])
         self._ensure_capacity()
-        self.pose, dlogw = fastslam_step(
+        step = self._numba_step if (self._numba_step is not None and model is self.model) else fastslam_step
+        self.pose, dlogw = step(
             self.version,
             self.pose,
             S,
@@ -416,22 +418,41 @@ class FastSlam:
         )
 
     def _select(self, idx: np.ndarray) -> None:
-        """Replace the particle set by ``particles[idx]`` with uniform weights (copies the used slots)."""
+        """Replace the particle set by the multiset ``particles[idx]`` with uniform weights.
+
+        Same count (resampling): in place. Every selected particle keeps one copy in its own row and
+        only the rows of unselected particles receive the extra copies, so the copy cost is
+        (number of discarded particles) × map size rather than all particles × map size, and no
+        new memory is touched. The row order differs from ``idx``; particles are exchangeable.
+        Other counts (``set_particles``): a fresh gather.
+        """
         n = self.book.n_slots
-        best_old = self.best
-        cap = self.lm_mean.shape[1]
-        mean = np.empty((idx.size, cap, self.dm))
-        cov = np.empty((idx.size, cap, self.dm, self.dm))
-        np.take(self.lm_mean[:, :n], idx, axis=0, out=mean[:, :n])
-        np.take(self.lm_cov[:, :n], idx, axis=0, out=cov[:, :n])
-        self.lm_mean, self.lm_cov = mean, cov
-        self.pose = self.pose[idx]
-        if self.pending_S is not None:
-            self.pending_S = self.pending_S[idx]
+        P = self.n_particles
+        if idx.size == P:
+            counts = np.bincount(idx, minlength=P)
+            dead = np.flatnonzero(counts == 0)
+            src = np.repeat(np.arange(P), np.maximum(counts - 1, 0))
+            if dead.size:
+                self.lm_mean[dead, :n] = self.lm_mean[src, :n]
+                self.lm_cov[dead, :n] = self.lm_cov[src, :n]
+                self.pose[dead] = self.pose[src]
+                if self.pending_S is not None:
+                    self.pending_S[dead] = self.pending_S[src]
+            # the best particle (w_max >= 1/P) is always selected, so it stays in its row
+        else:
+            best_old = self.best
+            cap = self.lm_mean.shape[1]
+            mean = np.empty((idx.size, cap, self.dm))
+            cov = np.empty((idx.size, cap, self.dm, self.dm))
+            mean[:, :n] = self.lm_mean[idx, :n]
+            cov[:, :n] = self.lm_cov[idx, :n]
+            self.lm_mean, self.lm_cov = mean, cov
+            self.pose = self.pose[idx]
+            if self.pending_S is not None:
+                self.pending_S = self.pending_S[idx]
+            hits = np.flatnonzero(idx == best_old)
+            self.best = int(hits[0]) if hits.size else 0
         self.log_w = np.full(idx.size, -np.log(idx.size))
-        # the best particle always survives low-variance resampling (w_max >= 1/P): keep pointing at it
-        hits = np.flatnonzero(idx == best_old)
-        self.best = int(hits[0]) if hits.size else 0
 
     def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
         """Existence counters (§8 bookkeeping), visibility judged in the best particle."""
@@ -549,3 +570,39 @@ class FastSlam:
         self.pose, self.log_w, self.book = pose.copy(), log_w.copy(), book
         self.pending_S = pend.copy() if pend.shape[0] else None
         self.best, self.neff, self.t_ns = best, neff, int(state["t_ns"])
+
+
+def _load_numba(params: SlamParams) -> Any:
+    """The numba step with ``fastslam_step``'s signature, or None when numba cannot be used."""
+    try:
+        import numba
+
+        from robotd.slam._kernels import fastslam_step_numba
+    except ImportError as e:  # the numpy path is complete; numba only makes it faster
+        logger.warning("numba unavailable (%s); FastSLAM uses the numpy path", e)
+        return None
+    threads = int(params.numba_threads)
+
+    def step(
+        version: int,
+        pose: np.ndarray,
+        S: np.ndarray | None,
+        lm_mean: np.ndarray,
+        lm_cov: np.ndarray,
+        slots_old: np.ndarray,
+        z_old: np.ndarray,
+        Q_old: np.ndarray,
+        slots_new: np.ndarray,
+        z_new: np.ndarray,
+        Q_new: np.ndarray,
+        eps: np.ndarray | None,
+        model: MeasurementModel,
+        floor: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if threads:
+            numba.set_num_threads(min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))))
+        return fastslam_step_numba(
+            version, pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, slots_new, z_new, Q_new, eps, floor
+        )
+
+    return step

@@ -1,0 +1,230 @@
+"""Per-step latency of the SLAM filters (3D): FastSLAM 2.0 / 1.0 over particles × map size ×
+observations, EKF SLAM against map size, resampling copy cost and memory per particle.
+
+    python bench/fastslam.py            # full grid, Markdown tables
+    python bench/fastslam.py --quick    # reduced grid, < 1 min
+    python bench/fastslam.py --json     # exactly one JSON object on stdout
+
+A step is ``predict(inc)`` + ``update(obs)`` (including resampling when N_eff falls below N/2)
+on a stationary robot re-observing ``observations`` random landmarks of a map of ``map_size``
+landmarks that every particle already holds. numba rows use ``numba_threads`` threads (the target
+figure is one thread); the numba kernels are compiled (or loaded from cache) before timing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from typing import Any
+
+# One BLAS thread: the EKF's n×n updates are small dgemm calls, and OpenBLAS's worker threads
+# spinning against the numba threads on a shared 2-core machine made them ~15× slower. The daemon
+# should do the same (OPENBLAS_NUM_THREADS=1 in the service environment).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np
+
+from robotd.geometry import euler_to_R
+from robotd.msgs import MotionIncrement, Observations
+from robotd.slam.ekf import EkfSlam
+from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.fastslam import FastSlam
+
+SIGMA_Z = 0.03  # measurement noise [m]
+
+
+def _world(M: int, rng: np.random.Generator) -> np.ndarray:
+    L = rng.uniform(-5.0, 5.0, (M, 3))
+    L[:, 0] = np.abs(L[:, 0]) + 1.0  # in front of the robot
+    return L
+
+
+def _populate(est: FastSlam | EkfSlam, L: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Put all landmarks in the map; returns their ids."""
+    ids = np.arange(L.shape[0], dtype=np.int64)
+    z = L + rng.normal(0.0, SIGMA_Z, L.shape)
+    cov = np.tile(np.eye(3) * SIGMA_Z**2, (L.shape[0], 1, 1))
+    est.update(Observations(0, z, cov, ids, np.ones(L.shape[0], bool)))
+    return ids
+
+
+def _obs(L: np.ndarray, ids: np.ndarray, n: int, t: int, x: np.ndarray, rng: np.random.Generator) -> Observations:
+    sel = rng.choice(ids.size, size=min(n, ids.size), replace=False)
+    R = euler_to_R(x[3:])
+    z = (L[sel] - x[:3]) @ R + rng.normal(0.0, SIGMA_Z, (sel.size, 3))
+    cov = np.tile(np.eye(3) * SIGMA_Z**2, (sel.size, 1, 1))
+    return Observations(t, z, cov, ids[sel], np.zeros(sel.size, bool))
+
+
+def time_filter(
+    filt: str, P: int, M: int, N: int, budget_s: float, use_numba: bool, threads: int, seed: int = 0
+) -> dict[str, Any]:
+    rng = np.random.default_rng(seed)
+    params = SlamParams(
+        filter=filt, dim=3, n_particles=max(P, 1), use_numba=use_numba, numba_threads=threads, prune_enabled=False
+    )
+    est = make_estimator(params, np.random.default_rng(seed + 1))
+    assert isinstance(est, FastSlam | EkfSlam)
+    L = _world(M, rng)
+    ids = _populate(est, L, rng)
+    x = np.zeros(6)
+    inc = MotionIncrement(0, 1, np.zeros(3), np.zeros(3), np.diag([1e-4] * 3 + [1e-5] * 3))
+    times: list[float] = []
+    n_res = 0
+    t_end = time.perf_counter() + budget_s
+    k = 0
+    while k < 3 or (time.perf_counter() < t_end and k < 200) or len(times) < 5:
+        obs = _obs(L, ids, N, k + 1, x, rng)
+        t0 = time.perf_counter()
+        est.predict(inc)
+        rep = est.update(obs)
+        dt = time.perf_counter() - t0
+        if k >= 2:  # the first steps include numba dispatch/cache loading
+            times.append(dt)
+            n_res += int(rep.resampled)
+        k += 1
+    a = np.asarray(times) * 1e3
+    return {
+        "filter": filt,
+        "dim": 3,
+        "particles": P if filt != "ekf" else 0,
+        "map_size": M,
+        "observations": N,
+        "median_ms": round(float(np.median(a)), 3),
+        "p99_ms": round(float(np.percentile(a, 99)), 3),
+        "path": f"numba{threads}" if (use_numba and filt != "ekf") else "numpy",
+        "steps": len(times),
+        "resampled_frac": round(n_res / len(times), 3),
+    }
+
+
+def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
+    """Resampling cost: a naive gather of every particle's landmark arrays vs robotd's in-place copy.
+
+    Weights are drawn so that N_eff ≈ 0.44 P (just below the default threshold P/2), i.e. a
+    typical resampling step; robotd copies only into the rows of discarded particles.
+    """
+    from robotd.slam.resampling import effective_sample_size, low_variance_indices
+
+    rng = np.random.default_rng(0)
+    est = make_estimator(SlamParams(filter="fastslam2", dim=3, n_particles=P, prune_enabled=False), rng)
+    assert isinstance(est, FastSlam)
+    _populate(est, _world(M, rng), rng)
+    full, inplace, neffs = [], [], []
+    for _ in range(reps):
+        w = rng.random(P) ** 3
+        w /= w.sum()
+        neffs.append(effective_sample_size(w))
+        idx = low_variance_indices(w, float(rng.random()))
+        t0 = time.perf_counter()
+        a, b = est.lm_mean[idx, :M], est.lm_cov[idx, :M]
+        full.append(time.perf_counter() - t0)
+        del a, b
+        t0 = time.perf_counter()
+        est._select(idx)
+        inplace.append(time.perf_counter() - t0)
+    nbytes = est.lm_mean[:, :M].nbytes + est.lm_cov[:, :M].nbytes
+    return {
+        "particles": P,
+        "map_size": M,
+        "full_copy_ms": round(float(np.median(full)) * 1e3, 3),
+        "inplace_copy_ms": round(float(np.median(inplace)) * 1e3, 3),
+        "neff_over_P": round(float(np.mean(neffs)) / P, 2),
+        "bytes_per_particle": int(nbytes // P),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="reduced grid, < 1 min")
+    ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    ap.add_argument("--budget", type=float, default=None, help="seconds of timing per cell")
+    args = ap.parse_args(argv)
+
+    if args.quick:
+        Ps, Ms, Ns, ekf_M = [10, 100], [100, 1000], [20, 100], [100, 300]
+        budget = args.budget or 0.5
+    else:
+        Ps, Ms, Ns, ekf_M = [10, 100, 1000], [100, 1000, 10000], [20, 100], [100, 300, 1000]
+        budget = args.budget or 1.5
+
+    # compile / load the numba kernels once before any timing
+    time_filter("fastslam2", 4, 10, 5, 0.0, True, 1)
+    time_filter("fastslam1", 4, 10, 5, 0.0, True, 1)
+
+    results: list[dict[str, Any]] = []
+    for filt in ("fastslam2", "fastslam1"):
+        for P in Ps:
+            for M in Ms:
+                for N in Ns:
+                    results.append(time_filter(filt, P, M, N, budget, True, 1))
+                    print(f"# {results[-1]}", file=sys.stderr, flush=True)
+    # the target cell with 2 threads and with the numpy path, for comparison
+    for use_numba, thr in ((True, 2), (False, 0)):
+        results.append(time_filter("fastslam2", 100, 1000, 100, budget, use_numba, thr))
+        print(f"# {results[-1]}", file=sys.stderr, flush=True)
+    for M in ekf_M:
+        results.append(time_filter("ekf", 0, M, 20, budget, False, 0))
+        print(f"# {results[-1]}", file=sys.stderr, flush=True)
+    copies = [time_resample_copy(P, M) for P in Ps for M in Ms]
+
+    target = next(
+        r
+        for r in results
+        if r["filter"] == "fastslam2"
+        and r["particles"] == 100
+        and r["map_size"] == 1000
+        and r["observations"] == 100
+        and r["path"] == "numba1"
+    )
+    conditions = {
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "note": "shared 2-core machine with other jobs running; figures are pessimistic",
+        "load_avg_1min_start": round(os.getloadavg()[0], 2),
+        "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "quick": bool(args.quick),
+        "budget_s_per_cell": budget,
+    }
+    out = {
+        "benchmark": "fastslam",
+        "conditions": conditions,
+        "results": results,
+        "resample_copy": copies,
+        "target": {"cell": "fastslam2 3D P=100 M=1000 N=100 numba1", "median_ms": target["median_ms"], "goal_ms": 5.0},
+    }
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print("## Per-step latency (predict + update), 3D\n")
+    print("| filter | path | particles | map size | observations | median ms | p99 ms | resampled |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
+        print(
+            f"| {r['filter']} | {r['path']} | {r['particles']} | {r['map_size']} | {r['observations']} | "
+            f"{r['median_ms']:.2f} | {r['p99_ms']:.2f} | {r['resampled_frac']:.2f} |"
+        )
+    print("\n## Resampling: gather of all maps vs in-place copy into discarded rows; memory per particle\n")
+    print("| particles | map size | full gather ms | in-place ms | N_eff/P | landmark bytes / particle |")
+    print("|---|---|---|---|---|---|")
+    for c in copies:
+        print(
+            f"| {c['particles']} | {c['map_size']} | {c['full_copy_ms']:.2f} | {c['inplace_copy_ms']:.2f} | "
+            f"{c['neff_over_P']} | {c['bytes_per_particle']} |"
+        )
+    print(
+        "\nTarget (FastSLAM 2.0, 3D, 100 particles, 100 obs, 1000 landmarks, 1 thread): "
+        f"{target['median_ms']:.2f} ms (goal 5 ms)"
+    )
+    print(f"Conditions: {conditions}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
