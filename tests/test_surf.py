@@ -97,6 +97,16 @@ def test_maxima_kernel_matches_numpy_reference(rng: np.random.Generator, octave:
         assert det[k, i, j] == block.max() and det[k, i, j] > 5.0
 
 
+def test_maxima_buffer_overflow_falls_back_to_numpy(rng: np.random.Generator, monkeypatch) -> None:
+    img = smooth_texture(rng, (200, 240), blur=1.5)
+    full = S.detect_and_compute(img, S.SurfParams(max_features=0, hessian_threshold=20))
+    monkeypatch.setattr(S, "_MAX_CANDIDATES", 3)
+    small = S.detect_and_compute(img, S.SurfParams(max_features=0, hessian_threshold=20))
+    assert full.n > 10
+    np.testing.assert_array_equal(small.xy, full.xy)
+    np.testing.assert_array_equal(small.desc, full.desc)
+
+
 def test_filter_sizes_follow_bay() -> None:
     assert [S.filter_size(0, k) for k in range(4)] == [9, 15, 21, 27]
     assert [S.filter_size(1, k) for k in range(4)] == [15, 27, 39, 51]

@@ -79,8 +79,8 @@ def hessian_layers(
     image are left at 0 (never a detection: thresholds are positive).
 
     Maxima: see :func:`_scan_maxima`; ``lo``, ``hi_i``, ``hi_j`` (n_layers,) are the inclusive index
-    ranges searched per layer, ``cand_out`` (capacity, 3) int64 with capacity >= (n_layers - 2) *
-    ceil(ny / 2) * ceil(nx / 2) (maxima of one layer are never 8-adjacent).
+    ranges searched per layer, ``cand_out`` (capacity, 3) int64. The returned count may exceed the
+    capacity; then only the first rows were written.
     """
     h = ii.shape[0] - 1
     w = ii.shape[1] - 1
@@ -151,7 +151,8 @@ def _scan_maxima(
 
     Bay et al. §3.3. Ties would suppress both samples of a blob centred exactly between two; so a
     sample must exceed the neighbours before it in (layer, row, column) order and at least equal
-    those after it, and exactly one of two tied samples survives. Output in that order.
+    those after it, and exactly one of two tied samples survives. Output in that order; returns the
+    number of maxima, which may exceed the rows of ``cand_out`` (only those are written).
     """
     n = 0
     for k in range(1, det.shape[0] - 1):
@@ -176,9 +177,10 @@ def _scan_maxima(
                     if not is_max:
                         break
                 if is_max:
-                    cand_out[n, 0] = k
-                    cand_out[n, 1] = i
-                    cand_out[n, 2] = j
+                    if n < cand_out.shape[0]:
+                        cand_out[n, 0] = k
+                        cand_out[n, 1] = i
+                        cand_out[n, 2] = j
                     n += 1
     return n
 

@@ -75,6 +75,7 @@ _ORI_WINDOW_BINS = 12  # 12 x 5 deg = pi/3 sliding window
 _MAX_OFFSET = 1.0  # largest accepted interpolation offset [samples] after one relocation step
 _TWIN_DIST = 0.1  # cross-octave duplicates: distance below this fraction of the filter side ...
 _TWIN_SIZE_RATIO = 1.3  # ... and sizes within this ratio
+_MAX_CANDIDATES = 1 << 16  # rows of the per-octave maxima buffer (1.5 MB)
 _RELOCATE = 0.75  # relocate (Brown & Lowe) only beyond this offset [samples]: see _octave_keypoints
 
 
@@ -328,12 +329,19 @@ def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray |
         det = np.empty((n_layers, ny, nx), np.float32)
         trace = np.empty((n_layers, ny, nx), np.float32)
         lo, hi_i, hi_j = candidate_ranges(sizes, step, (h, w), ny, nx)
-        # Maxima of one layer are never 8-adjacent, which bounds their number.
-        cand = np.empty(((n_layers - 2) * ((ny + 1) // 2) * ((nx + 1) // 2), 3), np.int64)
+        # Maxima of one layer are never 8-adjacent, which bounds their number; the buffer is capped
+        # (a 4000 x 3000 image would need 140 MB) and the rare overflow rescans in numpy.
+        capacity = min((n_layers - 2) * ((ny + 1) // 2) * ((nx + 1) // 2), _MAX_CANDIDATES)
+        cand = np.empty((capacity, 3), np.int64)
         n_cand = _k.hessian_layers(
             ii, sizes, step, ny, nx, HESSIAN_WEIGHT, det, trace, p.hessian_threshold, lo, hi_i, hi_j, cand
         )
-        kp = _octave_keypoints(det, trace, sizes, step, cand[:n_cand], lo, hi_i, hi_j, p.hessian_threshold)
+        if n_cand > capacity:
+            logger.debug("surf: %d maxima in octave %d exceed the buffer of %d; numpy rescan", n_cand, o, capacity)
+            cand = local_maxima_reference(det, lo, hi_i, hi_j, p.hessian_threshold)
+        else:
+            cand = cand[:n_cand]
+        kp = _octave_keypoints(det, trace, sizes, step, cand, lo, hi_i, hi_j, p.hessian_threshold)
         if kp is not None:
             found.append(kp)
     if not found:
