@@ -6,8 +6,11 @@ observations, EKF SLAM against map size, resampling copy cost and memory per par
     python bench/fastslam.py --json     # exactly one JSON object on stdout
 
 A step is ``predict(inc)`` + ``update(obs)`` (including resampling when N_eff falls below N/2)
-on a stationary robot re-observing ``observations`` random landmarks of a map of ``map_size``
-landmarks that every particle already holds. numba rows use ``numba_threads`` threads (the target
+on a stationary robot re-observing ``observations`` landmarks of a map of ``map_size`` landmarks
+that every particle already holds. The observed landmarks are drawn from a window of 2·observations
+consecutive ids (landmarks seen together were mostly created together, which is what the
+copy-on-write landmark blocks exploit); one extra row draws them from the whole map instead.
+numba rows use ``numba_threads`` threads (the target
 figure is one thread); the numba kernels are compiled (or loaded from cache) before timing.
 """
 
@@ -52,8 +55,14 @@ def _populate(est: FastSlam | EkfSlam, L: np.ndarray, rng: np.random.Generator) 
     return ids
 
 
-def _obs(L: np.ndarray, ids: np.ndarray, n: int, t: int, x: np.ndarray, rng: np.random.Generator) -> Observations:
-    sel = rng.choice(ids.size, size=min(n, ids.size), replace=False)
+def _obs(
+    L: np.ndarray, ids: np.ndarray, n: int, t: int, x: np.ndarray, rng: np.random.Generator, spread: bool = False
+) -> Observations:
+    if spread or ids.size <= 2 * n:
+        sel = rng.choice(ids.size, size=min(n, ids.size), replace=False)
+    else:
+        start = int(rng.integers(0, ids.size - 2 * n))
+        sel = start + rng.choice(2 * n, size=n, replace=False)
     R = euler_to_R(x[3:])
     z = (L[sel] - x[:3]) @ R + rng.normal(0.0, SIGMA_Z, (sel.size, 3))
     cov = np.tile(np.eye(3) * SIGMA_Z**2, (sel.size, 1, 1))
@@ -61,11 +70,26 @@ def _obs(L: np.ndarray, ids: np.ndarray, n: int, t: int, x: np.ndarray, rng: np.
 
 
 def time_filter(
-    filt: str, P: int, M: int, N: int, budget_s: float, use_numba: bool, threads: int, seed: int = 0
+    filt: str,
+    P: int,
+    M: int,
+    N: int,
+    budget_s: float,
+    use_numba: bool,
+    threads: int,
+    seed: int = 0,
+    spread: bool = False,
+    block: int = 64,
 ) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     params = SlamParams(
-        filter=filt, dim=3, n_particles=max(P, 1), use_numba=use_numba, numba_threads=threads, prune_enabled=False
+        filter=filt,
+        dim=3,
+        n_particles=max(P, 1),
+        use_numba=use_numba,
+        numba_threads=threads,
+        prune_enabled=False,
+        landmark_block_size=block,
     )
     est = make_estimator(params, np.random.default_rng(seed + 1))
     assert isinstance(est, FastSlam | EkfSlam)
@@ -78,7 +102,7 @@ def time_filter(
     t_end = time.perf_counter() + budget_s
     k = 0
     while k < 3 or (time.perf_counter() < t_end and k < 200) or len(times) < 5:
-        obs = _obs(L, ids, N, k + 1, x, rng)
+        obs = _obs(L, ids, N, k + 1, x, rng, spread)
         t0 = time.perf_counter()
         est.predict(inc)
         rep = est.update(obs)
@@ -99,14 +123,19 @@ def time_filter(
         "path": f"numba{threads}" if (use_numba and filt != "ekf") else "numpy",
         "steps": len(times),
         "resampled_frac": round(n_res / len(times), 3),
+        "block": block,
+        "obs_spread": spread,
+        "landmark_bytes_per_particle": int(est.store.nbytes() // max(P, 1)) if isinstance(est, FastSlam) else 0,
     }
 
 
 def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
-    """Resampling cost: a naive gather of every particle's landmark arrays vs robotd's in-place copy.
+    """Resampling cost: copying every particle's landmark arrays vs the copy-on-write store.
 
-    Weights are drawn so that N_eff ≈ 0.44 P (just below the default threshold P/2), i.e. a
-    typical resampling step; robotd copies only into the rows of discarded particles.
+    Weights are drawn so that N_eff ≈ 0.44 P (just below the default threshold P/2), a typical
+    resampling. "dense" gathers all P × M Gaussians into new arrays (what per-particle arrays
+    cost); "cow" is the store's table gather plus the copy-on-write of the blocks that the next
+    frame writes (100 landmarks from a window of 200 consecutive slots).
     """
     from robotd.slam.resampling import effective_sample_size, low_variance_indices
 
@@ -114,27 +143,38 @@ def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
     est = make_estimator(SlamParams(filter="fastslam2", dim=3, n_particles=P, prune_enabled=False), rng)
     assert isinstance(est, FastSlam)
     _populate(est, _world(M, rng), rng)
-    full, inplace, neffs = [], [], []
+    # give every particle its own copy of every block first (the state after many updates)
+    est.store.make_writable(np.arange(M))
+    dense_t, select_t, write_t, neffs = [], [], [], []
     for _ in range(reps):
         w = rng.random(P) ** 3
         w /= w.sum()
         neffs.append(effective_sample_size(w))
         idx = low_variance_indices(w, float(rng.random()))
         t0 = time.perf_counter()
-        a, b = est.lm_mean[idx, :M], est.lm_cov[idx, :M]
-        full.append(time.perf_counter() - t0)
-        del a, b
+        a, b = est.store.dense(M)
+        am, bm = a[idx], b[idx]
+        dense_t.append(time.perf_counter() - t0)
+        del a, b, am, bm
         t0 = time.perf_counter()
         est._select(idx)
-        inplace.append(time.perf_counter() - t0)
-    nbytes = est.lm_mean[:, :M].nbytes + est.lm_cov[:, :M].nbytes
+        select_t.append(time.perf_counter() - t0)
+        n_obs = min(100, M)
+        start = int(rng.integers(0, max(M - 2 * n_obs, 0) + 1))
+        slots = start + rng.choice(min(2 * n_obs, M), size=n_obs, replace=False)
+        t0 = time.perf_counter()
+        est.store.make_writable(slots)
+        write_t.append(time.perf_counter() - t0)
+    per_particle = M * (3 + 9) * 8
     return {
         "particles": P,
         "map_size": M,
-        "full_copy_ms": round(float(np.median(full)) * 1e3, 3),
-        "inplace_copy_ms": round(float(np.median(inplace)) * 1e3, 3),
+        "dense_copy_ms": round(float(np.median(dense_t)) * 1e3, 3),
+        "cow_select_ms": round(float(np.median(select_t)) * 1e3, 3),
+        "cow_write_ms": round(float(np.median(write_t)) * 1e3, 3),
         "neff_over_P": round(float(np.mean(neffs)) / P, 2),
-        "bytes_per_particle": int(nbytes // P),
+        "dense_bytes_per_particle": per_particle,
+        "cow_bytes_per_particle": int(est.store.nbytes() // P),
     }
 
 
@@ -163,10 +203,12 @@ def main(argv: list[str] | None = None) -> int:
                 for N in Ns:
                     results.append(time_filter(filt, P, M, N, budget, True, 1))
                     print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    # the target cell with 2 threads and with the numpy path, for comparison
-    for use_numba, thr in ((True, 2), (False, 0)):
-        results.append(time_filter("fastslam2", 100, 1000, 100, budget, use_numba, thr))
+    # the target cell with 2 threads, with the numpy path, and with observations spread over the map
+    for kw in ({"use_numba": True, "threads": 2}, {"use_numba": False, "threads": 0}):
+        results.append(time_filter("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
         print(f"# {results[-1]}", file=sys.stderr, flush=True)
+    results.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
+    print(f"# {results[-1]}", file=sys.stderr, flush=True)
     for M in ekf_M:
         results.append(time_filter("ekf", 0, M, 20, budget, False, 0))
         print(f"# {results[-1]}", file=sys.stderr, flush=True)
@@ -180,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         and r["map_size"] == 1000
         and r["observations"] == 100
         and r["path"] == "numba1"
+        and not r["obs_spread"]
     )
     conditions = {
         "machine": platform.machine(),
@@ -203,20 +246,25 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out))
         return 0
     print("## Per-step latency (predict + update), 3D\n")
-    print("| filter | path | particles | map size | observations | median ms | p99 ms | resampled |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| filter | path | particles | map size | observations | obs spread | median ms | p99 ms | resampled |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         print(
             f"| {r['filter']} | {r['path']} | {r['particles']} | {r['map_size']} | {r['observations']} | "
-            f"{r['median_ms']:.2f} | {r['p99_ms']:.2f} | {r['resampled_frac']:.2f} |"
+            f"{'map' if r['obs_spread'] else 'window'} | {r['median_ms']:.2f} | {r['p99_ms']:.2f} | "
+            f"{r['resampled_frac']:.2f} |"
         )
-    print("\n## Resampling: gather of all maps vs in-place copy into discarded rows; memory per particle\n")
-    print("| particles | map size | full gather ms | in-place ms | N_eff/P | landmark bytes / particle |")
-    print("|---|---|---|---|---|---|")
+    print("\n## Resampling: dense copy of all maps vs copy-on-write blocks (table gather + next frame's writes)\n")
+    print(
+        "| particles | map size | dense copy ms | CoW select ms | CoW writes ms | N_eff/P "
+        "| dense B/particle | CoW B/particle |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for c in copies:
         print(
-            f"| {c['particles']} | {c['map_size']} | {c['full_copy_ms']:.2f} | {c['inplace_copy_ms']:.2f} | "
-            f"{c['neff_over_P']} | {c['bytes_per_particle']} |"
+            f"| {c['particles']} | {c['map_size']} | {c['dense_copy_ms']:.2f} | {c['cow_select_ms']:.2f} | "
+            f"{c['cow_write_ms']:.2f} | {c['neff_over_P']} | {c['dense_bytes_per_particle']} | "
+            f"{c['cow_bytes_per_particle']} |"
         )
     print(
         "\nTarget (FastSLAM 2.0, 3D, 100 particles, 100 obs, 1000 landmarks, 1 thread): "

@@ -243,7 +243,7 @@ def test_set_particles_respects_floor() -> None:
     est.update(world.observe())
     est.predict(world.step())
     assert est.set_particles(20) == 20
-    assert isinstance(est, FastSlam) and est.pose.shape == (20, 3) and est.lm_mean.shape[0] == 20
+    assert isinstance(est, FastSlam) and est.pose.shape == (20, 3) and est.dense_landmarks()[0].shape[0] == 20
     assert est.set_particles(2) == 8
     rep = est.update(world.observe())
     assert rep.n_updated > 0 and est.estimate().n_particles == 8

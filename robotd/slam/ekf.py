@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.blas
 
 from robotd.errors import EstimatorError, InputError, PersistenceError
 from robotd.geometry import wrap_angle
@@ -188,10 +189,7 @@ class EkfSlam:
             K = scipy.linalg.cho_solve(cf, PHt.T).T  # (n, dz) = Σ H^T Ψ^{-1}
             self.mu += K @ nu
             self.mu[ang] = wrap_angle(self.mu[ang])
-            # Joseph form (I-KH)Σ(I-KH)^T + KQK^T in O(n²): A = (I-KH)Σ, then A(I-KH)^T = A - (A H^T) K^T
-            A = self.Sigma - K @ PHt.T
-            AHt = A[:, idx] @ H.T
-            self.Sigma = sym(A - AHt @ K.T + K @ Q[i] @ K.T)
+            self._joseph(K, PHt, Psi)
             n_upd += 1
         new_idx = np.flatnonzero(is_new)
         born = np.zeros(0, np.int64)
@@ -199,6 +197,24 @@ class EkfSlam:
             born = self._augment(z[new_idx], Q[new_idx], ids[new_idx], model)
         n_pruned = self._prune(np.asarray(observed_slots, np.int64), born)
         return UpdateReport(n_updated=n_upd, n_new=int(new_idx.size), n_gated=n_gated, n_pruned=n_pruned)
+
+    def _joseph(self, K: np.ndarray, PHt: np.ndarray, Psi: np.ndarray) -> None:
+        """Σ ← (I-KH)Σ(I-KH)^T + KQK^T (Joseph form, §8) as one in-place rank-3·dz update, then symmetrise.
+
+        With PHt = ΣH^T and Ψ = HΣH^T + Q the Joseph form expands exactly (no optimal-gain assumption) to
+        Σ - K PHt^T - PHt K^T + K Ψ K^T, so a single BLAS call updates the n×n matrix in place instead
+        of four n×n temporaries. The product is accumulated into Σ^T (Fortran view of the C array).
+        """
+        W1 = np.ascontiguousarray(np.concatenate([-K, -PHt, K @ Psi], 1))  # (n, 3·dz)
+        W2 = np.ascontiguousarray(np.concatenate([PHt, K, K], 1))
+        St = self.Sigma.T  # F-contiguous view: updating it updates Σ
+        # St += W2 @ W1^T  ⇔  Σ += W1 @ W2^T
+        out = scipy.linalg.blas.dgemm(1.0, W2, W1, beta=1.0, c=St, trans_b=True, overwrite_c=True)
+        if out is not St and not np.shares_memory(out, St):  # BLAS could not work in place
+            self.Sigma = np.ascontiguousarray(out.T)
+        S = self.Sigma
+        S += S.T.copy()
+        S *= 0.5
 
     def _augment(self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, model: MeasurementModel) -> np.ndarray:
         """State augmentation (§8): μ_new = inverse model, Σnn = JxΣxxJx^T + JzQJz^T, Σn· = JxΣx·."""

@@ -70,6 +70,7 @@ class SlamParams:
     process_cov_floor: float = 1e-10  # on S_t (FastSLAM 2.0 needs a full-rank proposal prior)
     landmark_cov_floor: float = 1e-12  # on new landmark covariances
     pose_cov_floor_2d: float = 1e-6  # z/roll/pitch variances a 2D filter reports in its 6×6
+    landmark_block_size: int = 64  # FastSLAM copy-on-write block of landmark slots (docs/slam.md)
     use_numba: bool = True  # numba kernels for the Cartesian FastSLAM hot path (numpy when False/unavailable)
     numba_threads: int = 0  # threads of the numba kernel; 0 = numba's default (all cores)
 
@@ -83,6 +84,8 @@ class SlamParams:
             raise bad("dim", "2 or 3", self.dim)
         if int(self.n_particles) < 1:
             raise bad("n_particles", ">= 1", self.n_particles)
+        if int(self.landmark_block_size) < 1:
+            raise bad("landmark_block_size", ">= 1", self.landmark_block_size)
         if int(self.numba_threads) < 0:
             raise bad("numba_threads", ">= 0", self.numba_threads)
         if int(self.n_particles_min) < 1:

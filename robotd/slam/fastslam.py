@@ -27,6 +27,7 @@ from robotd.errors import InputError, PersistenceError
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
+from robotd.slam._store import LandmarkStore
 from robotd.slam.ekf import FILTER_CODE, _check_header, _range_bearing_inputs, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
 from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_from_increment, split_observations
 from robotd.slam.models import (
@@ -265,10 +266,8 @@ class FastSlam:
         self.model: MeasurementModel = CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D
         P = int(params.n_particles)
         self.book = LandmarkBook()
-        cap = self.book.capacity
         self.pose = np.zeros((P, self.dx))
-        self.lm_mean = np.zeros((P, cap, self.dm))
-        self.lm_cov = np.zeros((P, cap, self.dm, self.dm))
+        self.store = LandmarkStore(P, self.dm, params.landmark_block_size)
         self.log_w = np.full(P, -np.log(P))
         # FastSLAM 2.0: prior covariance S_t per particle since the last sampling; None = sampled
         self.pending_S: np.ndarray | None = None
@@ -349,17 +348,6 @@ class FastSlam:
             self.t_ns = int(t_ns)
         return rep
 
-    def _ensure_capacity(self) -> None:
-        cap = self.book.capacity
-        if self.lm_mean.shape[1] >= cap:
-            return
-        P, old = self.lm_mean.shape[:2]
-        mean = np.zeros((P, cap, self.dm))
-        cov = np.zeros((P, cap, self.dm, self.dm))
-        mean[:, :old] = self.lm_mean
-        cov[:, :old] = self.lm_cov
-        self.lm_mean, self.lm_cov = mean, cov
-
     def _update(
         self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
     ) -> UpdateReport:
@@ -377,24 +365,47 @@ class FastSlam:
             if S is None:
                 S = np.tile(self.params.process_cov_floor * np.eye(dx), (P, 1, 1))
         slots_new = self.book.allocate(ids[is_new])
-        self._ensure_capacity()
-        step = self._numba_step if (self._numba_step is not None and model is self.model) else fastslam_step
-        self.pose, dlogw = step(
-            self.version,
-            self.pose,
-            S,
-            self.lm_mean,
-            self.lm_cov,
-            slots_old,
-            z_old,
-            Q_old,
-            slots_new,
-            z[is_new],
-            Q[is_new],
-            eps,
-            model,
-            self.params.landmark_cov_floor,
-        )
+        self.store.ensure_capacity(self.book.n_slots)
+        n_old, n_new = slots_old.size, slots_new.size
+        if self._numba_step is not None and model is self.model:
+            # numba works in the copy-on-write store directly
+            self.pose, dlogw = self._numba_step(
+                self.version,
+                self.pose,
+                S,
+                self.store,
+                slots_old,
+                z_old,
+                Q_old,
+                slots_new,
+                z[is_new],
+                Q[is_new],
+                eps,
+                self.params.landmark_cov_floor,
+            )
+        else:
+            # the numpy kernels work on dense copies of the touched landmarks (P, N_old + N_new); the
+            # store writes them back with copy on write
+            mean = np.empty((P, n_old + n_new, self.dm))
+            cov = np.empty((P, n_old + n_new, self.dm, self.dm))
+            mean[:, :n_old], cov[:, :n_old] = self.store.gather(slots_old)
+            self.pose, dlogw = fastslam_step(
+                self.version,
+                self.pose,
+                S,
+                mean,
+                cov,
+                np.arange(n_old),
+                z_old,
+                Q_old,
+                np.arange(n_old, n_old + n_new),
+                z[is_new],
+                Q[is_new],
+                eps,
+                model,
+                self.params.landmark_cov_floor,
+            )
+            self.store.scatter(np.concatenate([slots_old, slots_new]), mean, cov)
         self.pending_S = None
 
         ln, w = normalize_log_weights(self.log_w + dlogw)
@@ -418,40 +429,19 @@ class FastSlam:
         )
 
     def _select(self, idx: np.ndarray) -> None:
-        """Replace the particle set by the multiset ``particles[idx]`` with uniform weights.
+        """Replace the particle set by ``particles[idx]`` (any count) with uniform weights.
 
-        Same count (resampling): in place. Every selected particle keeps one copy in its own row and
-        only the rows of unselected particles receive the extra copies, so the copy cost is
-        (number of discarded particles) × map size rather than all particles × map size, and no
-        new memory is touched. The row order differs from ``idx``; particles are exchangeable.
-        Other counts (``set_particles``): a fresh gather.
+        Landmarks are shared copy-on-write (:class:`~robotd.slam._store.LandmarkStore`): only the
+        block table is gathered here.
         """
-        n = self.book.n_slots
-        P = self.n_particles
-        if idx.size == P:
-            counts = np.bincount(idx, minlength=P)
-            dead = np.flatnonzero(counts == 0)
-            src = np.repeat(np.arange(P), np.maximum(counts - 1, 0))
-            if dead.size:
-                self.lm_mean[dead, :n] = self.lm_mean[src, :n]
-                self.lm_cov[dead, :n] = self.lm_cov[src, :n]
-                self.pose[dead] = self.pose[src]
-                if self.pending_S is not None:
-                    self.pending_S[dead] = self.pending_S[src]
-            # the best particle (w_max >= 1/P) is always selected, so it stays in its row
-        else:
-            best_old = self.best
-            cap = self.lm_mean.shape[1]
-            mean = np.empty((idx.size, cap, self.dm))
-            cov = np.empty((idx.size, cap, self.dm, self.dm))
-            mean[:, :n] = self.lm_mean[idx, :n]
-            cov[:, :n] = self.lm_cov[idx, :n]
-            self.lm_mean, self.lm_cov = mean, cov
-            self.pose = self.pose[idx]
-            if self.pending_S is not None:
-                self.pending_S = self.pending_S[idx]
-            hits = np.flatnonzero(idx == best_old)
-            self.best = int(hits[0]) if hits.size else 0
+        best_old = self.best
+        self.store.select(idx)
+        self.pose = self.pose[idx]
+        if self.pending_S is not None:
+            self.pending_S = self.pending_S[idx]
+        hits = np.flatnonzero(idx == best_old)
+        # the best particle (w_max >= 1/P) always survives low-variance resampling
+        self.best = int(hits[0]) if hits.size else 0
         self.log_w = np.full(idx.size, -np.log(idx.size))
 
     def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
@@ -461,7 +451,7 @@ class FastSlam:
         active = self.book.active_slots()
         b = self.best
         x = np.broadcast_to(self.pose[b], (active.size, self.dx))
-        zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(x, self.lm_mean[b, active])
+        zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(x, self.store.gather_particle(b, active)[0])
         expected = active[np.asarray(self.visible(zc), bool)]
         dead = self.book.existence_update(observed, expected, born)
         if dead.size:
@@ -470,6 +460,10 @@ class FastSlam:
         return int(dead.size)
 
     # ------------------------------------------------------------------------------------ output
+
+    def dense_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
+        """All particles' landmark slots as dense copies: mean (P, n_slots, dm), cov (P, n_slots, dm, dm)."""
+        return self.store.dense(self.book.n_slots)
 
     def weights(self) -> np.ndarray:
         """(P,) normalised particle weights."""
@@ -498,9 +492,7 @@ class FastSlam:
     def landmarks(self) -> LandmarkMap:
         """The highest-weight particle's landmarks (§10 "Output")."""
         s = self.book.active_slots()
-        m, C = lm_to_3d(
-            self.lm_mean[self.best, s].copy(), self.lm_cov[self.best, s].copy(), self.params.pose_cov_floor_2d
-        )
+        m, C = lm_to_3d(*self.store.gather_particle(self.best, s), self.params.pose_cov_floor_2d)
         return LandmarkMap(self.book.slot_id[s].copy(), m, C)
 
     def set_particles(self, n: int) -> int:
@@ -517,13 +509,14 @@ class FastSlam:
 
     def state_dict(self) -> dict[str, np.ndarray | float | int]:
         n = self.book.n_slots
+        dense = self.store.dense(n)
         d: dict[str, np.ndarray | float | int] = {
             "filter_code": FILTER_CODE[self.name],
             "dim": self.dim,
             "t_ns": self.t_ns,
             "pose": self.pose.copy(),
-            "lm_mean": self.lm_mean[:, :n].copy(),
-            "lm_cov": self.lm_cov[:, :n].copy(),
+            "lm_mean": dense[0],
+            "lm_cov": dense[1],
             "log_w": self.log_w.copy(),
             "pending_S": self.pending_S.copy() if self.pending_S is not None else np.zeros((0, self.dx, self.dx)),
             "best": self.best,
@@ -562,47 +555,26 @@ class FastSlam:
         for k, a in (("pose", pose), ("lm_mean", mean), ("lm_cov", cov)):
             if not np.all(np.isfinite(a)):
                 raise PersistenceError(f"{self.name} state: non-finite values in {k}")
-        cap = book.capacity
-        self.lm_mean = np.zeros((P, cap, dm))
-        self.lm_cov = np.zeros((P, cap, dm, dm))
-        self.lm_mean[:, :n] = mean
-        self.lm_cov[:, :n] = cov
+        self.store = LandmarkStore.from_dense(mean, cov, self.params.landmark_block_size)
         self.pose, self.log_w, self.book = pose.copy(), log_w.copy(), book
         self.pending_S = pend.copy() if pend.shape[0] else None
         self.best, self.neff, self.t_ns = best, neff, int(state["t_ns"])
 
 
 def _load_numba(params: SlamParams) -> Any:
-    """The numba step with ``fastslam_step``'s signature, or None when numba cannot be used."""
+    """``fastslam_step_numba_store`` (threads set per call), or None when numba cannot be used."""
     try:
         import numba
 
-        from robotd.slam._kernels import fastslam_step_numba
+        from robotd.slam._kernels import fastslam_step_numba_store
     except ImportError as e:  # the numpy path is complete; numba only makes it faster
         logger.warning("numba unavailable (%s); FastSLAM uses the numpy path", e)
         return None
     threads = int(params.numba_threads)
 
-    def step(
-        version: int,
-        pose: np.ndarray,
-        S: np.ndarray | None,
-        lm_mean: np.ndarray,
-        lm_cov: np.ndarray,
-        slots_old: np.ndarray,
-        z_old: np.ndarray,
-        Q_old: np.ndarray,
-        slots_new: np.ndarray,
-        z_new: np.ndarray,
-        Q_new: np.ndarray,
-        eps: np.ndarray | None,
-        model: MeasurementModel,
-        floor: float,
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def step(*args: Any) -> tuple[np.ndarray, np.ndarray]:
         if threads:
             numba.set_num_threads(min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))))
-        return fastslam_step_numba(
-            version, pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, slots_new, z_new, Q_new, eps, floor
-        )
+        return fastslam_step_numba_store(*args)
 
     return step
