@@ -395,7 +395,7 @@ def detect_and_compute(
     array; only features whose rounded position has a non-zero mask value are kept.
     select: optional ``select(xy (N, 2) float64 [px], response (N,)) -> indices or boolean mask``
     applied to the detected keypoints (strongest first, after the mask) *before* the descriptors
-    are computed, e.g. a caller's spatial bucketing: describing costs about 10 us per feature, so
+    are computed, e.g. a caller's spatial bucketing: describing costs 10-15 us per feature, so
     selecting first avoids describing features that would be thrown away.
     Returns :class:`Features` (see the module docstring for every field's convention), in the
     order kept (strongest first unless ``select`` reorders), at most ``params.max_features`` of
