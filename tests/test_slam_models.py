@@ -129,3 +129,14 @@ def test_noise_models_grow_with_motion() -> None:
     M, g = md.velocity2d_noise(1.0, 0.5, 0.1, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6))
     np.testing.assert_allclose(np.diag(M), [0.1 + 0.05, 0.3 + 0.1])
     assert g == pytest.approx((0.5 + 0.15) * 0.01)
+
+
+def test_closed_form_rotations_match_geometry() -> None:
+    from robotd.geometry import euler_to_R, euler_to_R_derivatives
+
+    eta = np.random.default_rng(4).uniform(-3, 3, (20, 3))
+    eta[:, 1] /= 2.5
+    R, Rr, Rp, Ry = md._rot3_all(eta)
+    np.testing.assert_allclose(R, euler_to_R(eta), atol=1e-14)
+    for a, b in zip((Rr, Rp, Ry), euler_to_R_derivatives(eta)):
+        np.testing.assert_allclose(a, b, atol=1e-14)
