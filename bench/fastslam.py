@@ -120,6 +120,8 @@ def time_filter(
         "observations": N,
         "median_ms": round(float(np.median(a)), 3),
         "p99_ms": round(float(np.percentile(a, 99)), 3),
+        # on a shared machine the fastest step approximates the uncontended cost
+        "min_ms": round(float(np.min(a)), 3),
         "path": f"numba{threads}" if (use_numba and filt != "ekf") else "numpy",
         "steps": len(times),
         "resampled_frac": round(n_res / len(times), 3),
@@ -244,19 +246,26 @@ def main(argv: list[str] | None = None) -> int:
         "conditions": conditions,
         "results": results,
         "resample_copy": copies,
-        "target": {"cell": "fastslam2 3D P=100 M=1000 N=100 numba1", "median_ms": target["median_ms"], "goal_ms": 5.0},
+        "target": {
+            "cell": "fastslam2 3D P=100 M=1000 N=100 numba1",
+            "median_ms": target["median_ms"],
+            "min_ms": target["min_ms"],
+            "goal_ms": 5.0,
+        },
     }
     if args.json:
         print(json.dumps(out))
         return 0
     print("## Per-step latency (predict + update), 3D\n")
-    print("| filter | path | particles | map size | observations | obs spread | median ms | p99 ms | resampled |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print(
+        "| filter | path | particles | map size | observations | obs spread | median ms | p99 ms | min ms | resampled |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         print(
             f"| {r['filter']} | {r['path']} | {r['particles']} | {r['map_size']} | {r['observations']} | "
             f"{'map' if r['obs_spread'] else 'window'} | {r['median_ms']:.2f} | {r['p99_ms']:.2f} | "
-            f"{r['resampled_frac']:.2f} |"
+            f"{r['min_ms']:.2f} | {r['resampled_frac']:.2f} |"
         )
     print("\n## Resampling: dense copy of all maps vs copy-on-write blocks (table gather + next frame's writes)\n")
     print(
@@ -272,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         "\nTarget (FastSLAM 2.0, 3D, 100 particles, 100 obs, 1000 landmarks, 1 thread): "
-        f"{target['median_ms']:.2f} ms (goal 5 ms)"
+        f"median {target['median_ms']:.2f} ms, fastest step {target['min_ms']:.2f} ms (goal 5 ms)"
     )
     print(f"Conditions: {conditions}")
     return 0

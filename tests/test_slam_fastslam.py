@@ -168,9 +168,10 @@ def test_fastslam2_reports_neff_and_resampling() -> None:
     assert est.estimate().n_particles == 30
 
 
-def test_nan_rejected_and_state_kept() -> None:
+@pytest.mark.parametrize("filt", ["ekf", "fastslam1", "fastslam2"])
+def test_nan_rejected_and_state_kept(filt: str) -> None:
     world = World(3, np.random.default_rng(4), sigma_z=0.01, sigma_odo=0.01)
-    est = make_estimator(SlamParams(filter="fastslam2", dim=3, n_particles=20), np.random.default_rng(0))
+    est = make_estimator(SlamParams(filter=filt, dim=3, n_particles=20), np.random.default_rng(0))
     est.update(world.observe())
     est.predict(world.step())
     before = est.state_dict()
