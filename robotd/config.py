@@ -72,6 +72,7 @@ class FrontendConfig:
     sigma_x_px: float = _f(0.5, "pixel noise of columns (measurement covariance)", min=0.01, max=10.0)
     sigma_y_px: float = _f(0.3535533905932738, "pixel noise of the mean row", min=0.01, max=10.0)
     cov_inflation: float = _f(1.0, "multiplier on the measurement covariance", min=0.1, max=100.0)
+    debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
     outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_DETECTORS)
     consensus_confidence: float = _f(
         0.99, "χ² level of the Mahalanobis consensus (0.99: 11.345 in 3D)", min=0.5, max=0.99999
@@ -87,7 +88,10 @@ class SlamConfig:
     dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
     n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
-    max_landmarks: int = _f(20000, "landmarks kept at most (oldest unseen pruned first)", min=10)
+    max_updates_per_frame: int = _f(
+        80, "identified measurements fused per frame at most (the filter's cost grows with it)", min=3, max=10000
+    )
+    max_new_per_frame: int = _f(40, "landmarks initialised per frame at most (nearest first)", min=0, max=10000)
     motion_noise_scale: float = _f(1.0, "multiplier on the odometry covariance", min=0.01, max=100.0)
 
 

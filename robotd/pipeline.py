@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +25,7 @@ from robotd.frontend.detectors import DetectorParams, make_detector
 from robotd.frontend.frontend import Frontend, FrontendParams
 from robotd.frontend.stereo_match import StereoMatchParams
 from robotd.geometry import euler_to_R, se3, se3_inverse
-from robotd.msgs import MotionIncrement, PoseEstimate, StepResult, StereoFrame
+from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame
 from robotd.outliers import OutlierParams
 from robotd.slam.estimator import Estimator, SlamParams, make_estimator
 from robotd.stereo import RectifiedStereo
@@ -51,6 +51,7 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         sigma_x_px=f.sigma_x_px,
         sigma_y_px=f.sigma_y_px,
         cov_inflation=f.cov_inflation,
+        debias_depth=f.debias_depth,
     )
     method = f.outliers
     outl = OutlierParams(
@@ -128,6 +129,10 @@ class Pipeline:
         timings: dict[str, float] = {}
         lm = self.estimator.landmarks()
         prior = self.estimator.estimate()
+        # the images' own motion estimate is only needed when the vehicle gives none
+        want_motion = increment is None
+        if self.frontend.params.motion != want_motion:
+            self.frontend.params = replace(self.frontend.params, motion=want_motion)
         fr = self.frontend.process(
             frame.left,
             frame.right,
@@ -136,6 +141,7 @@ class Pipeline:
             pose_to_T(prior) if self._restrict_fov and lm.n else None,
         )
         timings.update(fr.timings_ms)
+        obs = self._limit(fr.observations)
 
         t0 = time.perf_counter()
         if self._last_t_ns is not None:
@@ -143,7 +149,7 @@ class Pipeline:
             if inc is not None:
                 self.estimator.predict(inc)
                 self._last_inc = inc
-        report = self.estimator.update(fr.observations)
+        report = self.estimator.update(obs)
         db = self.frontend.database
         if report.n_pruned and db is not None:
             # the filter's existence counter is the master; the descriptor database follows it
@@ -151,7 +157,7 @@ class Pipeline:
         timings["filter"] = (time.perf_counter() - t0) * 1e3
 
         pose = self.estimator.estimate()
-        n_identified = int(np.count_nonzero(~fr.observations.is_new))
+        n_identified = int(np.count_nonzero(~obs.is_new))
         has_map = lm.n > 0
         if has_map and n_identified == 0:
             self._no_corr += 1
@@ -172,6 +178,27 @@ class Pipeline:
         counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
         counts["identified"] = n_identified
         return StepResult(frame.t_ns, pose, report, timings, counts, self.tracking)
+
+    def _limit(self, obs: Observations) -> Observations:
+        """Cap the filter's work per frame: a spread subset of the identified measurements, and the
+        nearest new ones (smallest covariance: the most precise landmarks to start from). New
+        landmarks that are not initialised are also removed from the descriptor database."""
+        k_upd, k_new = self.cfg.slam.max_updates_per_frame, self.cfg.slam.max_new_per_frame
+        old = np.flatnonzero(~obs.is_new)
+        new = np.flatnonzero(obs.is_new)
+        if old.size <= k_upd and new.size <= k_new:
+            return obs
+        if old.size > k_upd:
+            old = np.sort(self.rng.choice(old, size=k_upd, replace=False))
+        if new.size > k_new:
+            tr = np.trace(obs.cov_R[new], axis1=1, axis2=2)
+            keep_new = np.sort(new[np.argsort(tr, kind="stable")[:k_new]])
+            dropped = np.setdiff1d(new, keep_new)
+            if self.frontend.database is not None:
+                self.frontend.database.remove(obs.ids[dropped])
+            new = keep_new
+        idx = np.sort(np.concatenate([old, new]))
+        return Observations(obs.t_ns, obs.xyz_R_m[idx], obs.cov_R[idx], obs.ids[idx], obs.is_new[idx])
 
     def _choose_increment(self, odo: MotionIncrement | None, fr: Any, t_ns: int) -> MotionIncrement | None:
         assert self._last_t_ns is not None

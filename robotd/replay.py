@@ -90,6 +90,9 @@ def replay(
             vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source)))
         elif source.endswith(".mcap") or source.startswith("mcap://"):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
+        elif source.startswith("sim://"):
+            # the simulated rover's own noisy odometry (same world and clock as its camera)
+            vehicle = stack.enter_context(drivers.open_vehicle(url))
         odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
         pending = None
         rig = camera.rectified_model()

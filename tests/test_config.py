@@ -86,7 +86,7 @@ def test_to_toml_round_trips() -> None:
 
 def test_print_config_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     p = tmp_path / "c.toml"
-    p.write_text("[robot]\nid = \"rover7\"\n")
+    p.write_text('[robot]\nid = "rover7"\n')
     assert main(["print-config", "--config", str(p)]) == 0
     out = capsys.readouterr().out
     assert 'id = "rover7"' in out and "[slam]" in out

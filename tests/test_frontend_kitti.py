@@ -85,8 +85,10 @@ def test_identification_against_a_world_map(shared_data):
     r1 = fe.process(*_pair(root, 21), 100_000_000, (o.ids, xyz_W, cov_W), T_gt[21])
     assert r1.counts["inliers"] >= 30
     assert r1.similarity is not None and r1.outlier_result is not None
-    T_rw = se3_inverse(T_gt[21])
-    assert np.linalg.norm(r1.similarity[:3, 3] - T_rw[:3, 3]) < 0.1
+    # the robot's position the similarity implies (p = -(sR)^-1 t), against the ground truth
+    sR, t = r1.similarity[:3, :3], r1.similarity[:3, 3]
+    p_est = -np.linalg.solve(sR, t)
+    assert np.linalg.norm(p_est - T_gt[21][:3, 3]) < 0.1
     # predicted-visible restriction: candidates are at most the map
     assert 0 < r1.counts["map_candidates"] <= o.n
     # the fundamental-matrix baseline runs through the same stage

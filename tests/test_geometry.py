@@ -66,8 +66,12 @@ def test_so3_exp_log_round_trip(rng: np.random.Generator) -> None:
 
 
 def random_pose6(rng: np.random.Generator, n: int) -> np.ndarray:
-    return np.c_[rng.uniform(-10, 10, (n, 3)), rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.4, 1.4, n),
-                 rng.uniform(-np.pi, np.pi, n)]
+    return np.c_[
+        rng.uniform(-10, 10, (n, 3)),
+        rng.uniform(-np.pi, np.pi, n),
+        rng.uniform(-1.4, 1.4, n),
+        rng.uniform(-np.pi, np.pi, n),
+    ]
 
 
 def test_se3_inverse_and_compose_round_trip(rng: np.random.Generator) -> None:

@@ -6,13 +6,40 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-CORE = ["robotd/geometry.py", "robotd/stereo.py", "robotd/msgs.py", "robotd/outliers.py", "robotd/frontend",
-        "robotd/slam"]
+CORE = [
+    "robotd/geometry.py",
+    "robotd/stereo.py",
+    "robotd/msgs.py",
+    "robotd/outliers.py",
+    "robotd/frontend",
+    "robotd/slam",
+]
 ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
-ALLOWED_ROBOTD = ("robotd.msgs", "robotd.geometry", "robotd.errors", "robotd.stereo", "robotd.frontend",
-                  "robotd.slam", "robotd.outliers")
-STDLIB_OK = {"__future__", "dataclasses", "typing", "math", "logging", "time", "collections", "functools",
-             "itertools", "enum", "abc", "warnings", "os", "collections.abc"}
+ALLOWED_ROBOTD = (
+    "robotd.msgs",
+    "robotd.geometry",
+    "robotd.errors",
+    "robotd.stereo",
+    "robotd.frontend",
+    "robotd.slam",
+    "robotd.outliers",
+)
+STDLIB_OK = {
+    "__future__",
+    "dataclasses",
+    "typing",
+    "math",
+    "logging",
+    "time",
+    "collections",
+    "functools",
+    "itertools",
+    "enum",
+    "abc",
+    "warnings",
+    "os",
+    "collections.abc",
+}
 # the I/O libraries that must stay in drivers/ and the daemon
 FORBIDDEN = {"zenoh", "serial", "pymavlink", "depthai", "socket", "mcap", "threading", "subprocess", "matplotlib"}
 
