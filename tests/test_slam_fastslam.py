@@ -316,3 +316,10 @@ def test_numba_and_numpy_filters_agree(filt: str) -> None:
         out.append(est.state_dict())
     for k in out[0]:
         np.testing.assert_allclose(np.asarray(out[1][k]), np.asarray(out[0][k]), atol=1e-9, rtol=0, err_msg=k)
+
+
+def test_warmup_numba_loads_kernels() -> None:
+    from robotd.slam.estimator import warmup_numba
+
+    took = warmup_numba()
+    assert took is not None and took >= 0.0

@@ -646,3 +646,19 @@ def fastslam_step_numba_store(
         eps,
         floor,
     )
+
+
+def warmup() -> None:
+    """Compile (first run) or load from the cache (later runs) both kernel variants on tiny inputs."""
+    for dx, dm in ((6, 3), (3, 2)):
+        P, n = 2, 2
+        pose = np.zeros((P, dx))
+        S = np.tile(np.eye(dx) * 1e-4, (P, 1, 1))
+        mean = np.ones((P, n, dm))
+        cov = np.tile(np.eye(dm), (P, n, 1, 1))
+        z = np.ones((1, dm))
+        Q = np.eye(dm)[None]
+        for version in (1, 2):
+            fastslam_step_numba(
+                version, pose, S, mean, cov, np.array([0]), z, Q, np.array([1]), z, Q, np.zeros((P, dx)), 0.0
+            )
