@@ -39,6 +39,7 @@ STDLIB_OK = {
     "warnings",
     "os",
     "collections.abc",
+    "concurrent",  # compute parallelism (both images detected at once), not I/O
 }
 # the I/O libraries that must stay in drivers/ and the daemon
 FORBIDDEN = {"zenoh", "serial", "pymavlink", "depthai", "socket", "mcap", "threading", "subprocess", "matplotlib"}

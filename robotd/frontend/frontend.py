@@ -15,6 +15,7 @@ landmarks are in the world frame W. The similarity fitted by the outlier stage m
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import time
 from dataclasses import dataclass, field
@@ -63,6 +64,7 @@ class FrontendParams:
     motion_outliers: outlier stage of that estimate (default: similarity + Mahalanobis, §5).
     motion_gn_iterations: Gauss–Newton steps of the rigid Mahalanobis refinement of that motion.
     fov_margin_px: a map landmark is predicted visible if it projects this far inside the image.
+    parallel_detect: detect the left and right images on two threads (OpenCV and SURF release the GIL).
     """
 
     detector: DetectorParams = field(default_factory=DetectorParams)
@@ -73,6 +75,7 @@ class FrontendParams:
     motion_outliers: OutlierParams = field(default_factory=OutlierParams)
     motion_gn_iterations: int = 5
     fov_margin_px: float = 0.0
+    parallel_detect: bool = True
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -148,6 +151,16 @@ def _check_map(map_landmarks_W: MapLandmarks | LandmarkMap) -> MapLandmarks:
     return ids, xyz, cov
 
 
+_POOL: concurrent.futures.ThreadPoolExecutor | None = None
+
+
+def _pool() -> concurrent.futures.ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="robotd-detect")
+    return _POOL
+
+
 class Frontend:
     """Stateful shell over the pure stage functions; one instance per camera stream."""
 
@@ -208,8 +221,14 @@ class Frontend:
 
         # --- detect
         t0 = time.perf_counter()
-        fl = self.detector.detect(left)
-        fr = self.detector.detect(right)
+        if self.params.parallel_detect:
+            # OpenCV and the SURF kernels release the GIL: both images at once on two cores
+            fut = _pool().submit(self.detector.detect, right)
+            fl = self.detector.detect(left)
+            fr = fut.result()
+        else:
+            fl = self.detector.detect(left)
+            fr = self.detector.detect(right)
         timings["detect"] = (time.perf_counter() - t0) * 1e3
         if self.database is None:
             dim = fl.desc.shape[1] if fl.n else (32 if self.detector.binary else fl.desc.shape[1])

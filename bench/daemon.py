@@ -1,0 +1,153 @@
+#!/usr/bin/env python3
+"""Daemon benchmark: capture-to-publish latency on the simulated rover, at nominal rate and at 2× overload.
+
+Runs the real daemon in-process (camera, vehicle, SLAM and publisher threads, the latency budget,
+a real Zenoh session on loopback) on ``sim://`` for each detector, once with the camera at the
+nominal rate and once at twice that rate with the deadline kept at the nominal frame period (the
+camera then delivers twice what the pipeline may spend time on: the budget must degrade and the
+drop-oldest queue must keep latency bounded). The first ``--warmup`` seconds (numba compilation,
+map initialisation) are excluded from the latency figures.
+
+    python bench/daemon.py [--seconds 20] [--fps 30] [--detectors orb,sift] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from robotd.config import load_config
+from robotd.daemon import Daemon, rss_mb
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warmup_s: float, particles: int) -> dict:
+    tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"robotd-bench-{os.getpid()}"
+    cfg = load_config(
+        None,
+        {
+            "camera": {"url": f"sim://?fps={fps:g}"},
+            "vehicle": {"url": f"sim://?fps={fps:g}"},
+            "frontend": {"detector": detector},
+            "slam": {"n_particles": particles},
+            "budget": {"deadline_ms": deadline_ms},
+            "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]},
+            "persistence": {"state_dir": str(tmp), "save_period_s": 0.0},
+            "log": {"status_period_s": 5.0},
+        },
+    )
+    d = Daemon(cfg, duration_s=seconds, environ={})
+    d.stats.max_latency_window = 10**7
+    rss: dict[str, float] = {}
+    marks: dict[str, int] = {}
+
+    def sample() -> None:
+        # RSS once the warm-up is over (caches built, numba compiled), and again at the end
+        time.sleep(warmup_s)
+        rss["start"] = rss_mb()
+        marks["latencies"] = len(d.stats.latencies_ms)
+        marks["frames_in"] = d.stats.frames_in
+        marks["processed"] = d.stats.steps
+        marks["dropped"] = d.frame_q.dropped
+        marks["skipped"] = d.budget.skipped if d.budget else 0
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    t0 = time.monotonic()
+    d.run()
+    wall = time.monotonic() - t0
+    th.join(1)
+    rss["end"] = rss_mb()
+    lat = np.asarray(d.stats.latencies_ms[marks.get("latencies", 0) :])
+    b = d.budget
+    return {
+        "detector": detector,
+        "fps": fps,
+        "particles": particles,
+        "deadline_ms": round(deadline_ms, 3),
+        "seconds": round(wall - warmup_s, 2),
+        "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
+        "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
+        "latency_max_ms": float(lat.max()) if lat.size else None,
+        "frames_in": d.stats.frames_in - marks.get("frames_in", 0),
+        "processed": d.stats.steps - marks.get("processed", 0),
+        "dropped": d.frame_q.dropped - marks.get("dropped", 0),
+        "skipped": (b.skipped if b else 0) - marks.get("skipped", 0),
+        "budget_level_end": b.state.level if b else None,
+        "max_features_end": b.state.max_features if b else None,
+        "particles_end": b.state.n_particles if b else None,
+        "deadline_misses": b.deadline_misses if b else None,
+        "rss_mb_start": round(rss.get("start", float("nan")), 1),
+        "rss_mb_end": round(rss["end"], 1),
+        "error_vs_truth_m": None if not np.isfinite(d.stats.last_error_m) else round(d.stats.last_error_m, 3),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="run length per case, warm-up included")
+    ap.add_argument("--warmup", type=float, default=4.0)
+    ap.add_argument("--fps", type=float, default=30.0, help="nominal camera rate")
+    ap.add_argument("--particles", type=int, default=100)
+    ap.add_argument("--detectors", default="orb,sift")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    results = []
+    nominal_deadline = 1000.0 / args.fps
+    for det in args.detectors.split(","):
+        for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
+            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles)
+            r["case"] = label
+            results.append(r)
+            print(f"# {det} {label}: p99 {r['latency_p99_ms']} ms", file=sys.stderr)
+    machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
+    if args.json:
+        print(json.dumps({"machine": machine, "results": results}))
+        return 0
+    print(
+        f"Daemon on sim:// (640×400), {args.particles} particles, deadline {nominal_deadline:.1f} ms, "
+        f"{args.seconds:g} s per case ({args.warmup:g} s warm-up excluded), {os.cpu_count()} CPUs\n"
+    )
+    cols = [
+        "detector",
+        "case",
+        "fps",
+        "latency_p50_ms",
+        "latency_p99_ms",
+        "processed",
+        "dropped",
+        "skipped",
+        "budget_level_end",
+        "max_features_end",
+        "particles_end",
+        "rss_mb_start",
+        "rss_mb_end",
+        "error_vs_truth_m",
+    ]
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in results:
+        cells = [f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols]
+        print("| " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
