@@ -6,10 +6,15 @@ Logging is configured here and nowhere else. Every subcommand returns an exit co
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread: robotd runs its own threads on a 2-core board, and OpenBLAS's pool competing
+# with them made an EKF step 15× slower. Must be set before numpy is first imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import json
 import logging
-import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path

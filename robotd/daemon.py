@@ -153,6 +153,11 @@ class Daemon:
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         rng = np.random.default_rng(cfg.robot.seed)
         self.pipeline = Pipeline(cfg, rig, rng)
+        from robotd.slam.estimator import warmup_numba
+
+        warm_s = warmup_numba()
+        if warm_s is not None:
+            logger.info("filter kernels ready in %.1f s", warm_s)
         fps = float(getattr(self.camera, "fps", 0.0) or 30.0)
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
         self.budget = LatencyBudget(
