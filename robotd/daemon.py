@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 import drivers
+from robotd.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.budget import LatencyBudget, StageTimer
 from robotd.config import Config
 from robotd.errors import DriverError, PersistenceError, RobotdError
@@ -110,6 +111,9 @@ class Daemon:
         self.timer = StageTimer()
         self.camera: Any = None
         self.vehicle: Any = None
+        self.autopilot: Any = None  # the link the pose goes to (MAVLink), if any
+        self.reset_policy = ResetCounterPolicy()
+        self._pending_event: str | None = None
         self.pipeline: Pipeline | None = None
         self.budget: LatencyBudget | None = None
         self.publisher: Any = None
@@ -148,7 +152,18 @@ class Daemon:
             cfg.slam.dim,
         )
         self.camera = self._open_with_retry(stack, "camera", drivers.open_camera, cfg.camera.url)
-        self.vehicle = self._open_with_retry(stack, "vehicle", drivers.open_vehicle, cfg.vehicle.url)
+        self.vehicle = self._open_with_retry(
+            stack, "vehicle", drivers.open_vehicle, cfg.vehicle.url, **self._link_options(cfg.vehicle.url)
+        )
+        if cfg.mavlink.enabled and not cfg.vehicle.url.startswith("mavlink"):
+            # odometry from one link (e.g. the MCU over serial), the pose to the autopilot on another
+            self.autopilot = self._open_with_retry(
+                stack, "autopilot", drivers.open_vehicle, cfg.mavlink.url, **self._link_options(cfg.mavlink.url)
+            )
+        elif cfg.vehicle.url.startswith("mavlink"):
+            self.autopilot = self.vehicle
+        else:
+            self.autopilot = self.vehicle if cfg.vehicle.url.startswith("sim") else None
         rig = self.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         rng = np.random.default_rng(cfg.robot.seed)
@@ -187,12 +202,24 @@ class Daemon:
 
             self.publisher = stack.enter_context(Publisher(cfg.zenoh, cfg.robot.id))
 
-    def _open_with_retry(self, stack: contextlib.ExitStack, kind: str, opener: Any, url: str) -> Any:
+    def _link_options(self, url: str) -> dict[str, Any]:
+        """Driver keywords from the config for a MAVLink link (others take theirs from the URL)."""
+        if not url.startswith("mavlink"):
+            return {}
+        m = self.cfg.mavlink
+        opts: dict[str, Any] = {"sysid": m.system_id, "message": m.message}
+        if m.signing_key_file:
+            opts["signing_key"] = m.signing_key_file
+        if m.set_origin:
+            opts["origin"] = (m.origin_lat_deg, m.origin_lon_deg, m.origin_alt_m)
+        return opts
+
+    def _open_with_retry(self, stack: contextlib.ExitStack, kind: str, opener: Any, url: str, **options: Any) -> Any:
         """Open a driver; a missing device is a degraded state with retries, not an exit."""
         delay = 0.5
         while True:
             try:
-                return stack.enter_context(opener(url))
+                return stack.enter_context(opener(url, **options))
             except DriverError as exc:
                 if self.stop_event.is_set():
                     raise
@@ -216,7 +243,7 @@ class Daemon:
             logger.error("resume failed: %s", exc)
             return
         self.resumed = True
-        self.stats.reset_counter += 1  # a map load is a discontinuity for the autopilot
+        self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
         n = int(self.pipeline.estimator.landmark_ids().shape[0])
         logger.info("resumed from saved map %s: %d landmarks", self.store.path, n)
 
@@ -333,19 +360,30 @@ class Daemon:
             with self._lock:
                 self._last_result = item
             seq += 1
+            event, self._pending_event = self._pending_event, None
+            self.stats.reset_counter = self.reset_policy.update(res.pose, event)
             if self.publisher is not None:
                 self.publisher.publish_pose(
                     pose_to_json(res.pose, self.cfg.robot.id, seq, item.quality, self.stats.reset_counter, latency_ms)
                 )
                 if item.landmarks is not None:
                     self.publisher.update_map(res.t_ns, item.landmarks)
-            if self.vehicle is not None:
+            if self.autopilot is not None:
                 try:
-                    self.vehicle.send_pose(res.pose, item.quality, self.stats.reset_counter)
+                    if hasattr(self.autopilot, "set_health"):
+                        self.autopilot.set_health(self._health_state(item))
+                    self.autopilot.send_pose(res.pose, item.quality, self.stats.reset_counter)
                 except RobotdError as exc:
                     logger.warning("autopilot pose not sent: %s", exc)
 
     # ------------------------------------------------------------------ health
+    def _health_state(self, item: Published) -> str:
+        if not item.result.tracking:
+            return "failed"
+        if self.budget is not None and self.budget.state.level > 0:
+            return "degraded"
+        return "tracking"
+
     def record_summary(self) -> dict[str, Any]:
         return {"out": self.record_path, **self.recorded, "frames_dropped": self.frame_q.dropped}
 
@@ -509,7 +547,7 @@ class Daemon:
         logger.info("shutting down (%s)", self.stop_reason or "stop")
         self.notifier.stopping(f"stopping: {self.stop_reason}")
         self.stop_event.set()
-        for dev in (self.camera, self.vehicle):
+        for dev in (self.camera, self.vehicle, self.autopilot):
             if dev is not None:
                 with contextlib.suppress(Exception):
                     dev.close()

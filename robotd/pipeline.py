@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.autopilot import quality_from
 from robotd.config import Config
 from robotd.frontend.association import LandmarkDatabase
 from robotd.frontend.detectors import DetectorParams, make_detector
@@ -221,15 +222,16 @@ class Pipeline:
 
     # ---------------------------------------------------------------- quality and persistence
     def quality(self, result: StepResult) -> int:
-        """MAVLink quality: -1 lost, else 1..100 from accepted correspondences and N_eff/N."""
-        if not result.tracking:
-            return -1
-        inl = result.counts.get("identified", 0)
-        q = min(1.0, inl / 30.0)
+        """MAVLink quality (robotd.autopilot.quality_from): -1 lost, else 1..100 from the accepted
+        correspondences and N_eff/N."""
         pose = result.pose
-        if np.isfinite(pose.neff) and pose.n_particles > 0:
-            q *= 0.5 + 0.5 * min(1.0, pose.neff / pose.n_particles)
-        return int(np.clip(round(100 * q), 1, 100))
+        return quality_from(
+            result.tracking,
+            result.counts.get("identified", 0),
+            pose.neff,
+            pose.n_particles,
+            min_inliers=self.cfg.frontend.min_inliers,
+        )
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -179,5 +179,5 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
     notify2.close()
     assert "resumed from saved map" in out2, out2[-3000:]
     assert code2 == 0
-    assert poses2 and all(p["reset_counter"] == 1 for p in poses2)  # a map load is a discontinuity
+    assert poses2 and all(p["reset_counter"] >= 1 for p in poses2)  # a map load is a discontinuity
     assert blob2 is not None and decode_map(blob2)[1].n >= lm.n * 0.5
