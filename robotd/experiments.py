@@ -348,6 +348,7 @@ def run_experiments(
     quick: bool = False,
     seeds: int | None = None,
     mrclam_dir: str | Path | None = None,
+    plan: ExperimentPlan | None = None,
 ) -> Path:
     """Run experiments (a)–(e) and write ``out_dir/report.md`` plus PNG plots; returns the report path.
 
@@ -357,10 +358,12 @@ def run_experiments(
         seeds: Monte Carlo runs per setting (default 10 full, 1 quick).
         mrclam_dir: MRCLAM folder; default ``../shared/data/mrclam-dataset1-robot1`` beside the
             repository; skipped (and said so in the report) when absent.
+        plan: an explicit campaign (overrides ``quick`` and ``seeds``).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    plan = ExperimentPlan.quick(seeds or 1) if quick else ExperimentPlan.full(seeds or 10)
+    if plan is None:
+        plan = ExperimentPlan.quick(seeds or 1) if quick else ExperimentPlan.full(seeds or 10)
     t_all = time.perf_counter()
     rep: list[str] = ["# robotd simulation experiments (algorithms.md §12)", ""]
     rep.append(
