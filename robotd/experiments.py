@@ -300,6 +300,11 @@ def _mean(x: Sequence[float]) -> float:
     return float(np.mean(a)) if a.size else math.nan
 
 
+def _fmt(x: float, fmt: str = "{:.3f}") -> str:
+    """A number, or an em dash when undefined (e.g. the rejected fraction at 0 % mismatches)."""
+    return fmt.format(x) if math.isfinite(x) else "—"
+
+
 def _plt() -> Any:
     import matplotlib
 
@@ -526,10 +531,8 @@ def run_experiments(
                 cells.append(_ms([r.ate_rmse_m for r in rs]) + (f" [{dv} div]" if dv else ""))
         ro = [r for r in rows_c if r.outliers and r.mismatch_rate == rate]
         rep.append(
-            f"| {100 * rate:.0f} % | "
-            + " | ".join(cells)
-            + f" | {_mean([r.mismatches_rejected for r in ro]):.3f} | {_mean([r.correct_rejected for r in ro]):.3f} "
-            f"| {_mean([r.outlier_ms for r in ro]):.2f} |"
+            f"| {100 * rate:.0f} % | " + " | ".join(cells) + f" | {_fmt(_mean([r.mismatches_rejected for r in ro]))} "
+            f"| {_fmt(_mean([r.correct_rejected for r in ro]))} | {_fmt(_mean([r.outlier_ms for r in ro]), '{:.2f}')} |"
         )
     fig, ax = plt.subplots(figsize=(6.5, 4), dpi=100)
     for f in plan.mismatch_filters:
