@@ -23,7 +23,11 @@ HERE = Path(__file__).resolve().parent
 
 def _run(script: str, extra: list[str]) -> dict[str, Any]:
     out = subprocess.run(
-        [sys.executable, str(HERE / script), "--json", *extra], capture_output=True, text=True, check=False
+        # -P: do not put bench/ first on sys.path, where this file would shadow the drivers package
+        [sys.executable, "-P", str(HERE / script), "--json", *extra],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     if out.returncode != 0:
         return {"error": f"{script} exited {out.returncode}: {out.stderr[-500:]}"}
