@@ -170,6 +170,8 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
     if planar:
         P, Q = _planar(P), _planar(Q)
     T = align_rigid(P[:, :3, 3], Q[:, :3, 3], planar=planar) if (align and len(P) > 1) else np.eye(4)
+    if align and len(P) > 1 and not planar and _positions_degenerate(P[:, :3, 3]):
+        T = _align_by_orientation(P, Q)
     E = se3_inverse(Q) @ T @ P
     e = np.linalg.norm(E[:, :3, 3], axis=1)
     if planar:
@@ -184,6 +186,27 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
         "heading_rmse_deg": float(np.rad2deg(np.sqrt(np.mean(rot**2)))),
         "final_error_m": float(e[-1]),
     }
+
+
+def _positions_degenerate(p: np.ndarray, ratio: float = 0.05, min_spread_m: float = 0.1) -> bool:
+    """True when the positions (N, 3) are nearly collinear or (nearly) stationary: a rigid fit to
+    them leaves the rotation about the path, or every rotation, to noise (a straight KITTI drive;
+    the stationary EuRoC piece)."""
+    c = p - p.mean(0)
+    sv = np.linalg.svd(c, compute_uv=False)
+    spread = float(sv[0] / np.sqrt(len(p)))
+    return bool(spread < min_spread_m or sv[1] < ratio * sv[0])
+
+
+def _align_by_orientation(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Rigid alignment whose rotation is the chordal mean of Q_i P_i⁻¹ (orientations, not
+    positions), translation from the centroids; used where positions cannot fix the rotation."""
+    M = np.einsum("nij,nkj->ik", Q[:, :3, :3], P[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    t = Q[:, :3, 3].mean(0) - R @ P[:, :3, 3].mean(0)
+    return se3(R, t)
 
 
 def ate_errors(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False) -> np.ndarray:
