@@ -34,6 +34,8 @@ from robotd.geometry import (
     rotation_angle,
     se3,
     se3_inverse,
+    so3_exp,
+    so3_log,
     umeyama,
     wrap_angle,
 )
@@ -170,8 +172,12 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
     if planar:
         P, Q = _planar(P), _planar(Q)
     T = align_rigid(P[:, :3, 3], Q[:, :3, 3], planar=planar) if (align and len(P) > 1) else np.eye(4)
-    if align and len(P) > 1 and not planar and _positions_degenerate(P[:, :3, 3]):
-        T = _align_by_orientation(P, Q)
+    if align and len(P) > 1 and not planar:
+        kind = _positions_degenerate(P[:, :3, 3])
+        if kind == "stationary":
+            T = _align_by_orientation(P, Q)
+        elif kind == "collinear":
+            T = _fix_roll_about_path(T, P, Q)
     E = se3_inverse(Q) @ T @ P
     e = np.linalg.norm(E[:, :3, 3], axis=1)
     if planar:
@@ -188,14 +194,27 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
     }
 
 
-def _positions_degenerate(p: np.ndarray, ratio: float = 0.05, min_spread_m: float = 0.1) -> bool:
-    """True when the positions (N, 3) are nearly collinear or (nearly) stationary: a rigid fit to
-    them leaves the rotation about the path, or every rotation, to noise (a straight KITTI drive;
-    the stationary EuRoC piece)."""
+def _positions_degenerate(p: np.ndarray, ratio: float = 0.05, min_spread_m: float = 0.1) -> str:
+    """ "stationary", "collinear" or "" for positions (N, 3). A rigid fit to collinear positions
+    leaves the rotation about the path to noise (a straight KITTI drive); to stationary ones, every
+    rotation (the EuRoC piece)."""
     c = p - p.mean(0)
     sv = np.linalg.svd(c, compute_uv=False)
-    spread = float(sv[0] / np.sqrt(len(p)))
-    return bool(spread < min_spread_m or sv[1] < ratio * sv[0])
+    if float(sv[0] / np.sqrt(len(p))) < min_spread_m:
+        return "stationary"
+    return "collinear" if sv[1] < ratio * sv[0] else ""
+
+
+def _fix_roll_about_path(T: np.ndarray, P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Replace the rotation of T about the path axis (undetermined by collinear positions) by the
+    one the orientations give: the mean world-frame orientation error, projected on the axis."""
+    q = Q[:, :3, 3]
+    c = q.mean(0)
+    axis = np.linalg.svd(q - c)[2][0]
+    W = (T[:3, :3] @ P[:, :3, :3]) @ np.swapaxes(Q[:, :3, :3], 1, 2)  # world-frame error rotations
+    phi = -float(np.mean(so3_log(W) @ axis))
+    S = se3(so3_exp(axis * phi), c - so3_exp(axis * phi) @ c)
+    return S @ T
 
 
 def _align_by_orientation(P: np.ndarray, Q: np.ndarray) -> np.ndarray:

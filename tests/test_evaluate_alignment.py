@@ -29,3 +29,13 @@ def test_stationary_vehicle_heading_error_is_small(rng: np.random.Generator) -> 
     est = _traj(rng.normal(0, 0.002, (n, 3)), rng.normal(0, np.radians(0.05), (n, 3)))
     m = ate(est, gt)
     assert m["heading_rmse_deg"] < 0.5 and m["ate_rmse_m"] < 0.01
+
+
+def test_straight_drive_roll_about_the_path_comes_from_orientations(rng: np.random.Generator) -> None:
+    # positions along x cannot tell a rotation about x; the orientations can (0.2° roll error)
+    n = 50
+    xyz = np.c_[np.linspace(0, 60, n), np.zeros(n), np.zeros(n)]
+    gt = _traj(xyz, np.zeros((n, 3)))
+    est = _traj(xyz + rng.normal(0, 0.01, (n, 3)), np.tile([np.radians(0.2), 0.0, 0.0], (n, 1)))
+    m = ate(est, gt)
+    assert m["ate_rmse_m"] < 0.03 and m["heading_rmse_deg"] < 0.25
