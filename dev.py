@@ -43,7 +43,15 @@ def ensure_venv() -> None:
 
 def cmd_run(args: list[str]) -> int:
     ensure_venv()
-    return _run(BIN / "robotd", "run", *args, check=False)
+    cmd = [str(BIN / "robotd"), "run", *args]
+    print("+", " ".join(cmd), flush=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT)
+    while True:
+        try:
+            return proc.wait()
+        except KeyboardInterrupt:
+            # Ctrl-C reaches robotd too; it shuts down gracefully (saving its map): wait for it
+            continue
 
 
 def cmd_test(args: list[str]) -> int:

@@ -17,6 +17,7 @@ import numpy as np
 
 DEGRADE_LOAD = 0.9
 RECOVER_LOAD = 0.6
+SKIP_RECOVER_LOAD = 0.8
 EWMA_ALPHA = 0.2
 
 
@@ -63,6 +64,8 @@ class LatencyBudget:
         min_particles: int,
         recover_after_frames: int = 30,
         max_skip: int = 4,
+        warmup_frames: int = 0,
+        frame_period_ms: float | None = None,
     ) -> None:
         if deadline_ms <= 0:
             raise ValueError(f"deadline_ms: expected > 0, got {deadline_ms}")
@@ -81,6 +84,9 @@ class LatencyBudget:
         self._ladder = ladder
         self.level = 0
         self.recover_after = recover_after_frames
+        self.warmup_frames = warmup_frames
+        # frames arrive every period: with skipping, k periods per processed frame keep the queue short
+        self.frame_period_ms = float(frame_period_ms) if frame_period_ms else float(deadline_ms)
         self._under = 0
         self._ewma: float | None = None
         self.deadline_misses = 0
@@ -109,19 +115,27 @@ class LatencyBudget:
         return True
 
     def record(self, frame_ms: float) -> BudgetState:
-        """Account one processed frame's work; returns the state for the next frame."""
+        """Account one processed frame's work; returns the state for the next frame.
+
+        A processed frame may take at most the deadline (latency) and at most ``skip_every`` frame
+        periods (throughput); a step back up is taken when the load would fit the rung above with
+        margin.
+        """
         self.frames += 1
+        if self.frames <= self.warmup_frames:
+            return self.state  # first frames (caches, map start) say nothing about steady load
         self._ewma = frame_ms if self._ewma is None else (1 - EWMA_ALPHA) * self._ewma + EWMA_ALPHA * frame_ms
-        over = frame_ms > self.deadline_ms
+        budget_now = self._allowed_ms(self.state.skip_every)
+        over = frame_ms > budget_now
         if over:
             self.deadline_misses += 1
-        if (over or self._ewma > DEGRADE_LOAD * self.deadline_ms) and self.level < self.max_level:
+        if (over or self._ewma > DEGRADE_LOAD * budget_now) and self.level < self.max_level:
             self.level += 1
             self.degrade_events += 1
             self._under = 0
             # after a step down, judge the new level on fresh data
-            self._ewma = min(self._ewma, DEGRADE_LOAD * self.deadline_ms * 0.99)
-        elif self._ewma < RECOVER_LOAD * self.deadline_ms and self.level > 0:
+            self._ewma = min(self._ewma, DEGRADE_LOAD * budget_now * 0.99)
+        elif self.level > 0 and self._ewma < self._recover_threshold():
             self._under += 1
             if self._under >= self.recover_after:
                 self.level -= 1
@@ -130,6 +144,20 @@ class LatencyBudget:
         else:
             self._under = 0
         return self.state
+
+    def _recover_threshold(self) -> float:
+        """Load below which one step up is taken: a skipping rung costs the same per processed
+        frame as the one above it, so only the time per frame changes (80 % margin); a rung with
+        more features or particles costs more, so it needs the wider 60 % margin."""
+        f, p, _ = self._ladder[self.level]
+        f_up, p_up, k_up = self._ladder[self.level - 1]
+        margin = SKIP_RECOVER_LOAD if (f_up, p_up) == (f, p) else RECOVER_LOAD
+        return margin * self._allowed_ms(k_up)
+
+    def _allowed_ms(self, skip_every: int) -> float:
+        """Time a processed frame may take on a rung: within the deadline (latency) and within
+        ``skip_every`` frame periods (throughput: otherwise frames queue up)."""
+        return min(self.deadline_ms, skip_every * self.frame_period_ms)
 
     def health(self) -> dict[str, object]:
         s = self.state

@@ -182,6 +182,8 @@ class Daemon:
             min(cfg.budget.min_features, cfg.frontend.max_features),
             min(cfg.budget.min_particles, cfg.slam.n_particles) if cfg.slam.filter != "ekf" else 1,
             cfg.budget.recover_after_frames,
+            warmup_frames=int(fps),  # the first second: caches and the first map
+            frame_period_ms=1000.0 / fps,
         )
         logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
         self.store = MapStore(default_state_dir(cfg.persistence.state_dir), cfg.robot.id)
