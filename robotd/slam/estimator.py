@@ -60,6 +60,9 @@ class SlamParams:
     gate_enabled: bool = True
     gate_chi2_3d: float = 11.345
     gate_chi2_2d: float = 9.210
+    # FastSLAM: drop a frame's re-observations whose innovation at the best particle exceeds the χ²
+    # gate (pose prior + landmark + measurement covariance); skipped when it would drop over half
+    fastslam_gate: bool = True
     # Landmark existence counter (§8 bookkeeping) and the default field-of-view test
     prune_enabled: bool = True
     fov_h_rad: float = math.radians(73.0)  # horizontal field of view (OAK-D at 640×400)

@@ -352,8 +352,15 @@ class FastSlam:
         self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
     ) -> UpdateReport:
         old = ~is_new
-        slots_old = self.book.slots_of(ids[old])
+        slots_seen = self.book.slots_of(ids[old])  # every re-observed landmark (existence counter)
         z_old, Q_old = z[old], Q[old]
+        n_gated = 0
+        slots_old = slots_seen
+        if self.params.gate_enabled and self.params.fastslam_gate and slots_seen.size:
+            keep = self._gate(slots_seen, z_old, Q_old, model)
+            n_gated = int(np.count_nonzero(~keep))
+            if n_gated:
+                slots_old, z_old, Q_old = slots_seen[keep], z_old[keep], Q_old[keep]
         P, dx = self.n_particles, self.dx
         # every random number of this step is drawn here, before any state changes
         eps = self.rng.standard_normal((P, dx)) if self.version == 2 else None
@@ -419,14 +426,39 @@ class FastSlam:
         else:
             self.log_w = ln
 
-        n_pruned = self._prune(slots_old, slots_new)
+        n_pruned = self._prune(slots_seen, slots_new)
         return UpdateReport(
             n_updated=int(slots_old.size),
             n_new=int(slots_new.size),
+            n_gated=n_gated,
             n_pruned=n_pruned,
             neff=self.neff,
             resampled=resampled,
         )
+
+    def _gate(self, slots: np.ndarray, z: np.ndarray, Q: np.ndarray, model: MeasurementModel) -> np.ndarray:
+        """(N,) bool: re-observations consistent with the best particle at the χ² gate (§8's test).
+
+        The innovation covariance is H_x S H_x^T + H_m Σ_j H_m^T + Q (the FastSLAM 2.0 marginal
+        of §10, with S the pending motion covariance where there is one). Correspondences are
+        shared by all particles, so the test is made once per frame; when it would reject more
+        than half of them the pose is more likely wrong than the data, and nothing is gated.
+        """
+        k = self.best
+        n = slots.size
+        x = np.repeat(self.pose[k][None], n, 0)
+        m, C = self.store.gather_particle(k, slots)
+        zhat, Hx, Hm = model.h(x, m)
+        L = Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
+        if self.pending_S is not None:
+            L = L + Hx @ self.pending_S[k] @ np.swapaxes(Hx, -1, -2)
+        nu = model.innovation(z, zhat)
+        d2 = np.einsum("ni,ni->n", nu, np.linalg.solve(L, nu[..., None])[..., 0])
+        thr = self.params.gate_chi2_2d if model.dz == 2 else self.params.gate_chi2_3d
+        keep = d2 <= thr
+        if np.count_nonzero(~keep) * 2 > n:
+            return np.ones(n, bool)
+        return keep
 
     def _select(self, idx: np.ndarray) -> None:
         """Replace the particle set by ``particles[idx]`` (any count) with uniform weights.
