@@ -58,6 +58,7 @@ from robotd.autopilot import (
 from robotd.errors import DriverError, RobotdError
 from robotd.geometry import euler_to_R
 from robotd.msgs import Odometry, PoseEstimate
+from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger(__name__)
 
@@ -253,8 +254,7 @@ class MavlinkVehicle:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.Lock()  # guards the shared state below
-        self._cond = threading.Condition()
-        self._queue: deque[Odometry] = deque()
+        self._queue: DropOldestQueue[Odometry] = DropOldestQueue(self.opts.queue_size)
         self._rx: threading.Thread | None = None
         self._tx: threading.Thread | None = None
         self._pending_pose: tuple[PoseEstimate, int, int] | None = None
@@ -345,8 +345,7 @@ class MavlinkVehicle:
             except OSError:
                 pass
             self._conn = None
-        with self._cond:
-            self._cond.notify_all()
+        self._queue.close()  # wakes a consumer waiting in odometry()
 
     # -- public API ----------------------------------------------------------------------------
     def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
@@ -379,19 +378,12 @@ class MavlinkVehicle:
         iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
         """
         while not self._stop.is_set():
-            with self._cond:
-                if not self._queue:
-                    self._cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout_s)
-                if not self._queue:
-                    continue
-                item = self._queue.popleft()
-            yield item
+            item = self._queue.get(timeout_s)
+            if item is not None:
+                yield item
 
     def drain(self) -> list[Odometry]:
-        with self._cond:
-            items = list(self._queue)
-            self._queue.clear()
-        return items
+        return self._queue.drain()
 
     def latest_controls(self) -> ControlSample | None:
         return self._controls
@@ -600,13 +592,9 @@ class MavlinkVehicle:
         self.origin_confirmed = True
 
     def _emit(self, odo: Odometry) -> None:
-        with self._cond:
-            if len(self._queue) >= self.opts.queue_size:
-                self._queue.popleft()
-                self.c["drops"] += 1
-            self._queue.append(odo)
-            self.c["odometry"] += 1
-            self._cond.notify()
+        if not self._queue.put(odo):
+            self.c["drops"] += 1
+        self.c["odometry"] += 1
 
     def _outbox_put(self, kind: str, arg: Any) -> None:
         with self._lock:

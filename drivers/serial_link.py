@@ -19,7 +19,6 @@ import contextlib
 import logging
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -50,6 +49,7 @@ from drivers.serial_protocol import (
 )
 from robotd.errors import DriverError, RobotdError
 from robotd.msgs import Odometry, PoseEstimate
+from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger(__name__)
 
@@ -133,8 +133,7 @@ class SerialVehicle:
             raise DriverError(f"{url!r}: {exc}") from exc
         self._port: serial.Serial | None = None
         self._port_lock = threading.Lock()  # owns every write and every port swap
-        self._cond = threading.Condition()
-        self._queue: deque[Odometry] = deque()
+        self._queue: DropOldestQueue[Odometry] = DropOldestQueue(self.opts.queue_size)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._decoder = FrameDecoder()
@@ -192,8 +191,7 @@ class SerialVehicle:
             self._thread = None
         self._close_port()
         self.state = "closed"
-        with self._cond:
-            self._cond.notify_all()
+        self._queue.close()  # wakes a consumer waiting in odometry()
 
     def _open_port(self) -> None:
         port = serial.Serial(
@@ -321,13 +319,9 @@ class SerialVehicle:
         else:
             return
         odo = Odometry(int(t_ns), np.array([v, 0.0, 0.0]), np.array([0.0, 0.0, w]), source="serial")
-        with self._cond:
-            if len(self._queue) >= self.opts.queue_size:
-                self._queue.popleft()
-                self._counters["drops"] += 1
-            self._queue.append(odo)
-            self._counters["odometry"] += 1
-            self._cond.notify()
+        if not self._queue.put(odo):
+            self._counters["drops"] += 1
+        self._counters["odometry"] += 1
 
     # -- writer --------------------------------------------------------------------------------
     def _write(self, msg: HostPose | VersionRequest) -> bool:
@@ -354,20 +348,13 @@ class SerialVehicle:
         iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
         """
         while not self._stop.is_set():
-            with self._cond:
-                if not self._queue:
-                    self._cond.wait_for(lambda: bool(self._queue) or self._stop.is_set(), timeout_s)
-                if not self._queue:
-                    continue
-                item = self._queue.popleft()
-            yield item
+            item = self._queue.get(timeout_s)
+            if item is not None:
+                yield item
 
     def drain(self) -> list[Odometry]:
         """Everything queued so far, oldest first, without waiting."""
-        with self._cond:
-            items = list(self._queue)
-            self._queue.clear()
-        return items
+        return self._queue.drain()
 
     def latest_controls(self) -> ControlSample | None:
         """The last throttle/steering the MCU reported, or None."""
