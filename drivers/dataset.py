@@ -27,6 +27,7 @@ recorded odometry.
 
 from __future__ import annotations
 
+import abc
 import itertools
 import logging
 import re
@@ -184,7 +185,7 @@ class FrameEntry:
     truth_T_world_robot: np.ndarray | None = None  # (4, 4)
 
 
-class _ImageDatasetCamera:
+class _ImageDatasetCamera(abc.ABC):
     """Common replay logic of the folder datasets: select, load, rectify, pace, count."""
 
     url: str
@@ -211,8 +212,9 @@ class _ImageDatasetCamera:
     def stats(self) -> dict[str, Any]:
         return dict(self._stats)
 
+    @abc.abstractmethod
     def rectified_model(self) -> RectifiedStereo:
-        raise NotImplementedError
+        """The rectified rig of the dataset (each layout reads it from its own calibration files)."""
 
     def _rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return left, right
