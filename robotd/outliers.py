@@ -25,6 +25,7 @@ re-fit on the inliers and one re-classification, and "accept none" below ``min_i
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -94,7 +95,13 @@ class OutlierParams:
 
     def chi2_threshold(self, dof: int) -> float:
         """χ²_{dof, confidence}: 11.345 for (3, 0.99), 9.210 for (2, 0.99)."""
-        return float(chi2.ppf(self.confidence, dof))
+        return _chi2_ppf(self.confidence, dof)
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_ppf(p: float, dof: int) -> float:
+    # scipy's ppf costs ≈ 0.2 ms per call, and RANSAC runs once or twice per frame
+    return float(chi2.ppf(p, dof))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -329,17 +336,20 @@ def fit_similarity_mahalanobis(
     k_rot = 3 if d == 3 else 1
     npar = d + k_rot + (1 if with_scale else 0)
     H = np.eye(npar)
+    # J (N, d, npar) is rebuilt in place; its ∂e/∂δt = −I block never changes
+    J = np.zeros((n, d, npar))
+    J[:, np.arange(d), np.arange(d)] = -1.0
     for _ in range(max(1, iterations)):
         sRa = s * (a @ R.T)
         e = b - (sRa + t)
         # e decreases by the model's increment: ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) sRa)/∂δθ, ∂e/∂δσ = −sRa
-        cols = [-np.broadcast_to(np.eye(d), (n, d, d)), -_skew_rows(sRa)]
+        J[:, :, d : d + k_rot] = -_skew_rows(sRa)
         if with_scale:
-            cols.append(-sRa[:, :, None])
-        J = np.concatenate(cols, axis=2)  # (N, d, npar)
-        JW = np.einsum("nki,nkl->nil", J, W)
-        H = np.einsum("nil,nlj->ij", JW, J)
-        g = np.einsum("nil,nl->i", JW, e)
+            J[:, :, -1] = -sRa
+        # H = Σ Jᵢᵀ Wᵢ Jᵢ and g = Σ Jᵢᵀ Wᵢ eᵢ as two flat products over the stacked (N·d) rows
+        JW = np.matmul(J.transpose(0, 2, 1), W).transpose(1, 0, 2).reshape(npar, n * d)
+        H = JW @ J.reshape(n * d, npar)
+        g = JW @ e.reshape(n * d)
         try:
             delta = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:

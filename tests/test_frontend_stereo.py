@@ -121,6 +121,48 @@ def test_ratio_and_cross_check_by_hand():
     assert sorted(zip(i[sel].tolist(), j[sel].tolist())) == [(0, 0), (3, 0)]
 
 
+def _ratio_cross_reference(i, j, d, n_j, ratio, max_single, cross_check):
+    """Per-feature loop: best = smallest distance, earliest pair on ties (the vectorised contract)."""
+    keep = []
+    for li in np.unique(i):
+        idx = np.flatnonzero(i == li)
+        best = idx[np.argmin(d[idx])]  # argmin returns the first of equal minima
+        rest = np.delete(d[idx], np.flatnonzero(idx == best)[0])
+        ok = d[best] < ratio * rest.min() if rest.size else d[best] <= max_single
+        if ok:
+            keep.append(best)
+    keep = np.array(keep, np.int64)
+    if cross_check:
+        best_of_j = {int(jj): np.flatnonzero(j == jj)[np.argmin(d[j == jj])] for jj in np.unique(j)}
+        keep = keep[[best_of_j[int(j[k])] == k for k in keep]].astype(np.int64)
+    return keep
+
+
+@pytest.mark.parametrize("grouped", [True, False])
+def test_ratio_and_cross_check_matches_loop_reference(rng, grouped):
+    # integer distances make ties common (Hamming), float ones make them rare (SIFT/SURF)
+    for trial in range(40):
+        p = int(rng.integers(1, 600))
+        i = rng.integers(0, 60, p)
+        j = rng.integers(0, 40, p)
+        if grouped:
+            i = np.sort(i)
+        d = rng.integers(0, 12, p).astype(np.float32) if trial % 2 else rng.random(p).astype(np.float32)
+        for cc in (True, False):
+            sel, _ = ratio_and_cross_check(i, j, d, 40, 0.8, 6.0, cc)
+            ref = _ratio_cross_reference(i, j, d, 40, 0.8, 6.0, cc)
+            np.testing.assert_array_equal(np.sort(sel), np.sort(ref))
+
+
+def test_binary_distance_matrix_chunks_and_odd_widths(rng):
+    for dim in (32, 5):
+        a = rng.integers(0, 256, (37, dim), dtype=np.uint8)
+        b = rng.integers(0, 256, (23, dim), dtype=np.uint8)
+        ref = np.unpackbits(a[:, None] ^ b[None], axis=2).sum(2)
+        np.testing.assert_array_equal(distance_matrix(a, b, True), ref)
+        np.testing.assert_array_equal(distance_matrix(a, b, True, chunk_bytes=64), ref)
+
+
 def _features(xy: np.ndarray, lap: np.ndarray | None = None) -> Features:
     n = xy.shape[0]
     return Features(
