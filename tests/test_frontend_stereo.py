@@ -95,6 +95,31 @@ def test_bucketing_spreads_and_caps(rng):
     assert np.min(resp[in_corner]) >= np.sort(resp[:1800])[-in_corner.size]
 
 
+def test_bucketing_matches_per_cell_loop_reference(rng):
+    # ties in the response (quantised) exercise the stable order: earlier features win
+    h, w, rows, cols, cap = 400, 640, 4, 8, 300
+    xy = rng.uniform(0, [w, h], (2000, 2)).astype(np.float32)
+    resp = np.round(rng.gamma(2.0, 1.0, 2000), 1).astype(np.float32)
+    cell = np.minimum((xy[:, 1] * rows / h).astype(int), rows - 1) * cols + np.minimum(
+        (xy[:, 0] * cols / w).astype(int), cols - 1
+    )
+    quota = -(-cap // (rows * cols))
+    first, rest = [], []
+    for c in range(rows * cols):
+        members = [k for k in np.argsort(-resp, kind="stable") if cell[k] == c]
+        first += members[:quota]
+        rest += members[quota:]
+    first_a = np.array(first)
+    if first_a.size >= cap:
+        ref = first_a[np.argsort(-resp[first_a], kind="stable")[:cap]]
+    else:
+        rest_a = np.array(rest)
+        ref = np.r_[first_a, rest_a[np.argsort(-resp[rest_a], kind="stable")[: cap - first_a.size]]]
+    got = bucket_select(xy, resp, (h, w), cap, rows, cols)
+    assert sorted(got.tolist()) == sorted(ref.tolist())
+    assert np.all(np.diff(resp[got]) <= 0)  # strongest first
+
+
 def test_distances_match_reference(rng):
     a = rng.integers(0, 256, (20, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (15, 32), dtype=np.uint8)

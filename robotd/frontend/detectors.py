@@ -37,7 +37,8 @@ class DetectorParams:
       kept features cover the image (cell quota = ceil(max_features / cells); unused quota of
       sparse cells is refilled with the strongest remaining features).
     oversample: how many candidates (× max_features) the detector may return before bucketing.
-    orb_*: cv2.ORB knobs (FAST threshold, pyramid scale factor and levels, patch size).
+    orb_*: cv2.ORB knobs (FAST threshold, pyramid scale factor and levels, patch size, and the score
+      that ranks candidates: "harris" (Harris corner measure on the FAST corners) or "fast").
     sift_*: cv2.SIFT knobs (contrast and edge thresholds, layers per octave).
     surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default).
     """
@@ -52,6 +53,7 @@ class DetectorParams:
     orb_scale_factor: float = 1.2
     orb_n_levels: int = 8
     orb_patch_size: int = 31
+    orb_score: str = "harris"
     sift_contrast_threshold: float = 0.02
     sift_edge_threshold: float = 10.0
     sift_n_octave_layers: int = 3
@@ -66,6 +68,8 @@ class DetectorParams:
             raise ConfigError(
                 f"frontend.detector.grid_rows/grid_cols: expected >= 1, got {self.grid_rows}×{self.grid_cols}"
             )
+        if self.orb_score not in ("harris", "fast"):
+            raise ConfigError(f"frontend.detector.orb_score: expected 'harris' or 'fast', got {self.orb_score!r}")
         if self.oversample < 1.0:
             raise ConfigError(f"frontend.detector.oversample: expected >= 1, got {self.oversample}")
 
@@ -123,8 +127,12 @@ def bucket_select(
     col = np.clip((xy[:, 0] * grid_cols / max(w, 1)).astype(np.int64), 0, grid_cols - 1)
     row = np.clip((xy[:, 1] * grid_rows / max(h, 1)).astype(np.int64), 0, grid_rows - 1)
     cell = row * grid_cols + col
-    # sort by cell, then by decreasing response; rank of each feature inside its cell
-    order = np.lexsort((-response, cell))
+    # sort by cell, then by decreasing response; rank of each feature inside its cell. Two stable
+    # sorts give lexsort's order; the cell key fits int16 (≤ 64 × 64 cells), which numpy sorts by
+    # radix: ≈ 4× faster than np.lexsort on 4000 candidates
+    key_type = np.int16 if grid_rows * grid_cols <= np.iinfo(np.int16).max else np.int64
+    by_resp = np.argsort(-response, kind="stable")
+    order = by_resp[np.argsort(cell[by_resp].astype(key_type), kind="stable")]
     cell_sorted = cell[order]
     starts = np.r_[0, np.flatnonzero(np.diff(cell_sorted)) + 1]
     counts = np.diff(np.r_[starts, n])
@@ -158,6 +166,7 @@ class _OpenCVDetector:
                 edgeThreshold=params.orb_patch_size,
                 patchSize=params.orb_patch_size,
                 fastThreshold=params.orb_fast_threshold,
+                scoreType=cv2.ORB_HARRIS_SCORE if params.orb_score == "harris" else cv2.ORB_FAST_SCORE,
             )
         else:
             self._impl = cv2.SIFT.create(
@@ -176,7 +185,9 @@ class _OpenCVDetector:
         kps = self._impl.detect(image, None)
         if not kps:
             return Features.empty(dim, self.binary)
-        xy, _, _, resp = keypoints_to_arrays(kps)
+        # candidates: only positions and responses are needed to choose (size and angle are not)
+        xy = np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float32).reshape(len(kps), 2)
+        resp = np.fromiter((k.response for k in kps), np.float32, len(kps))
         if self.params.bucketing:
             keep = bucket_select(xy, resp, image.shape[:2], cap, self.params.grid_rows, self.params.grid_cols)
         else:
