@@ -38,7 +38,10 @@ class DetectorParams:
       sparse cells is refilled with the strongest remaining features).
     oversample: how many candidates (× max_features) the detector may return before bucketing.
     orb_*: cv2.ORB knobs (FAST threshold, pyramid scale factor and levels, patch size, and the score
-      that ranks candidates: "harris" (Harris corner measure on the FAST corners) or "fast").
+      that ranks candidates: "fast" (default) or "harris" (Harris corner measure on the FAST corners).
+      FAST scoring is ≈ 1 ms per 640×400 image cheaper and, with grid bucketing, measured better on
+      kitti-seq1: replay drift 0.98 % → 0.84 %, ATE 0.149 → 0.105 m; frame-to-frame median relative
+      translation error 0.037 → 0.021 at 640×400 (bench/frontend.py).
     sift_*: cv2.SIFT knobs (contrast and edge thresholds, layers per octave).
     surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default).
     """
@@ -53,7 +56,7 @@ class DetectorParams:
     orb_scale_factor: float = 1.2
     orb_n_levels: int = 8
     orb_patch_size: int = 31
-    orb_score: str = "harris"
+    orb_score: str = "fast"
     sift_contrast_threshold: float = 0.02
     sift_edge_threshold: float = 10.0
     sift_n_octave_layers: int = 3
