@@ -127,6 +127,7 @@ class FilterRun:
     step_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     map_size: np.ndarray = field(default_factory=lambda: np.zeros(0))
     landmarks_W: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    nees: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K - 1,) per-step NEES from frame 1
 
 
 def _outlier_filter(est: Any, obs: Any, rng: np.random.Generator, dim: int) -> tuple[Any, np.ndarray, float]:
@@ -251,6 +252,7 @@ def run_filter(
         step_ms=step_ms,
         map_size=map_size,
         landmarks_W=lm.xyz_W_m.copy(),
+        nees=eps,
     )
     if outliers:
         fr.mismatches_rejected = n_wrong_rej / n_wrong if n_wrong else math.nan

@@ -16,6 +16,12 @@ project each landmark to the rectified pixels (robotd.stereo.project), add pixel
 the disparity limits of §2.2, triangulate (eq. 3.2.14) and attach the first-order covariance Q_i
 (§3.1). Depth error therefore grows with range².
 
+For consistency studies (§11's NEES) ``noise_model`` swaps that recipe for noise the filters'
+model assumes exactly, with the same visibility: ``"gaussian"`` draws z ~ N(z_true, Q(z_true)) with
+the first-order stereo covariance at the true point (the ellipsoid's shape, no bias, no
+weight/error correlation), ``"isotropic"`` draws z ~ N(z_true, σ²I) with σ = ``isotropic_sigma_m``.
+Comparing the three separates what the stereo noise does to a filter from what the filter does.
+
 Odometry follows the increment models of §6.2 (2D) and §6.3 (3D): the true increment between
 consecutive poses plus Gaussian noise whose covariance M_t is reported in ``MotionIncrement.cov``.
 In 3D the rotation increment is ω = E(η_{t-1})⁻¹ (η_t − η_{t-1}), so the noiseless increment fed
@@ -41,6 +47,7 @@ from robotd.stereo import project, triangulate, triangulation_covariance
 logger = logging.getLogger(__name__)
 
 TRAJECTORIES = ("loop", "figure8", "line")
+NOISE_MODELS = ("stereo", "gaussian", "isotropic")
 
 # Variance given to the control components a 2D run does not use (z, roll, pitch), so the 6×6
 # control covariance stays positive definite for code that factors it.
@@ -73,6 +80,10 @@ class SimConfig:
     height: int = 400
     sigma_px: float = 0.5  # per pixel coordinate; the mean row has sigma_px/√2
     d_min_px: float = 5.0
+    # "stereo": pixel noise then triangulation (§12, the default); "gaussian" / "isotropic": a 3D
+    # Gaussian matching the filters' model exactly (consistency studies; see the module docstring)
+    noise_model: str = "stereo"
+    isotropic_sigma_m: float = 0.05
     depth_min_m: float = 0.3
     max_observations: int = 0  # 0: keep all visible; else the nearest ones (a front end's feature cap)
     # odometry noise (§6.2): σ = frac·distance + floor; heading σ = deg_per_m·distance + floor
@@ -89,6 +100,10 @@ class SimConfig:
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
             raise ConfigError(f"sim.dim: expected 2 or 3, got {self.dim}")
+        if self.noise_model not in NOISE_MODELS:
+            raise ConfigError(f"sim.noise_model: expected one of {NOISE_MODELS}, got {self.noise_model!r}")
+        if not self.isotropic_sigma_m > 0:
+            raise ConfigError(f"sim.isotropic_sigma_m: expected > 0, got {self.isotropic_sigma_m}")
         if self.trajectory not in TRAJECTORIES:
             raise ConfigError(f"sim.trajectory: expected one of {TRAJECTORIES}, got {self.trajectory!r}")
         for name in ("path_length_m", "speed_mps", "rate_hz", "f_px", "baseline_m", "sigma_px", "band_m"):
@@ -363,6 +378,8 @@ def measure_frame(
         ids, z, xl, xr, y = ids[near], z[near], xl[near], xr[near], y[near]
     n = len(ids)
     s = config.sigma_px
+    if config.noise_model != "stereo":
+        return ids.astype(np.int64), *_model_noise(z, xl, xr, y, config, rng)
     nxl = xl + s * rng.standard_normal(n)
     nxr = xr + s * rng.standard_normal(n)
     # each row is measured with σ; the triangulation uses their mean (σ/√2), §2.2/§3.1
@@ -374,6 +391,22 @@ def measure_frame(
     xyz = triangulate(nxl, nxr, ny, f, px, py, b)
     Q = triangulation_covariance(nxl, nxr, ny, f, px, py, b, sigma_x_px=s, sigma_y_px=s / np.sqrt(2.0))
     return ids.astype(np.int64), xyz.reshape(-1, 3), Q.reshape(-1, 3, 3)
+
+
+def _model_noise(
+    z: np.ndarray, xl: np.ndarray, xr: np.ndarray, y: np.ndarray, config: SimConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (N, 3), Q (N, 3, 3)) for the "gaussian" and "isotropic" noise models: z ~ N(z_true, Q)."""
+    n = len(z)
+    if config.noise_model == "isotropic":
+        Q = np.tile(np.eye(3) * config.isotropic_sigma_m**2, (n, 1, 1))
+    else:
+        s = config.sigma_px
+        Q = triangulation_covariance(
+            xl, xr, y, config.f_px, config.px, config.py, config.baseline_m, sigma_x_px=s, sigma_y_px=s / np.sqrt(2.0)
+        ).reshape(-1, 3, 3)
+    L = np.linalg.cholesky(Q)
+    return z + np.einsum("nij,nj->ni", L, rng.standard_normal((n, 3))), Q
 
 
 # --------------------------------------------------------------------------------------------
