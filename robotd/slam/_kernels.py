@@ -3,10 +3,17 @@
 ``fastslam_step_numba`` has the signature and the effects of
 :func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
 and agrees with it and with :mod:`robotd.slam._reference` to 1e-9 given the same ``eps``. Each
-particle is one iteration of a ``prange`` loop; inside it the §9/§10 formulas are written out
-with 2×2/3×3 closed-form inverses and a hand-written Cholesky factor, so there are no per-call
-numpy dispatch costs. Compiled with ``cache=True`` (first call compiles for a few seconds, later
-processes load the cache; ``NUMBA_CACHE_DIR`` must be writable by the service).
+particle is one iteration of a ``prange`` loop (3D: one contiguous range of particles per thread,
+sharing its scratch arrays), so there are no per-call numpy dispatch costs.
+
+- 2D (``_particle``): the §9/§10 formulas as written, 2×2 closed-form inverses, a hand-written
+  Cholesky factor.
+- 3D (``_particle3``, the daemon's hot path): the same formulas rewritten in the world frame
+  (derivation above ``_rot3t``) on register-resident tuples; the importance weight and the proposal
+  share one pass over the observations.
+
+Compiled with ``cache=True`` (first call compiles for ~20 s, later processes load the cache;
+``NUMBA_CACHE_DIR`` must be writable by the service).
 """
 
 from __future__ import annotations
@@ -363,6 +370,149 @@ def _particle(  # type: ignore[no-untyped-def]
     dlogw[k] = w
 
 
+# ---------------------------------------------------------------------------------------------
+# 3D (Cartesian §7.1) in the world frame.
+#
+# With R = R(x) and d = m - p, the measurement is z = R^T d, H_m = R^T and H_x = R^T Ĥ with
+# Ĥ = [-I | A], A[:, a] = d × W_a, where W_a is the world-frame axis of Euler angle a
+# (∂R/∂a = [W_a]× R for ZYX angles: W_roll = R e_x, W_pitch = R_z e_y, W_yaw = e_z; algorithms.md
+# §1.3). Every robot-frame innovation covariance is then Ψ = R^T Ψ_w R with
+# Ψ_w = Ĥ Σ Ĥ^T + C + R Q R^T, and with ν_w = R ν = R z - d the formulas of §9/§10 become
+#   ν^T Ψ^{-1} ν = ν_w^T Ψ_w^{-1} ν_w,  det Ψ = det Ψ_w,
+#   pose gain:      K_x ν = (Σ Ĥ^T) Ψ_w^{-1} ν_w,   K_x Ψ K_x^T = (Σ Ĥ^T) Ψ_w^{-1} (Σ Ĥ^T)^T,
+#   landmark gain:  K H = C Ψ_w^{-1} =: K_w,  K ν = K_w ν_w,  K Q K^T = K_w (R Q R^T) K_w^T,
+# so the Joseph update is (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T. These are the quantities of the
+# robot-frame formulas (the reference) up to round-off, with about a third fewer operations: H_x is
+# never formed and the Euler-angle derivatives are three cross products.
+#
+# The 3×3 algebra works on tuples, which LLVM keeps in registers (small numpy scratch arrays are
+# heap memory that it must assume may alias the landmark pool). Symmetric 3×3 matrices are
+# 6-tuples (a00, a01, a02, a11, a12, a22), general ones 9-tuples in row order. Q and the landmark
+# covariances are covariances: only their upper triangles are read.
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _rot3t(roll: float, pitch: float, yaw: float):  # type: ignore[no-untyped-def]
+    """(R_z(yaw) R_y(pitch) R_x(roll) as a 9-tuple, sin yaw, cos yaw) — the latter give W_pitch."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    R = (
+        cy * cp,
+        cy * sp * sr - sy * cr,
+        cy * sp * cr + sy * sr,
+        sy * cp,
+        sy * sp * sr + cy * cr,
+        sy * sp * cr - cy * sr,
+        -sp,
+        cp * sr,
+        cp * cr,
+    )
+    return R, sy, cy
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _sym3(C):  # type: ignore[no-untyped-def]
+    """Upper triangle of a 3×3 array as a 6-tuple."""
+    return (C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2])
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _sandwich3(R, S):  # type: ignore[no-untyped-def]
+    """R S R^T for R a 9-tuple and S a symmetric 6-tuple (returns a 6-tuple)."""
+    s00, s01, s02, s11, s12, s22 = S
+    # rows of R S
+    a0 = R[0] * s00 + R[1] * s01 + R[2] * s02
+    a1 = R[0] * s01 + R[1] * s11 + R[2] * s12
+    a2 = R[0] * s02 + R[1] * s12 + R[2] * s22
+    b0 = R[3] * s00 + R[4] * s01 + R[5] * s02
+    b1 = R[3] * s01 + R[4] * s11 + R[5] * s12
+    b2 = R[3] * s02 + R[4] * s12 + R[5] * s22
+    c0 = R[6] * s00 + R[7] * s01 + R[8] * s02
+    c1 = R[6] * s01 + R[7] * s11 + R[8] * s12
+    c2 = R[6] * s02 + R[7] * s12 + R[8] * s22
+    return (
+        a0 * R[0] + a1 * R[1] + a2 * R[2],
+        a0 * R[3] + a1 * R[4] + a2 * R[5],
+        a0 * R[6] + a1 * R[7] + a2 * R[8],
+        b0 * R[3] + b1 * R[4] + b2 * R[5],
+        b0 * R[6] + b1 * R[7] + b2 * R[8],
+        c0 * R[6] + c1 * R[7] + c2 * R[8],
+    )
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _add3(A, B):  # type: ignore[no-untyped-def]
+    """Sum of two symmetric 6-tuples."""
+    return (A[0] + B[0], A[1] + B[1], A[2] + B[2], A[3] + B[3], A[4] + B[4], A[5] + B[5])
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _inv_sym3(A):  # type: ignore[no-untyped-def]
+    """(inverse as a 6-tuple, determinant) of a symmetric 3×3 6-tuple (adjugate formula)."""
+    a00, a01, a02, a11, a12, a22 = A
+    c00 = a11 * a22 - a12 * a12
+    c01 = a12 * a02 - a01 * a22
+    c02 = a01 * a12 - a11 * a02
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    r = 1.0 / det
+    return (c00 * r, c01 * r, c02 * r, c11 * r, c12 * r, c22 * r), det
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _logpdf3(n0: float, n1: float, n2: float, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    """log N(ν; 0, S) from S^{-1} (6-tuple) and det S."""
+    maha = (
+        Si[0] * n0 * n0
+        + Si[3] * n1 * n1
+        + Si[5] * n2 * n2
+        + 2.0 * (Si[1] * n0 * n1 + Si[2] * n0 * n2 + Si[4] * n1 * n2)
+    )
+    return -0.5 * (maha + math.log(det) + 3.0 * _LOG_2PI)
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _innov3t(x, m, zm, R):  # type: ignore[no-untyped-def]
+    """(d = m - p, ν_w = R z_meas - d) as 3-tuples."""
+    d0, d1, d2 = m[0] - x[0], m[1] - x[1], m[2] - x[2]
+    z0, z1, z2 = zm[0], zm[1], zm[2]
+    nu = (
+        R[0] * z0 + R[1] * z1 + R[2] * z2 - d0,
+        R[3] * z0 + R[4] * z1 + R[5] * z2 - d1,
+        R[6] * z0 + R[7] * z1 + R[8] * z2 - d2,
+    )
+    return (d0, d1, d2), nu
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _pose_part3t(Sg, d, R, sy: float, cy: float, T):  # type: ignore[no-untyped-def]
+    """T = Σ Ĥ^T (into the 6×3 array T) and Ĥ Σ Ĥ^T (returned, 6-tuple) for Σ = Sg (6×6).
+
+    Ĥ = [-I | A] with A's columns d × W_roll, d × W_pitch, d × e_z (W_roll = R e_x,
+    W_pitch = (-sin yaw, cos yaw, 0)).
+    """
+    d0, d1, d2 = d
+    a00, a01, a02 = d1 * R[6] - d2 * R[3], -d2 * cy, d1
+    a10, a11, a12 = d2 * R[0] - d0 * R[6], -d2 * sy, -d0
+    a20, a21 = d0 * R[3] - d1 * R[0], d0 * cy + d1 * sy  # a22 = 0
+    for i in range(6):
+        s3, s4, s5 = Sg[i, 3], Sg[i, 4], Sg[i, 5]
+        T[i, 0] = -Sg[i, 0] + s3 * a00 + s4 * a01 + s5 * a02
+        T[i, 1] = -Sg[i, 1] + s3 * a10 + s4 * a11 + s5 * a12
+        T[i, 2] = -Sg[i, 2] + s3 * a20 + s4 * a21
+    return (
+        -T[0, 0] + a00 * T[3, 0] + a01 * T[4, 0] + a02 * T[5, 0],
+        -T[0, 1] + a00 * T[3, 1] + a01 * T[4, 1] + a02 * T[5, 1],
+        -T[0, 2] + a00 * T[3, 2] + a01 * T[4, 2] + a02 * T[5, 2],
+        -T[1, 1] + a10 * T[3, 1] + a11 * T[4, 1] + a12 * T[5, 1],
+        -T[1, 2] + a10 * T[3, 2] + a11 * T[4, 2] + a12 * T[5, 2],
+        -T[2, 2] + a20 * T[3, 2] + a21 * T[4, 2],
+    )
+
+
 @nb.njit(cache=True, fastmath=_FM)
 def _particle3(  # type: ignore[no-untyped-def]
     k,
@@ -383,29 +533,153 @@ def _particle3(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
-):
-    _particle(
-        k,
-        version,
-        pose,
-        S,
-        pool_mean,
-        pool_cov,
-        table,
-        bs,
-        slots_old,
-        z_old,
-        Q_old,
-        slots_new,
-        z_new,
-        Q_new,
-        eps,
-        floor,
-        out_pose,
-        dlogw,
-        6,
-        3,
-    )
+    x,
+    mu,
+    T,
+    Sx,
+    Lc,
+) -> None:
+    """The whole 3D FastSLAM step of particle k (§9, §10) in the world frame (see above).
+
+    x, mu (6,), T (6, 3), Sx, Lc (6, 6) are scratch arrays reused across particles.
+    """
+    n_old = slots_old.shape[0]
+    Sk = S[k]
+    for i in range(6):
+        x[i] = pose[k, i]
+    w = 0.0
+    if version == 2:
+        # One pass over the identified landmarks: the importance weight at the prior x̂ with S and
+        # the landmarks before the update (§10 "Importance weight"), and the Kalman-form proposal
+        # that moves μ_x, Σ_x one observation after another (§10 "Proposal").
+        R0, sy0, cy0 = _rot3t(x[3], x[4], x[5])
+        for i in range(6):
+            mu[i] = x[i]
+            for t in range(6):
+                Sx[i, t] = Sk[i, t]
+        for j in range(n_old):
+            s = slots_old[j]
+            blk = table[k, s // bs]
+            m = pool_mean[blk, s % bs]
+            C = _sym3(pool_cov[blk, s % bs])
+            Qj = _sym3(Q_old[j])
+            # weight term: L_w = Ĥ S Ĥ^T + C + R̂ Q R̂^T at x̂
+            d, nu = _innov3t(x, m, z_old[j], R0)
+            HSH = _pose_part3t(Sk, d, R0, sy0, cy0, T)
+            Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R0, Qj)))
+            w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
+            if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
+                R, sy, cy = _rot3t(mu[3], mu[4], mu[5])
+                d, nu = _innov3t(mu, m, z_old[j], R)
+                HSH = _pose_part3t(Sx, d, R, sy, cy, T)
+                Pinv, _ = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R, Qj)))
+            p00, p01, p02, p11, p12, p22 = Pinv
+            # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first three columns); μ_x += K ν_w
+            for i in range(6):
+                t0, t1, t2 = T[i, 0], T[i, 1], T[i, 2]
+                k0 = t0 * p00 + t1 * p01 + t2 * p02
+                k1 = t0 * p01 + t1 * p11 + t2 * p12
+                k2 = t0 * p02 + t1 * p12 + t2 * p22
+                Lc[i, 0], Lc[i, 1], Lc[i, 2] = k0, k1, k2
+                mu[i] += k0 * nu[0] + k1 * nu[1] + k2 * nu[2]
+            for i in range(3, 6):
+                mu[i] = _wrap(mu[i])
+            # Σ_x ← Σ_x - K T^T (symmetric: one triangle, mirrored)
+            for i in range(6):
+                k0, k1, k2 = Lc[i, 0], Lc[i, 1], Lc[i, 2]
+                for t in range(i, 6):
+                    v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1] + k2 * T[t, 2])
+                    Sx[i, t] = v
+                    Sx[t, i] = v
+        if not _cholesky_into(Sx, Lc, 6):
+            ev, V = np.linalg.eigh(Sx)
+            for i in range(6):
+                for t in range(6):
+                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
+        for i in range(6):
+            acc = 0.0
+            for t in range(6):
+                acc += Lc[i, t] * eps[k, t]
+            x[i] = mu[i] + acc
+        for i in range(3, 6):
+            x[i] = _wrap(x[i])
+    # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
+    R, _, _ = _rot3t(x[3], x[4], x[5])
+    for j in range(n_old):
+        s = slots_old[j]
+        blk = table[k, s // bs]
+        m = pool_mean[blk, s % bs]
+        Cm = pool_cov[blk, s % bs]
+        C = _sym3(Cm)
+        c00, c01, c02, c11, c12, c22 = C
+        _, nu = _innov3t(x, m, z_old[j], R)
+        Qw = _sandwich3(R, _sym3(Q_old[j]))
+        Pinv, det = _inv_sym3(_add3(C, Qw))
+        p00, p01, p02, p11, p12, p22 = Pinv
+        # K_w = C Ψ_w^{-1} (general 3×3)
+        k00 = c00 * p00 + c01 * p01 + c02 * p02
+        k01 = c00 * p01 + c01 * p11 + c02 * p12
+        k02 = c00 * p02 + c01 * p12 + c02 * p22
+        k10 = c01 * p00 + c11 * p01 + c12 * p02
+        k11 = c01 * p01 + c11 * p11 + c12 * p12
+        k12 = c01 * p02 + c11 * p12 + c12 * p22
+        k20 = c02 * p00 + c12 * p01 + c22 * p02
+        k21 = c02 * p01 + c12 * p11 + c22 * p12
+        k22 = c02 * p02 + c12 * p12 + c22 * p22
+        m[0] += k00 * nu[0] + k01 * nu[1] + k02 * nu[2]
+        m[1] += k10 * nu[0] + k11 * nu[1] + k12 * nu[2]
+        m[2] += k20 * nu[0] + k21 * nu[1] + k22 * nu[2]
+        # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T: B = (I - K_w) C row by row, then the triangle
+        b00 = (1.0 - k00) * c00 - k01 * c01 - k02 * c02
+        b01 = (1.0 - k00) * c01 - k01 * c11 - k02 * c12
+        b02 = (1.0 - k00) * c02 - k01 * c12 - k02 * c22
+        b10 = -k10 * c00 + (1.0 - k11) * c01 - k12 * c02
+        b11 = -k10 * c01 + (1.0 - k11) * c11 - k12 * c12
+        b12 = -k10 * c02 + (1.0 - k11) * c12 - k12 * c22
+        b20 = -k20 * c00 - k21 * c01 + (1.0 - k22) * c02
+        b21 = -k20 * c01 - k21 * c11 + (1.0 - k22) * c12
+        b22 = -k20 * c02 - k21 * c12 + (1.0 - k22) * c22
+        q00, q01, q02, q11, q12, q22 = Qw
+        # rows of K_w Q_w
+        e00 = k00 * q00 + k01 * q01 + k02 * q02
+        e01 = k00 * q01 + k01 * q11 + k02 * q12
+        e02 = k00 * q02 + k01 * q12 + k02 * q22
+        e10 = k10 * q00 + k11 * q01 + k12 * q02
+        e11 = k10 * q01 + k11 * q11 + k12 * q12
+        e12 = k10 * q02 + k11 * q12 + k12 * q22
+        e20 = k20 * q00 + k21 * q01 + k22 * q02
+        e21 = k20 * q01 + k21 * q11 + k22 * q12
+        e22 = k20 * q02 + k21 * q12 + k22 * q22
+        n00 = b00 * (1.0 - k00) - b01 * k01 - b02 * k02 + e00 * k00 + e01 * k01 + e02 * k02
+        n01 = -b00 * k10 + b01 * (1.0 - k11) - b02 * k12 + e00 * k10 + e01 * k11 + e02 * k12
+        n02 = -b00 * k20 - b01 * k21 + b02 * (1.0 - k22) + e00 * k20 + e01 * k21 + e02 * k22
+        n11 = -b10 * k10 + b11 * (1.0 - k11) - b12 * k12 + e10 * k10 + e11 * k11 + e12 * k12
+        n12 = -b10 * k20 - b11 * k21 + b12 * (1.0 - k22) + e10 * k20 + e11 * k21 + e12 * k22
+        n22 = -b20 * k20 - b21 * k21 + b22 * (1.0 - k22) + e20 * k20 + e21 * k21 + e22 * k22
+        Cm[0, 0], Cm[1, 1], Cm[2, 2] = n00, n11, n22
+        Cm[0, 1] = Cm[1, 0] = n01
+        Cm[0, 2] = Cm[2, 0] = n02
+        Cm[1, 2] = Cm[2, 1] = n12
+        if version == 1:
+            w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
+    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I (R(x) is still in R)
+    for j in range(slots_new.shape[0]):
+        s = slots_new[j]
+        blk = table[k, s // bs]
+        m = pool_mean[blk, s % bs]
+        Cm = pool_cov[blk, s % bs]
+        z0, z1, z2 = z_new[j, 0], z_new[j, 1], z_new[j, 2]
+        m[0] = x[0] + R[0] * z0 + R[1] * z1 + R[2] * z2
+        m[1] = x[1] + R[3] * z0 + R[4] * z1 + R[5] * z2
+        m[2] = x[2] + R[6] * z0 + R[7] * z1 + R[8] * z2
+        q00, q01, q02, q11, q12, q22 = _sandwich3(R, _sym3(Q_new[j]))
+        Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
+        Cm[0, 1] = Cm[1, 0] = q01
+        Cm[0, 2] = Cm[2, 0] = q02
+        Cm[1, 2] = Cm[2, 1] = q12
+    for i in range(6):
+        out_pose[k, i] = x[i]
+    dlogw[k] = w
 
 
 @nb.njit(cache=True, fastmath=_FM)
@@ -472,28 +746,42 @@ def _step3(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    n_chunks,
 ):
-    for k in nb.prange(pose.shape[0]):
-        _particle3(
-            k,
-            version,
-            pose,
-            S,
-            pool_mean,
-            pool_cov,
-            table,
-            bs,
-            slots_old,
-            z_old,
-            Q_old,
-            slots_new,
-            z_new,
-            Q_new,
-            eps,
-            floor,
-            out_pose,
-            dlogw,
-        )
+    # one contiguous range of particles per thread, with its scratch arrays allocated once
+    P = pose.shape[0]
+    for c in nb.prange(n_chunks):
+        x = np.empty(6)
+        mu = np.empty(6)
+        T = np.empty((6, 3))
+        Sx = np.empty((6, 6))
+        Lc = np.empty((6, 6))
+        for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+            _particle3(
+                k,
+                version,
+                pose,
+                S,
+                pool_mean,
+                pool_cov,
+                table,
+                bs,
+                slots_old,
+                z_old,
+                Q_old,
+                slots_new,
+                z_new,
+                Q_new,
+                eps,
+                floor,
+                out_pose,
+                dlogw,
+                x,
+                mu,
+                T,
+                Sx,
+                Lc,
+            )
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
@@ -561,7 +849,7 @@ def _run(
     dlogw = np.zeros(P)
     S_ = S if S is not None else np.zeros((P, dx, dx))
     eps_ = eps if eps is not None else np.zeros((P, dx))
-    (_step3 if dx == 6 else _step2)(
+    args = (
         int(version),
         np.ascontiguousarray(pose, dtype=np.float64),
         np.ascontiguousarray(S_, dtype=np.float64),
@@ -580,6 +868,10 @@ def _run(
         out_pose,
         dlogw,
     )
+    if dx == 6:
+        _step3(*args, max(1, min(P, nb.get_num_threads())))
+    else:
+        _step2(*args)
     return out_pose, dlogw
 
 
