@@ -170,8 +170,12 @@ def run_filter(
     n_particles: int = 100,
     outliers: bool = False,
     batch_ate: float = math.nan,
+    overrides: dict[str, Any] | None = None,
 ) -> FilterRun:
-    """Run one filter over a simulated run and compute the §11 metrics against its truth."""
+    """Run one filter over a simulated run and compute the §11 metrics against its truth.
+
+    ``overrides``: further :class:`SlamParams` fields (e.g. for a study of one option).
+    """
     dim = run.dim
     params = SlamParams(
         filter="ekf" if filt == "ekf_nogate" else filt,
@@ -181,6 +185,7 @@ def run_filter(
         n_particles_min=1,
         prune_enabled=False,  # the simulator's landmarks never disappear
         motion_cov_source="message",  # the simulator reports the true M_t
+        **(overrides or {}),
     )
     rng = np.random.default_rng([seed, 7919])
     est = make_estimator(params, rng)
