@@ -290,7 +290,8 @@ def candidate_pairs(
     j = order_r[np.repeat(lo, cnt) + offs]
     d = left.xy[i, 0].astype(np.float64) - right.xy[j, 0].astype(np.float64)
     ok = (d >= d_min) & (d <= d_max)
-    if params.use_laplacian:
+    if params.use_laplacian and np.any(left.laplacian) and np.any(right.laplacian):
+        # (a sign of 0 means unknown: ORB and SIFT give none, and the test would pass every pair)
         li, lj = left.laplacian[i], right.laplacian[j]
         ok &= (li == 0) | (lj == 0) | (li == lj)
     if params.max_scale_ratio is not None:
@@ -337,19 +338,21 @@ def refine_disparity(
     idx = np.flatnonzero(inside)
     if idx.size == 0:
         return d_out, ok, edge
-    L = left_img.astype(np.float32)
-    Rimg = right_img.astype(np.float32)
     r = np.arange(-half, half + 1)
     k = np.arange(-search, search + 1)
     rows = v[idx, None] + r[None, :]  # (M, P)
     cols_l = u[idx, None] + r[None, :]
-    pl = L[rows[:, :, None], cols_l[:, None, :]]  # (M, P, P)
-    # right patch centre for disparity d0 + k is column u − d0 − k
-    cols_r = (u[idx] - di[idx])[:, None, None] - k[None, :, None] + r[None, None, :]  # (M, K, P)
-    pr = Rimg[rows[:, None, :, None], cols_r[:, :, None, :]]  # (M, K, P, P)
-    pl = pl - pl.mean(axis=(1, 2), keepdims=True)
-    pr = pr - pr.mean(axis=(2, 3), keepdims=True)
-    cost = np.sum((pr - pl[:, None]) ** 2, axis=(2, 3))  # (M, K)
+    # gather from the uint8 images and convert only the patches (not two whole images)
+    pl = left_img[rows[:, :, None], cols_l[:, None, :]].astype(np.float32)  # (M, P, P)
+    # one right strip per keypoint, columns u − d0 − r − h … u − d0 + r + h: the patch for
+    # disparity d0 + k (centre u − d0 − k) is the strip's window at offset r − k
+    cols_s = (u[idx] - di[idx] - search - half)[:, None] + np.arange(2 * (search + half) + 1)[None, :]
+    strip = right_img[rows[:, :, None], cols_s[:, None, :]].astype(np.float32)  # (M, P, P + 2r)
+    pr = np.lib.stride_tricks.sliding_window_view(strip, 2 * half + 1, axis=2)[:, :, ::-1]  # (M, P, K, P)
+    # ZSSD = Σ ((pr − μ_r) − (pl − μ_l))² = Σ (diff − μ_diff)² with diff = pr − pl
+    diff = pr - pl[:, :, None, :]
+    diff -= diff.mean(axis=(1, 3), keepdims=True)
+    cost = np.einsum("mpkq,mpkq->mk", diff, diff)  # (M, K)
     kmin = np.argmin(cost, axis=1)
     at_edge = (kmin == 0) | (kmin == k.size - 1)
     kc = np.clip(kmin, 1, k.size - 2)
