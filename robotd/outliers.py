@@ -343,7 +343,14 @@ def fit_similarity_mahalanobis(
         sRa = s * (a @ R.T)
         e = b - (sRa + t)
         # e decreases by the model's increment: ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) sRa)/∂δθ, ∂e/∂δσ = −sRa
-        J[:, :, d : d + k_rot] = -_skew_rows(sRa)
+        # −_skew_rows(sRa) written in place: [sRa]× in 3-D, (y, −x) in 2-D (no per-iteration stacking)
+        if d == 3:
+            x, y, z = sRa[:, 0], sRa[:, 1], sRa[:, 2]
+            J[:, 0, 4], J[:, 0, 5] = -z, y
+            J[:, 1, 3], J[:, 1, 5] = z, -x
+            J[:, 2, 3], J[:, 2, 4] = -y, x
+        else:
+            J[:, 0, 2], J[:, 1, 2] = sRa[:, 1], -sRa[:, 0]
         if with_scale:
             J[:, :, -1] = -sRa
         # H = Σ Jᵢᵀ Wᵢ Jᵢ and g = Σ Jᵢᵀ Wᵢ eᵢ as two flat products over the stacked (N·d) rows
