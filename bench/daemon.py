@@ -67,15 +67,27 @@ def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warm
         marks["dropped"] = d.frame_q.dropped
         marks["skipped"] = d.budget.skipped if d.budget else 0
 
+    def sample_cpu() -> None:
+        time.sleep(warmup_s)
+        marks["cpu_s"] = time.process_time()
+        marks["load1"] = os.getloadavg()[0]
+
     th = threading.Thread(target=sample, daemon=True)
     th.start()
+    th_cpu = threading.Thread(target=sample_cpu, daemon=True)
+    th_cpu.start()
     t0 = time.monotonic()
     d.run()
     wall = time.monotonic() - t0
     th.join(1)
+    th_cpu.join(1)
     rss["end"] = rss_mb()
+    cpu_s = time.process_time() - marks.get("cpu_s", 0.0)
     lat = np.asarray(d.stats.latencies_ms[marks.get("latencies", 0) :])
     b = d.budget
+    processed = d.stats.steps - marks.get("processed", 0)
+    # the last 300 frames' stage times (wall clock, as the budget sees them)
+    stages = {k: {"p50": round(v["p50"], 2), "p99": round(v["p99"], 2)} for k, v in d.timer.percentiles().items()}
     return {
         "detector": detector,
         "fps": fps,
@@ -86,7 +98,7 @@ def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warm
         "latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
         "latency_max_ms": float(lat.max()) if lat.size else None,
         "frames_in": d.stats.frames_in - marks.get("frames_in", 0),
-        "processed": d.stats.steps - marks.get("processed", 0),
+        "processed": processed,
         "dropped": d.frame_q.dropped - marks.get("dropped", 0),
         "skipped": (b.skipped if b else 0) - marks.get("skipped", 0),
         "budget_level_end": b.state.level if b else None,
@@ -96,6 +108,12 @@ def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warm
         "rss_mb_start": round(rss.get("start", float("nan")), 1),
         "rss_mb_end": round(rss["end"], 1),
         "error_vs_truth_m": None if not np.isfinite(d.stats.last_error_m) else round(d.stats.last_error_m, 3),
+        # the whole process (camera rendering, SLAM, publishing) after the warm-up, per processed frame
+        "cpu_ms_per_frame": round(1e3 * cpu_s / processed, 2) if processed else None,
+        # the machine is shared: the 1-minute load average at the end of the warm-up and at the end
+        "load1_start": round(marks.get("load1", float("nan")), 2),
+        "load1_end": round(os.getloadavg()[0], 2),
+        "stage_ms": stages,
     }
 
 
@@ -106,13 +124,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=30.0, help="nominal camera rate")
     ap.add_argument("--particles", type=int, default=100)
     ap.add_argument("--detectors", default="orb,sift")
+    ap.add_argument("--cases", default="nominal,overload", help="nominal, overload (2x camera rate), or both")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     results = []
     nominal_deadline = 1000.0 / args.fps
     for det in args.detectors.split(","):
+        cases = [c.strip() for c in args.cases.split(",")]
         for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
+            if label.split()[0] not in cases:
+                continue
             r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles)
             r["case"] = label
             results.append(r)
@@ -140,12 +162,23 @@ def main(argv: list[str] | None = None) -> int:
         "rss_mb_start",
         "rss_mb_end",
         "error_vs_truth_m",
+        "cpu_ms_per_frame",
+        "load1_start",
+        "load1_end",
     ]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in results:
         cells = [f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols]
         print("| " + " | ".join(cells) + " |")
+    names = sorted({k for r in results for k in r["stage_ms"]})
+    print("\nStage wall times p50 / p99 [ms] (last 300 frames of each case)\n")
+    print("| detector | case | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for r in results:
+        st = r["stage_ms"]
+        cells = [f"{st[k]['p50']:.1f} / {st[k]['p99']:.1f}" if k in st else "-" for k in names]
+        print(f"| {r['detector']} | {r['case']} | " + " | ".join(cells) + " |")
     return 0
 
 
