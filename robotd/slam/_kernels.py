@@ -827,6 +827,93 @@ def _step2(  # type: ignore[no-untyped-def]
         )
 
 
+@nb.njit(cache=True, fastmath=_FM)
+def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # type: ignore[no-untyped-def]
+    """§6.3 motion model for every particle: p' = p + R(η) Δp, η' = wrap(η + E(roll, pitch) ω), and
+    (``want_S``) S = V M V^T + diag(extra), V = blockdiag(R, E), symmetric by construction.
+
+    u is (1, 6) (one control for all particles) or (P, 6). Returns the index of a particle at the
+    pitch singularity (|cos pitch| < cos_pitch_min; nothing after it is written) or -1.
+    """
+    P = pose.shape[0]
+    V = np.zeros((6, 6))
+    VM = np.empty((6, 6))
+    for k in range(P):
+        roll, pitch = pose[k, 3], pose[k, 4]
+        cp = math.cos(pitch)
+        if abs(cp) < cos_pitch_min:
+            return k
+        R, _, _ = _rot3t(roll, pitch, pose[k, 5])
+        cr, sr, tp = math.cos(roll), math.sin(roll), math.tan(pitch)
+        uk = u[k if u.shape[0] > 1 else 0]
+        for i in range(3):
+            out_pose[k, i] = pose[k, i] + R[3 * i] * uk[0] + R[3 * i + 1] * uk[1] + R[3 * i + 2] * uk[2]
+        out_pose[k, 3] = _wrap(roll + uk[3] + sr * tp * uk[4] + cr * tp * uk[5])
+        out_pose[k, 4] = _wrap(pitch + cr * uk[4] - sr * uk[5])
+        out_pose[k, 5] = _wrap(pose[k, 5] + sr / cp * uk[4] + cr / cp * uk[5])
+        if not want_S:
+            continue
+        for i in range(3):
+            for t in range(3):
+                V[i, t] = R[3 * i + t]
+        V[3, 3], V[3, 4], V[3, 5] = 1.0, sr * tp, cr * tp
+        V[4, 4], V[4, 5] = cr, -sr
+        V[5, 4], V[5, 5] = sr / cp, cr / cp
+        _mm_into(V, M, VM, 6, 6, 6)
+        for i in range(6):
+            for t in range(i, 6):
+                acc = 0.0
+                for c in range(6):
+                    acc += VM[i, c] * V[t, c]
+                out_S[k, i, t] = acc
+                out_S[k, t, i] = acc
+            out_S[k, i, i] += extra[i]
+    return -1
+
+
+def predict3_numba(
+    pose: np.ndarray, u: np.ndarray, M: np.ndarray, extra: np.ndarray, want_S: bool, cos_pitch_min: float
+) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """3D motion update of all particles (algorithms.md §6.3), as :func:`robotd.slam.models.motion3d`.
+
+    Args:
+        pose: (P, 6) poses; u: (6,) or (P, 6) controls (Δp_b [m], ω [rad]); M: (6, 6) control
+        covariance; extra: (6,) variances added to the diagonal of S.
+
+    Returns:
+        (new poses (P, 6) with wrapped angles, S (P, 6, 6) = V M V^T + diag(extra) or None, index of
+        a particle at the pitch singularity or -1).
+    """
+    P = pose.shape[0]
+    out_pose = np.empty((P, 6))
+    out_S = np.empty((P, 6, 6)) if want_S else np.empty((0, 6, 6))
+    bad = _predict3(
+        np.ascontiguousarray(pose, dtype=np.float64),
+        np.ascontiguousarray(np.atleast_2d(u), dtype=np.float64),
+        np.ascontiguousarray(M, dtype=np.float64),
+        np.ascontiguousarray(extra, dtype=np.float64),
+        bool(want_S),
+        float(cos_pitch_min),
+        out_pose,
+        out_S,
+    )
+    return out_pose, (out_S if want_S else None), int(bad)
+
+
+@nb.njit(cache=True)
+def copy_blocks(pool_mean, pool_cov, src, dst) -> None:  # type: ignore[no-untyped-def]
+    """Copy-on-write block copies pool[src[i]] -> pool[dst[i]] in place (no gather temporary)."""
+    n = pool_mean.shape[0]
+    pm = pool_mean.reshape((n, -1))
+    pc = pool_cov.reshape((n, -1))
+    for i in range(src.shape[0]):
+        a, b = src[i], dst[i]
+        for j in range(pm.shape[1]):
+            pm[b, j] = pm[a, j]
+        for j in range(pc.shape[1]):
+            pc[b, j] = pc[a, j]
+
+
 def _run(
     version: int,
     pose: np.ndarray,
@@ -920,7 +1007,7 @@ def fastslam_step_numba_store(
     The blocks written this step are made private first, then the kernel reads and writes the pool
     through the particles' block tables.
     """
-    store.make_writable(np.concatenate([slots_old, slots_new]))
+    store.make_writable(np.concatenate([slots_old, slots_new]), copy_blocks)
     return _run(
         version,
         pose,

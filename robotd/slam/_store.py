@@ -18,7 +18,12 @@ table entry points at it).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+
+# copy_blocks(pool_mean, pool_cov, src (n,), dst (n,)): pool blocks src -> dst
+CopyBlocksFn = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
 
 
 class LandmarkStore:
@@ -92,8 +97,12 @@ class LandmarkStore:
         o = slots % self.B
         return self.pool_mean[b, o], self.pool_cov[b, o]
 
-    def make_writable(self, slots: np.ndarray) -> None:
-        """Copy on write: give every particle its own pool block for the columns of ``slots``."""
+    def make_writable(self, slots: np.ndarray, copy_blocks: CopyBlocksFn | None = None) -> None:
+        """Copy on write: give every particle its own pool block for the columns of ``slots``.
+
+        ``copy_blocks(pool_mean, pool_cov, src, dst)`` copies pool blocks ``src`` to ``dst`` (the
+        numba one avoids numpy's gather temporary); default: numpy fancy indexing.
+        """
         cols = np.unique(slots // self.B)
         if cols.size == 0:
             return
@@ -107,8 +116,11 @@ class LandmarkStore:
             return
         new = self._alloc_blocks(pos.size)
         src = flat[pos]
-        self.pool_mean[new] = self.pool_mean[src]
-        self.pool_cov[new] = self.pool_cov[src]
+        if copy_blocks is None:
+            self.pool_mean[new] = self.pool_mean[src]
+            self.pool_cov[new] = self.pool_cov[src]
+        else:
+            copy_blocks(self.pool_mean, self.pool_cov, src, new)
         flat = flat.copy()
         flat[pos] = new
         self.table[:, cols] = flat.reshape(entries.shape)

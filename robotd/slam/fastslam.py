@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import InputError, PersistenceError
+from robotd.errors import EstimatorError, InputError, PersistenceError
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
@@ -33,6 +33,7 @@ from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_f
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
+    COS_PITCH_MIN,
     RANGE_BEARING_2D,
     MeasurementModel,
     motion3d,
@@ -275,6 +276,7 @@ class FastSlam:
         self.best = 0  # index of the highest-weight particle
         self.neff = float(P)
         self._numba_step = _load_numba(params) if params.use_numba else None
+        self._predict3 = _load_predict3() if (params.use_numba and self.dim == 3) else None
 
     @property
     def n_particles(self) -> int:
@@ -309,18 +311,37 @@ class FastSlam:
         floor = self.params.process_cov_floor
         extra = np.full(dx, floor)
         extra[2 if self.dim == 2 else 5] += var_yaw
+        # 3D odometry model: one compiled pass without the unused motion Jacobian G (same formulas)
+        fast3 = self._predict3 is not None and dt is None
         if self.version == 1:
             eps = self.rng.standard_normal((P, nu + dx))
             uk = u + eps[:, :nu] @ psd_sqrt(M).T
-            x, _, _ = self._motion(self.pose, uk, dt)
+            if fast3:
+                x = self._predict3_checked(uk, M, extra, False)[0]
+            else:
+                x, _, _ = self._motion(self.pose, uk, dt)
             self.pose = wrap_pose(x + np.sqrt(extra) * eps[:, nu:], self.dim)
             return
         if self.pending_S is not None:
             # two predicts without an update: draw the pending prior before composing the next step
             self.pose = sample_poses(self.pose, self.pending_S, self.rng.standard_normal((P, dx)), self.dim)
+        if fast3:
+            self.pose, self.pending_S = self._predict3_checked(u, M, extra, True)
+            return
         x, _, V = self._motion(self.pose, np.broadcast_to(u, (P, nu)), dt)
         self.pose = x
         self.pending_S = sym(V @ M @ np.swapaxes(V, -1, -2)) + np.diag(extra)
+
+    def _predict3_checked(
+        self, u: np.ndarray, M: np.ndarray, extra: np.ndarray, want_S: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """numba §6.3 motion of all particles; EstimatorError at the pitch singularity as ``motion3d``."""
+        assert self._predict3 is not None
+        x, S, bad = self._predict3(self.pose, u, M, extra, want_S, COS_PITCH_MIN)
+        if bad >= 0:
+            deg = float(np.rad2deg(self.pose[bad, 4]))
+            raise EstimatorError(f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
+        return x, (S if S is not None else np.empty((0, 6, 6)))
 
     # ------------------------------------------------------------------------------------ update
 
@@ -591,6 +612,15 @@ class FastSlam:
         self.pose, self.log_w, self.book = pose.copy(), log_w.copy(), book
         self.pending_S = pend.copy() if pend.shape[0] else None
         self.best, self.neff, self.t_ns = best, neff, int(state["t_ns"])
+
+
+def _load_predict3() -> Any:
+    """``predict3_numba`` or None when numba cannot be used."""
+    try:
+        from robotd.slam._kernels import predict3_numba
+    except ImportError:
+        return None
+    return predict3_numba
 
 
 def _load_numba(params: SlamParams) -> Any:
