@@ -2,9 +2,21 @@
 
 Degradation order (design.md §4): (1) cap features, halving down to ``min_features``; (2) reduce
 particles, halving down to ``min_particles``; (3) skip frames (process one in 2, then 1 in 3, …).
-A frame over its deadline, or a smoothed load above 90 % of it, moves one step down the ladder;
-``recover_after_frames`` consecutive frames below 60 % move one step back up. The daemon's
-bounded drop-oldest queues keep latency bounded meanwhile; the budget keeps the queues short.
+
+One step down the ladder when the rung does not fit: a smoothed load above 90 % of the time a
+frame may take, or overruns too frequent for a p99 within the deadline (``MISSES_TO_DEGRADE`` in
+the last ``MISS_WINDOW`` frames), or one gross overrun (over twice that time: the frame cost the
+next one). A lone frame a little late (the scheduler of a shared machine) is not a reason to
+degrade: on a 2-core machine a full-settings frame whose steady cost fits the deadline still
+overruns now and then, and a rung given up for one such frame was never won back.
+
+One step back up after ``recover_after_frames`` consecutive frames whose smoothed load would fit
+the rung above with margin (75 % for feature/particle rungs, whose cost on this pipeline falls
+far less than the features or particles do; 80 % for skipping rungs, which cost the same per
+processed frame). A step up that is undone within a few recovery periods was a failed probe:
+the wait before the next try at that rung doubles (up to ``MAX_BACKOFF`` times), so an
+unaffordable rung is not retried every second. The daemon's bounded drop-oldest queues keep
+latency bounded meanwhile; the budget keeps the queues short.
 """
 
 from __future__ import annotations
@@ -16,9 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 
 DEGRADE_LOAD = 0.9
-RECOVER_LOAD = 0.6
+RECOVER_LOAD = 0.75
 SKIP_RECOVER_LOAD = 0.8
 EWMA_ALPHA = 0.2
+MISS_WINDOW = 100  # frames over which overruns are counted
+MISSES_TO_DEGRADE = 3  # ≥ 3 % of frames late: the p99 would no longer be within the deadline
+GROSS_OVERRUN = 2.0  # a frame over twice its allowed time degrades at once
+PROBE_FRAMES = 4  # a step up undone within this many recovery periods was a failed probe
+MAX_BACKOFF = 32  # at most this many times recover_after_frames between probes of one rung
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,6 +106,9 @@ class LatencyBudget:
         self.frame_period_ms = float(frame_period_ms) if frame_period_ms else float(deadline_ms)
         self._under = 0
         self._ewma: float | None = None
+        self._misses: deque[bool] = deque(maxlen=MISS_WINDOW)  # overrun flags of recent frames on this rung
+        self._backoff = [1] * len(ladder)  # recovery wait multiplier for stepping up *to* each rung
+        self._since_step_up: int | None = None  # frames since the last step up while that probe is judged
         self.deadline_misses = 0
         self.frames = 0
         self.skipped = 0
@@ -129,18 +149,32 @@ class LatencyBudget:
         over = frame_ms > budget_now
         if over:
             self.deadline_misses += 1
-        if (over or self._ewma > DEGRADE_LOAD * budget_now) and self.level < self.max_level:
+        self._misses.append(over)
+        if self._since_step_up is not None:
+            self._since_step_up += 1
+            if self._since_step_up > PROBE_FRAMES * self.recover_after:
+                self._backoff[self.level] = 1  # the probe held: the rung is affordable again
+                self._since_step_up = None
+        too_late = frame_ms > GROSS_OVERRUN * budget_now or sum(self._misses) >= MISSES_TO_DEGRADE
+        if (too_late or self._ewma > DEGRADE_LOAD * budget_now) and self.level < self.max_level:
+            if self._since_step_up is not None:
+                # the rung we stepped up to did not hold: wait longer before probing it again
+                self._backoff[self.level] = min(MAX_BACKOFF, 2 * self._backoff[self.level])
             self.level += 1
             self.degrade_events += 1
             self._under = 0
+            self._misses.clear()
+            self._since_step_up = None
             # after a step down, judge the new level on fresh data
             self._ewma = min(self._ewma, DEGRADE_LOAD * budget_now * 0.99)
         elif self.level > 0 and self._ewma < self._recover_threshold():
             self._under += 1
-            if self._under >= self.recover_after:
+            if self._under >= self.recover_after * self._backoff[self.level - 1]:
                 self.level -= 1
                 self.recover_events += 1
                 self._under = 0
+                self._misses.clear()
+                self._since_step_up = 0
         else:
             self._under = 0
         return self.state
@@ -148,7 +182,8 @@ class LatencyBudget:
     def _recover_threshold(self) -> float:
         """Load below which one step up is taken: a skipping rung costs the same per processed
         frame as the one above it, so only the time per frame changes (80 % margin); a rung with
-        more features or particles costs more, so it needs the wider 60 % margin."""
+        more features or particles costs more, so it needs the wider 75 % margin (a failed probe
+        is undone by the degrade rules and backs off)."""
         f, p, _ = self._ladder[self.level]
         f_up, p_up, k_up = self._ladder[self.level - 1]
         margin = SKIP_RECOVER_LOAD if (f_up, p_up) == (f, p) else RECOVER_LOAD
@@ -173,4 +208,5 @@ class LatencyBudget:
             "skipped_frames": self.skipped,
             "degrade_events": self.degrade_events,
             "recover_events": self.recover_events,
+            "recent_misses": int(sum(self._misses)),
         }

@@ -131,3 +131,46 @@ def test_warmup_frames_do_not_degrade() -> None:
     assert b.state.level == 0 and b.deadline_misses == 0
     b.record(900.0)
     assert b.state.level == 1
+
+
+def test_isolated_overruns_do_not_degrade_but_frequent_ones_do() -> None:
+    # a steady 22 ms frame on a 33 ms deadline with one 40 ms frame in every 100: p99 fits, stay
+    b = LatencyBudget(33.0, 1000, 100, 200, 20, recover_after_frames=30)
+    for k in range(1000):
+        b.record(40.0 if k % 100 == 50 else 22.0)
+    assert b.state.level == 0 and b.deadline_misses == 10 and b.degrade_events == 0
+    # three late frames within 100 (3 %): the p99 would be over the deadline, step down once
+    for k in range(30):
+        b.record(40.0 if k % 10 == 0 else 22.0)
+    assert b.state.level == 1 and b.degrade_events == 1
+    # one frame over twice the deadline degrades at once
+    b.record(70.0)
+    assert b.state.level == 2
+
+
+def test_recovers_to_full_settings_when_the_degraded_rungs_barely_save_time() -> None:
+    # the per-frame cost is mostly fixed (22 ms at every rung): a load that fits the deadline
+    # with 25 % margin must bring the budget back to nominal after a burst of overload
+    b = LatencyBudget(33.3, 1000, 100, 200, 20, recover_after_frames=30)
+    for _ in range(4):
+        b.record(80.0)
+    assert b.state.level == 4
+    for _ in range(30 * 4 + 20):
+        b.record(22.0)
+    assert b.state.level == 0 and b.state.max_features == 1000 and b.state.n_particles == 100
+
+
+def test_failed_probes_back_off() -> None:
+    # nominal costs 40 ms (over the 33 ms deadline), one rung down 20 ms: probing nominal every
+    # 30 frames would overrun again and again; doubling waits keep the probes rare
+    b = LatencyBudget(33.0, 1000, 100, 500, 100, recover_after_frames=30, max_skip=1)
+    assert b.max_level == 1
+    probes = 0
+    for _ in range(5000):
+        before = b.state.level
+        b.record(40.0 if b.state.level == 0 else 20.0)
+        probes += before == 1 and b.state.level == 0
+    assert b.recover_events == probes
+    # waits of 30, 60, ..., 960 frames (capped at 32×): about 5 + 5000 / 960 probes, not 5000 / 30
+    assert 5 <= probes <= 12
+    assert b.deadline_misses <= 3 * probes + 1
