@@ -141,6 +141,14 @@ def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
     """
     from robotd.slam.resampling import effective_sample_size, low_variance_indices
 
+    copier: Any = None
+    try:  # the block copier FastSLAM's numba path uses
+        from robotd.slam._kernels import copy_blocks
+
+        copier = copy_blocks
+    except ImportError:
+        pass
+
     rng = np.random.default_rng(0)
     est = make_estimator(SlamParams(filter="fastslam2", dim=3, n_particles=P, prune_enabled=False), rng)
     assert isinstance(est, FastSlam)
@@ -169,7 +177,7 @@ def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
         start = int(rng.integers(0, max(M - 2 * n_obs, 0) + 1))
         slots = start + rng.choice(min(2 * n_obs, M), size=n_obs, replace=False)
         t0 = time.perf_counter()
-        est.store.make_writable(slots)
+        est.store.make_writable(slots, copier)
         write_t.append(time.perf_counter() - t0)
     per_particle = M * (3 + 9) * 8
     return {
@@ -189,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="reduced grid, < 1 min")
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--budget", type=float, default=None, help="seconds of timing per cell")
+    ap.add_argument(
+        "--target-repeats", type=int, default=5, help="extra timings of the target cell, for its spread (default 5)"
+    )
     args = ap.parse_args(argv)
 
     if args.quick:
@@ -230,6 +241,12 @@ def main(argv: list[str] | None = None) -> int:
         and r["path"] == "numba1"
         and not r["obs_spread"]
     )
+    # the target cell again, several times: on a shared machine one cell's median is noisy
+    repeats = [
+        time_filter("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"]
+        for i in range(max(0, args.target_repeats))
+    ]
+    medians = [target["median_ms"], *repeats]
     conditions = {
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
@@ -238,9 +255,12 @@ def main(argv: list[str] | None = None) -> int:
         "note": "shared 2-core machine with other jobs running; figures are pessimistic",
         "load_avg_1min_start": round(os.getloadavg()[0], 2),
         "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "numba_threads_env": os.environ.get("NUMBA_NUM_THREADS"),
+        "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "quick": bool(args.quick),
         "budget_s_per_cell": budget,
     }
+    mom = round(float(np.median(medians)), 3)
     out = {
         "benchmark": "fastslam",
         "conditions": conditions,
@@ -251,6 +271,11 @@ def main(argv: list[str] | None = None) -> int:
             "median_ms": target["median_ms"],
             "min_ms": target["min_ms"],
             "goal_ms": 5.0,
+            # medians of the grid's run and of --target-repeats reruns (seeds 1…n)
+            "run_medians_ms": medians,
+            "median_of_medians_ms": mom,
+            "spread_ms": round(max(medians) - min(medians), 3),
+            "met": mom <= 5.0,
         },
     }
     if args.json:
@@ -281,7 +306,9 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         "\nTarget (FastSLAM 2.0, 3D, 100 particles, 100 obs, 1000 landmarks, 1 thread): "
-        f"median {target['median_ms']:.2f} ms, fastest step {target['min_ms']:.2f} ms (goal 5 ms)"
+        f"median {target['median_ms']:.2f} ms, fastest step {target['min_ms']:.2f} ms (goal 5 ms); "
+        f"medians over {len(medians)} runs {min(medians):.2f}–{max(medians):.2f} ms, "
+        f"median {mom:.2f} ms: goal {'met' if mom <= 5.0 else 'NOT met'}"
     )
     print(f"Conditions: {conditions}")
     return 0

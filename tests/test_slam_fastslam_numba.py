@@ -124,3 +124,11 @@ def test_numba_block_copies_match_numpy_store() -> None:
         assert stores[0].n_copied_blocks == stores[1].n_copied_blocks
     for a, b in zip(stores[0].dense(n), stores[1].dense(n)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_angle_addition_matches_trig_on_both_branches() -> None:
+    rng = np.random.default_rng(6)
+    for a in rng.uniform(-np.pi, np.pi, 20):
+        for delta in (0.0, 1e-9, -3e-4, 0.0499, -0.0501, 0.7, -2.5):
+            c, s = K._turn(np.cos(a), np.sin(a), delta)
+            assert abs(c - np.cos(a + delta)) < 1e-15 and abs(s - np.sin(a + delta)) < 1e-15, (a, delta)

@@ -1058,7 +1058,13 @@ def fastslam_step_numba_store(
 
 
 def warmup() -> None:
-    """Compile (first run) or load from the cache (later runs) both kernel variants on tiny inputs."""
+    """Compile (first run) or load from the cache (later runs) every kernel on tiny inputs."""
+    st = LandmarkStore(2, 3, 2)
+    st.ensure_capacity(2)
+    st.select(np.array([0, 0]))
+    st.make_writable(np.array([0]), copy_blocks)
+    for want_S in (False, True):
+        predict3_numba(np.zeros((2, 6)), np.zeros(6), np.eye(6), np.zeros(6), want_S, 1e-3)
     for dx, dm in ((6, 3), (3, 2)):
         P, n = 2, 2
         pose = np.zeros((P, dx))
