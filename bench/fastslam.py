@@ -69,6 +69,16 @@ def _obs(
     return Observations(t, z, cov, ids[sel], np.zeros(sel.size, bool))
 
 
+def _threads_used(threads: int) -> int:
+    """numba threads a row really ran with (NUMBA_NUM_THREADS caps the request)."""
+    try:
+        import numba
+
+        return min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1)))
+    except ImportError:
+        return 0
+
+
 def time_filter(
     filt: str,
     P: int,
@@ -122,7 +132,7 @@ def time_filter(
         "p99_ms": round(float(np.percentile(a, 99)), 3),
         # on a shared machine the fastest step approximates the uncontended cost
         "min_ms": round(float(np.min(a)), 3),
-        "path": f"numba{threads}" if (use_numba and filt != "ekf") else "numpy",
+        "path": f"numba{_threads_used(threads)}" if (use_numba and filt != "ekf") else "numpy",
         "steps": len(times),
         "resampled_frac": round(n_res / len(times), 3),
         "block": block,
