@@ -24,37 +24,40 @@ def _spd(rng: np.random.Generator, shape: tuple[int, ...], n: int, scale: float,
     return A @ np.swapaxes(A, -1, -2) + floor * np.eye(n)
 
 
-def _problem3(seed: int, P: int = 9, n_old: int = 12, n_new: int = 4):
-    """Poses with large roll and pitch (±0.9 rad) and yaw anywhere, so every Euler derivative matters."""
+def _problem(dim: int, seed: int, P: int = 9, n_old: int = 12, n_new: int = 4):
+    """Poses with yaw anywhere and (3D) large roll and pitch (±0.9 rad), so every angle derivative matters."""
     rng = np.random.default_rng(seed)
-    pose = np.zeros((P, 6))
-    pose[:, :3] = rng.normal(0, 1.0, (P, 3))
-    pose[:, 3:5] = rng.uniform(-0.9, 0.9, (P, 2))
-    pose[:, 5] = rng.uniform(-np.pi, np.pi, P)
+    dx = 3 if dim == 2 else 6
+    pose = np.zeros((P, dx))
+    pose[:, :dim] = rng.normal(0, 1.0, (P, dim))
+    if dim == 3:
+        pose[:, 3:5] = rng.uniform(-0.9, 0.9, (P, 2))
+    pose[:, -1] = rng.uniform(-np.pi, np.pi, P)
     cap = n_old + n_new + 2
-    lm_mean = rng.uniform(-6, 6, (P, cap, 3))
-    lm_cov = _spd(rng, (P, cap), 3, 0.1, 0.01)
+    lm_mean = rng.uniform(-6, 6, (P, cap, dim))
+    lm_cov = _spd(rng, (P, cap), dim, 0.1, 0.01)
     perm = rng.permutation(cap)
     so, sn = perm[:n_old], perm[n_old : n_old + n_new]
     # measurements from particle 0's view of its landmarks plus noise (other particles see innovations)
-    R0 = md._rot3_all(pose[:1, 3:])[0][0]
-    z = (lm_mean[0, np.r_[so, sn]] - pose[0, :3]) @ R0 + rng.normal(0, 0.05, (n_old + n_new, 3))
-    Q = _spd(rng, (n_old + n_new,), 3, 0.05, 0.002)
-    S = _spd(rng, (P,), 6, 0.05, 1e-4)
-    eps = rng.standard_normal((P, 6))
+    model = md.CARTESIAN_3D if dim == 3 else md.CARTESIAN_2D
+    x0 = np.repeat(pose[:1], n_old + n_new, 0)
+    z = model.h(x0, lm_mean[0, np.r_[so, sn]])[0] + rng.normal(0, 0.05, (n_old + n_new, dim))
+    Q = _spd(rng, (n_old + n_new,), dim, 0.05, 0.002)
+    S = _spd(rng, (P,), dx, 0.05, 1e-4)
+    eps = rng.standard_normal((P, dx))
     return pose, S, lm_mean, lm_cov, so, sn, z[:n_old], Q[:n_old], z[n_old:], Q[n_old:], eps
 
 
 @pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("seed", [3, 4])
-def test_world_frame_kernel_matches_reference_at_large_angles(version: int, seed: int) -> None:
-    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem3(seed)
+def test_world_frame_kernel_matches_reference_at_large_angles(version: int, dim: int, seed: int) -> None:
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem(dim, seed)
+    model = md.CARTESIAN_3D if dim == 3 else md.CARTESIAN_2D
     a_mean, a_cov = lm_mean.copy(), lm_cov.copy()
     b_mean, b_cov = lm_mean.copy(), lm_cov.copy()
     pa, wa = K.fastslam_step_numba(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12)
-    pb, wb = fastslam_step_reference(
-        version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, md.CARTESIAN_3D, 1e-12
-    )
+    pb, wb = fastslam_step_reference(version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
     for name, a, b in (("pose", pa, pb), ("dlogw", wa, wb), ("mean", a_mean, b_mean), ("cov", a_cov, b_cov)):
         np.testing.assert_allclose(a, b, atol=AGREE, rtol=0, err_msg=name)
     # the weights are informative (not a degenerate constant) and the covariances stay symmetric
@@ -63,8 +66,9 @@ def test_world_frame_kernel_matches_reference_at_large_angles(version: int, seed
 
 
 @pytest.mark.skipif(int(nb.config.NUMBA_NUM_THREADS) < 2, reason="needs two numba threads")
-def test_kernel_result_independent_of_thread_count() -> None:
-    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem3(5, P=23)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kernel_result_independent_of_thread_count(dim: int) -> None:
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem(dim, 5, P=23)
     out = []
     before = nb.get_num_threads()
     try:

@@ -3,16 +3,16 @@
 ``fastslam_step_numba`` has the signature and the effects of
 :func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
 and agrees with it and with :mod:`robotd.slam._reference` to 1e-9 given the same ``eps``. Each
-particle is one iteration of a ``prange`` loop (3D: one contiguous range of particles per thread,
+particle is one iteration of a ``prange`` loop (one contiguous range of particles per thread,
 sharing its scratch arrays), so there are no per-call numpy dispatch costs.
 
-- 2D (``_particle``): the §9/§10 formulas as written, 2×2 closed-form inverses, a hand-written
-  Cholesky factor.
-- 3D (``_particle3``, the daemon's hot path): the same formulas rewritten in the world frame
-  (derivation above ``_rot3t``) on register-resident tuples; the importance weight and the proposal
-  share one pass over the observations.
+Both dimensions (``_particle3``, ``_particle2``) evaluate the §9/§10 formulas rewritten in the world
+frame (derivation above ``_rot3_cs``), which needs about a third fewer operations than the
+robot-frame form of the reference, on tuples that LLVM keeps in registers; the importance weight
+and the proposal share one pass over the observations, and the proposal advances the cosines and
+sines of the pose angles instead of calling trig functions per observation.
 
-Compiled with ``cache=True`` (first call compiles for ~20 s, later processes load the cache;
+Compiled with ``cache=True`` (first call compiles for ~10–20 s, later processes load the cache;
 ``NUMBA_CACHE_DIR`` must be writable by the service).
 """
 
@@ -53,117 +53,6 @@ def _mm_into(A, B, C, n: int, k: int, m: int) -> None:  # type: ignore[no-untype
 
 
 @nb.njit(cache=True, fastmath=_FM)
-def _mmT_into(A, B, C, n: int, k: int, m: int) -> None:  # type: ignore[no-untyped-def]
-    """C = A @ B.T for (n, k) @ (m, k)^T."""
-    for i in range(n):
-        for j in range(m):
-            acc = 0.0
-            for t in range(k):
-                acc += A[i, t] * B[j, t]
-            C[i, j] = acc
-
-
-@nb.njit(cache=True, fastmath=_FM)
-def _inv_det_into(A, inv, n: int) -> float:  # type: ignore[no-untyped-def]
-    """Closed-form inverse (into ``inv``) and determinant of a 2×2 or 3×3 matrix (formulas of _linalg)."""
-    if n == 2:
-        d = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-        inv[0, 0] = A[1, 1] / d
-        inv[0, 1] = -A[0, 1] / d
-        inv[1, 0] = -A[1, 0] / d
-        inv[1, 1] = A[0, 0] / d
-        return d
-    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
-    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
-    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
-    c10 = A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]
-    c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]
-    c12 = A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]
-    c20 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
-    c21 = A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]
-    c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-    d = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
-    inv[0, 0] = c00 / d
-    inv[0, 1] = c10 / d
-    inv[0, 2] = c20 / d
-    inv[1, 0] = c01 / d
-    inv[1, 1] = c11 / d
-    inv[1, 2] = c21 / d
-    inv[2, 0] = c02 / d
-    inv[2, 1] = c12 / d
-    inv[2, 2] = c22 / d
-    return d
-
-
-@nb.njit(cache=True, fastmath=_FM)
-def _rot_into(x, R, D, dm: int) -> None:  # type: ignore[no-untyped-def]
-    """R(x's angles) into R; 3D: ∂R/∂(roll, pitch, yaw) into D[0..2] (algorithms.md §1.3, expanded ZYX).
-
-    2D: R is the 2×2 R2(ψ) and D[0] its derivative.
-    """
-    if dm == 2:
-        c, s = math.cos(x[2]), math.sin(x[2])
-        R[0, 0], R[0, 1], R[1, 0], R[1, 1] = c, -s, s, c
-        D[0, 0, 0], D[0, 0, 1], D[0, 1, 0], D[0, 1, 1] = -s, -c, c, -s
-        return
-    cr, sr = math.cos(x[3]), math.sin(x[3])
-    cp, sp = math.cos(x[4]), math.sin(x[4])
-    cy, sy = math.cos(x[5]), math.sin(x[5])
-    R[0, 0], R[0, 1], R[0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    R[1, 0], R[1, 1], R[1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    R[2, 0], R[2, 1], R[2, 2] = -sp, cp * sr, cp * cr
-    # ∂R/∂roll = Rz Ry Rx'
-    D[0, 0, 0], D[0, 0, 1], D[0, 0, 2] = 0.0, cy * sp * cr + sy * sr, -cy * sp * sr + sy * cr
-    D[0, 1, 0], D[0, 1, 1], D[0, 1, 2] = 0.0, sy * sp * cr - cy * sr, -sy * sp * sr - cy * cr
-    D[0, 2, 0], D[0, 2, 1], D[0, 2, 2] = 0.0, cp * cr, -cp * sr
-    # ∂R/∂pitch = Rz Ry' Rx
-    D[1, 0, 0], D[1, 0, 1], D[1, 0, 2] = -cy * sp, cy * cp * sr, cy * cp * cr
-    D[1, 1, 0], D[1, 1, 1], D[1, 1, 2] = -sy * sp, sy * cp * sr, sy * cp * cr
-    D[1, 2, 0], D[1, 2, 1], D[1, 2, 2] = -cp, -sp * sr, -sp * cr
-    # ∂R/∂yaw = Rz' Ry Rx
-    D[2, 0, 0], D[2, 0, 1], D[2, 0, 2] = -sy * cp, -sy * sp * sr - cy * cr, -sy * sp * cr + cy * sr
-    D[2, 1, 0], D[2, 1, 1], D[2, 1, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    D[2, 2, 0], D[2, 2, 1], D[2, 2, 2] = 0.0, 0.0, 0.0
-
-
-@nb.njit(cache=True, fastmath=_FM)
-def _meas_into(x, m, want_hx: bool, R, D, d, z, Hx, Hm, dm: int) -> None:  # type: ignore[no-untyped-def]
-    """Cartesian h(x, m) (§7.1 in 3D, §7.2 in 2D) into z, H_x (if wanted), H_m = R^T.
-
-    R, D must hold R(x) and its derivatives (``_rot_into``): poses that do not change between
-    observations compute them once.
-    """
-    for i in range(dm):
-        d[i] = m[i] - x[i]
-    for i in range(dm):
-        acc = 0.0
-        for j in range(dm):
-            acc += R[j, i] * d[j]
-            Hm[i, j] = R[j, i]
-        z[i] = acc
-    if want_hx:
-        for i in range(dm):
-            for j in range(dm):
-                Hx[i, j] = -R[j, i]
-        na = 1 if dm == 2 else 3
-        for a in range(na):
-            for i in range(dm):
-                acc = 0.0
-                for j in range(dm):
-                    acc += D[a, j, i] * d[j]
-                Hx[i, dm + a] = acc
-
-
-@nb.njit(cache=True, fastmath=_FM)
-def _logpdf(nu, Sinv, det: float, n: int) -> float:  # type: ignore[no-untyped-def]
-    maha = 0.0
-    for i in range(n):
-        for j in range(n):
-            maha += nu[i] * Sinv[i, j] * nu[j]
-    return -0.5 * (maha + math.log(det) + n * _LOG_2PI)
-
-
-@nb.njit(cache=True, fastmath=_FM)
 def _cholesky_into(A, L, n: int) -> bool:  # type: ignore[no-untyped-def]
     """Lower Cholesky factor into L; False when A is not positive definite."""
     for i in range(n):
@@ -182,192 +71,6 @@ def _cholesky_into(A, L, n: int) -> bool:  # type: ignore[no-untyped-def]
                 s -= L[i, t] * L[j, t]
             L[i, j] = s / L[j, j]
     return True
-
-
-@nb.njit(cache=True, fastmath=_FM)
-def _particle(  # type: ignore[no-untyped-def]
-    k,
-    version,
-    pose,
-    S,
-    pool_mean,
-    pool_cov,
-    table,
-    bs,
-    slots_old,
-    z_old,
-    Q_old,
-    slots_new,
-    z_new,
-    Q_new,
-    eps,
-    floor,
-    out_pose,
-    dlogw,
-    dx: int,
-    dm: int,
-) -> None:
-    """The whole FastSLAM step of particle k (§9, §10). dx, dm are compile-time constants."""
-    a0 = 2 if dx == 3 else 3
-    n_old = slots_old.shape[0]
-    # per-particle scratch, allocated once per particle (never per observation)
-    R = np.empty((dm, dm))
-    D = np.empty((3, dm, dm))
-    d = np.empty(dm)
-    z = np.empty(dm)
-    nu = np.empty(dm)
-    Hx = np.empty((dm, dx))
-    Hm = np.empty((dm, dm))
-    A = np.empty((dm, dm))
-    B = np.empty((dm, dm))
-    Psi = np.empty((dm, dm))
-    Pinv = np.empty((dm, dm))
-    K = np.empty((dm, dm))
-    HxS = np.empty((dm, dx))
-    RtS = np.empty((dm, dx))
-    Kx = np.empty((dx, dm))
-    SHt = np.empty((dx, dm))
-    Lc = np.empty((dx, dx))
-    Sx = np.empty((dx, dx))
-    x = np.empty(dx)
-    mu = np.empty(dx)
-    for i in range(dx):
-        x[i] = pose[k, i]
-    w = 0.0
-    if version == 2:
-        # importance weight at the prior x̂ with the landmarks before the update (§10).
-        # H_x = [-R^T | H_a] and x̂, S are fixed here, so H_x S = -R^T S[:dm] + H_a S[dm:] with R^T S[:dm]
-        # computed once per particle.
-        _rot_into(x, R, D, dm)
-        for a in range(dm):
-            for t in range(dx):
-                acc = 0.0
-                for c in range(dm):
-                    acc += R[c, a] * S[k, c, t]
-                RtS[a, t] = acc
-        for j in range(n_old):
-            s = slots_old[j]
-            _meas_into(x, pool_mean[table[k, s // bs], s % bs], True, R, D, d, z, Hx, Hm, dm)
-            for a in range(dm):
-                for t in range(dx):
-                    acc = -RtS[a, t]
-                    for c in range(dm, dx):
-                        acc += Hx[a, c] * S[k, c, t]
-                    HxS[a, t] = acc
-            _mmT_into(HxS, Hx, Psi, dm, dx, dm)
-            _mm_into(Hm, pool_cov[table[k, s // bs], s % bs], A, dm, dm, dm)
-            _mmT_into(A, Hm, B, dm, dm, dm)
-            for a in range(dm):
-                nu[a] = z_old[j, a] - z[a]
-                for b in range(dm):
-                    Psi[a, b] += B[a, b] + Q_old[j, a, b]
-            det = _inv_det_into(Psi, Pinv, dm)
-            w += _logpdf(nu, Pinv, det, dm)
-        # proposal, one observation after another (Kalman form)
-        for i in range(dx):
-            mu[i] = x[i]
-            for t in range(dx):
-                Sx[i, t] = S[k, i, t]
-        for j in range(n_old):
-            s = slots_old[j]
-            _rot_into(mu, R, D, dm)
-            _meas_into(mu, pool_mean[table[k, s // bs], s % bs], True, R, D, d, z, Hx, Hm, dm)
-            _mmT_into(Sx, Hx, SHt, dx, dx, dm)  # Σx Hx^T
-            _mm_into(Hx, SHt, Psi, dm, dx, dm)
-            _mm_into(Hm, pool_cov[table[k, s // bs], s % bs], A, dm, dm, dm)
-            _mmT_into(A, Hm, B, dm, dm, dm)
-            for a in range(dm):
-                nu[a] = z_old[j, a] - z[a]
-                for b in range(dm):
-                    Psi[a, b] += B[a, b] + Q_old[j, a, b]
-            _inv_det_into(Psi, Pinv, dm)
-            _mm_into(SHt, Pinv, Kx, dx, dm, dm)
-            for i in range(dx):
-                acc = 0.0
-                for t in range(dm):
-                    acc += Kx[i, t] * nu[t]
-                mu[i] += acc
-            for i in range(a0, dx):
-                mu[i] = _wrap(mu[i])
-            # Σx ← (I - Kx Hx) Σx = Σx - Kx (Σx Hx^T)^T, symmetric: fill the upper triangle and mirror
-            for i in range(dx):
-                for t in range(i, dx):
-                    acc = 0.0
-                    for c in range(dm):
-                        acc += Kx[i, c] * SHt[t, c]
-                    v = Sx[i, t] - acc
-                    Sx[i, t] = v
-                    Sx[t, i] = v
-        if not _cholesky_into(Sx, Lc, dx):
-            ev, V = np.linalg.eigh(Sx)
-            for i in range(dx):
-                for t in range(dx):
-                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
-        for i in range(dx):
-            acc = 0.0
-            for t in range(dx):
-                acc += Lc[i, t] * eps[k, t]
-            x[i] = mu[i] + acc
-        for i in range(a0, dx):
-            x[i] = _wrap(x[i])
-    # landmark EKFs at the sampled pose (§9 step 2), Joseph form
-    _rot_into(x, R, D, dm)
-    for j in range(n_old):
-        s = slots_old[j]
-        C = pool_cov[table[k, s // bs], s % bs]
-        _meas_into(x, pool_mean[table[k, s // bs], s % bs], False, R, D, d, z, Hx, Hm, dm)
-        _mm_into(Hm, C, A, dm, dm, dm)  # A = H C
-        _mmT_into(A, Hm, Psi, dm, dm, dm)
-        for a in range(dm):
-            nu[a] = z_old[j, a] - z[a]
-            for b in range(dm):
-                Psi[a, b] += Q_old[j, a, b]
-        det = _inv_det_into(Psi, Pinv, dm)
-        # K = C H^T Ψ^{-1} = A^T Ψ^{-1}
-        for a in range(dm):
-            for b in range(dm):
-                acc = 0.0
-                for t in range(dm):
-                    acc += A[t, a] * Pinv[t, b]
-                K[a, b] = acc
-        for a in range(dm):
-            acc = 0.0
-            for b in range(dm):
-                acc += K[a, b] * nu[b]
-            pool_mean[table[k, s // bs], s % bs, a] += acc
-        # B = I - K H; C' = B C B^T + K Q K^T, symmetrised
-        _mm_into(K, Hm, B, dm, dm, dm)
-        for a in range(dm):
-            for b in range(dm):
-                B[a, b] = (1.0 if a == b else 0.0) - B[a, b]
-        _mm_into(B, C, A, dm, dm, dm)
-        _mmT_into(A, B, Psi, dm, dm, dm)
-        _mm_into(K, Q_old[j], A, dm, dm, dm)
-        _mmT_into(A, K, B, dm, dm, dm)
-        for a in range(dm):
-            for b in range(a, dm):
-                v = 0.5 * (Psi[a, b] + B[a, b] + Psi[b, a] + B[b, a])
-                C[a, b] = v
-                C[b, a] = v
-        if version == 1:
-            w += _logpdf(nu, Pinv, det, dm)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T (R(x) is still in R)
-    if slots_new.shape[0] > 0:
-        for j in range(slots_new.shape[0]):
-            s = slots_new[j]
-            for i in range(dm):
-                acc = x[i]
-                for t in range(dm):
-                    acc += R[i, t] * z_new[j, t]
-                pool_mean[table[k, s // bs], s % bs, i] = acc
-            _mm_into(R, Q_new[j], A, dm, dm, dm)
-            _mmT_into(A, R, B, dm, dm, dm)
-            for i in range(dm):
-                for t in range(dm):
-                    pool_cov[table[k, s // bs], s % bs, i, t] = 0.5 * (B[i, t] + B[t, i]) + (floor if i == t else 0.0)
-    for i in range(dx):
-        out_pose[k, i] = x[i]
-    dlogw[k] = w
 
 
 # ---------------------------------------------------------------------------------------------
@@ -712,6 +415,60 @@ def _particle3(  # type: ignore[no-untyped-def]
     dlogw[k] = w
 
 
+# ---------------------------------------------------------------------------------------------
+# 2D (Cartesian §7.2) in the world frame: the 3D derivation above with R = R2(ψ), H_x = R^T [-I | a],
+# a = J^T d = (d_y, -d_x) (∂R2/∂ψ = J R2, J the 90° rotation). Symmetric 2×2 matrices are
+# 3-tuples (a00, a01, a11).
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _add2(A, B):  # type: ignore[no-untyped-def]
+    """Sum of two symmetric 3-tuples."""
+    return (A[0] + B[0], A[1] + B[1], A[2] + B[2])
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _sandwich2(c: float, s: float, S):  # type: ignore[no-untyped-def]
+    """R S R^T for R = [[c, -s], [s, c]] and a symmetric 3-tuple S."""
+    s00, s01, s11 = S
+    a0, a1 = c * s00 - s * s01, c * s01 - s * s11  # row 0 of R S
+    b0, b1 = s * s00 + c * s01, s * s01 + c * s11  # row 1 of R S
+    return (a0 * c - a1 * s, a0 * s + a1 * c, b0 * s + b1 * c)
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _inv_sym2(A):  # type: ignore[no-untyped-def]
+    """(inverse as a 3-tuple, determinant) of a symmetric 2×2 3-tuple."""
+    a00, a01, a11 = A
+    det = a00 * a11 - a01 * a01
+    r = 1.0 / det
+    return (a11 * r, -a01 * r, a00 * r), det
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _logpdf2(n0: float, n1: float, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    """log N(ν; 0, S) from S^{-1} (3-tuple) and det S."""
+    maha = Si[0] * n0 * n0 + 2.0 * Si[1] * n0 * n1 + Si[2] * n1 * n1
+    return -0.5 * (maha + math.log(det) + 2.0 * _LOG_2PI)
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _innov2t(x, m, zm, c: float, s: float):  # type: ignore[no-untyped-def]
+    """(d = m - p, ν_w = R z_meas - d) as 2-tuples."""
+    d0, d1 = m[0] - x[0], m[1] - x[1]
+    return (d0, d1), (c * zm[0] - s * zm[1] - d0, s * zm[0] + c * zm[1] - d1)
+
+
+@nb.njit(cache=True, fastmath=_FM, inline="always")
+def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
+    """T = Σ Ĥ^T (into the 3×2 array T) and Ĥ Σ Ĥ^T (returned, 3-tuple) for Ĥ = [-I | (d_y, -d_x)]."""
+    a0, a1 = d[1], -d[0]
+    for i in range(3):
+        T[i, 0] = -Sg[i, 0] + Sg[i, 2] * a0
+        T[i, 1] = -Sg[i, 1] + Sg[i, 2] * a1
+    return (-T[0, 0] + a0 * T[2, 0], -T[0, 1] + a0 * T[2, 1], -T[1, 1] + a1 * T[2, 1])
+
+
 @nb.njit(cache=True, fastmath=_FM)
 def _particle2(  # type: ignore[no-untyped-def]
     k,
@@ -732,29 +489,113 @@ def _particle2(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
-):
-    _particle(
-        k,
-        version,
-        pose,
-        S,
-        pool_mean,
-        pool_cov,
-        table,
-        bs,
-        slots_old,
-        z_old,
-        Q_old,
-        slots_new,
-        z_new,
-        Q_new,
-        eps,
-        floor,
-        out_pose,
-        dlogw,
-        3,
-        2,
-    )
+    x,
+    mu,
+    T,
+    Sx,
+    Lc,
+) -> None:
+    """The whole 2D FastSLAM step of particle k (§9, §10) in the world frame (as ``_particle3``).
+
+    x, mu (3,), T (3, 2), Sx, Lc (3, 3) are scratch arrays reused across particles.
+    """
+    n_old = slots_old.shape[0]
+    Sk = S[k]
+    for i in range(3):
+        x[i] = pose[k, i]
+    w = 0.0
+    if version == 2:
+        c0, s0 = math.cos(x[2]), math.sin(x[2])
+        c, s = c0, s0
+        for i in range(3):
+            mu[i] = x[i]
+            for t in range(3):
+                Sx[i, t] = Sk[i, t]
+        for j in range(n_old):
+            sl = slots_old[j]
+            blk = table[k, sl // bs]
+            m = pool_mean[blk, sl % bs]
+            Cm = pool_cov[blk, sl % bs]
+            C = (Cm[0, 0], Cm[0, 1], Cm[1, 1])
+            Qj = (Q_old[j, 0, 0], Q_old[j, 0, 1], Q_old[j, 1, 1])
+            # weight term at x̂ (§10 "Importance weight")
+            d, nu = _innov2t(x, m, z_old[j], c0, s0)
+            Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), _sandwich2(c0, s0, Qj)))
+            w += _logpdf2(nu[0], nu[1], Pinv, det)
+            if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
+                d, nu = _innov2t(mu, m, z_old[j], c, s)
+                Pinv, _ = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), _sandwich2(c, s, Qj)))
+            p00, p01, p11 = Pinv
+            a2 = mu[2]
+            for i in range(3):
+                t0, t1 = T[i, 0], T[i, 1]
+                k0 = t0 * p00 + t1 * p01
+                k1 = t0 * p01 + t1 * p11
+                Lc[i, 0], Lc[i, 1] = k0, k1
+                mu[i] += k0 * nu[0] + k1 * nu[1]
+            c, s = _turn(c, s, mu[2] - a2)
+            mu[2] = _wrap(mu[2])
+            for i in range(3):
+                k0, k1 = Lc[i, 0], Lc[i, 1]
+                for t in range(i, 3):
+                    v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1])
+                    Sx[i, t] = v
+                    Sx[t, i] = v
+        if not _cholesky_into(Sx, Lc, 3):
+            ev, V = np.linalg.eigh(Sx)
+            for i in range(3):
+                for t in range(3):
+                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
+        for i in range(3):
+            acc = 0.0
+            for t in range(3):
+                acc += Lc[i, t] * eps[k, t]
+            x[i] = mu[i] + acc
+        x[2] = _wrap(x[2])
+    # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
+    c, s = math.cos(x[2]), math.sin(x[2])
+    for j in range(n_old):
+        sl = slots_old[j]
+        blk = table[k, sl // bs]
+        m = pool_mean[blk, sl % bs]
+        Cm = pool_cov[blk, sl % bs]
+        c00, c01, c11 = Cm[0, 0], Cm[0, 1], Cm[1, 1]
+        _, nu = _innov2t(x, m, z_old[j], c, s)
+        q00, q01, q11 = _sandwich2(c, s, (Q_old[j, 0, 0], Q_old[j, 0, 1], Q_old[j, 1, 1]))
+        Pinv, det = _inv_sym2((c00 + q00, c01 + q01, c11 + q11))
+        p00, p01, p11 = Pinv
+        # K_w = C Ψ_w^{-1}
+        k00, k01 = c00 * p00 + c01 * p01, c00 * p01 + c01 * p11
+        k10, k11 = c01 * p00 + c11 * p01, c01 * p01 + c11 * p11
+        m[0] += k00 * nu[0] + k01 * nu[1]
+        m[1] += k10 * nu[0] + k11 * nu[1]
+        # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T
+        b00, b01 = (1.0 - k00) * c00 - k01 * c01, (1.0 - k00) * c01 - k01 * c11
+        b10, b11 = -k10 * c00 + (1.0 - k11) * c01, -k10 * c01 + (1.0 - k11) * c11
+        e00, e01 = k00 * q00 + k01 * q01, k00 * q01 + k01 * q11
+        e10, e11 = k10 * q00 + k11 * q01, k10 * q01 + k11 * q11
+        n00 = b00 * (1.0 - k00) - b01 * k01 + e00 * k00 + e01 * k01
+        n01 = -b00 * k10 + b01 * (1.0 - k11) + e00 * k10 + e01 * k11
+        n11 = -b10 * k10 + b11 * (1.0 - k11) + e10 * k10 + e11 * k11
+        Cm[0, 0], Cm[1, 1] = n00, n11
+        Cm[0, 1] = Cm[1, 0] = n01
+        if version == 1:
+            w += _logpdf2(nu[0], nu[1], Pinv, det)
+    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I
+    for j in range(slots_new.shape[0]):
+        sl = slots_new[j]
+        blk = table[k, sl // bs]
+        m = pool_mean[blk, sl % bs]
+        Cm = pool_cov[blk, sl % bs]
+        z0, z1 = z_new[j, 0], z_new[j, 1]
+        m[0] = x[0] + c * z0 - s * z1
+        m[1] = x[1] + s * z0 + c * z1
+        q00, q01, q11 = _sandwich2(c, s, (Q_new[j, 0, 0], Q_new[j, 0, 1], Q_new[j, 1, 1]))
+        Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
+        Cm[0, 1] = Cm[1, 0] = q01
+    for i in range(3):
+        out_pose[k, i] = x[i]
+    dlogw[k] = w
 
 
 @nb.njit(cache=True, parallel=True, fastmath=_FM)
@@ -833,28 +674,42 @@ def _step2(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    n_chunks,
 ):
-    for k in nb.prange(pose.shape[0]):
-        _particle2(
-            k,
-            version,
-            pose,
-            S,
-            pool_mean,
-            pool_cov,
-            table,
-            bs,
-            slots_old,
-            z_old,
-            Q_old,
-            slots_new,
-            z_new,
-            Q_new,
-            eps,
-            floor,
-            out_pose,
-            dlogw,
-        )
+    # one contiguous range of particles per thread, with its scratch arrays allocated once
+    P = pose.shape[0]
+    for c in nb.prange(n_chunks):
+        x = np.empty(3)
+        mu = np.empty(3)
+        T = np.empty((3, 2))
+        Sx = np.empty((3, 3))
+        Lc = np.empty((3, 3))
+        for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+            _particle2(
+                k,
+                version,
+                pose,
+                S,
+                pool_mean,
+                pool_cov,
+                table,
+                bs,
+                slots_old,
+                z_old,
+                Q_old,
+                slots_new,
+                z_new,
+                Q_new,
+                eps,
+                floor,
+                out_pose,
+                dlogw,
+                x,
+                mu,
+                T,
+                Sx,
+                Lc,
+            )
 
 
 @nb.njit(cache=True, fastmath=_FM)
@@ -985,10 +840,7 @@ def _run(
         out_pose,
         dlogw,
     )
-    if dx == 6:
-        _step3(*args, max(1, min(P, nb.get_num_threads())))
-    else:
-        _step2(*args)
+    (_step3 if dx == 6 else _step2)(*args, max(1, min(P, nb.get_num_threads())))
     return out_pose, dlogw
 
 
