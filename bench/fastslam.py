@@ -211,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         "--target-repeats", type=int, default=5, help="extra timings of the target cell, for its spread (default 5)"
     )
     args = ap.parse_args(argv)
+    load_start = round(os.getloadavg()[0], 2)
 
     if args.quick:
         Ps, Ms, Ns, ekf_M = [10, 100], [100, 1000], [20, 100], [100, 300]
@@ -263,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "note": "shared 2-core machine with other jobs running; figures are pessimistic",
-        "load_avg_1min_start": round(os.getloadavg()[0], 2),
+        "load_avg_1min_start": load_start,
+        "load_avg_1min_end": round(os.getloadavg()[0], 2),
         "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "numba_threads_env": os.environ.get("NUMBA_NUM_THREADS"),
         "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
