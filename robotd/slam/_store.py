@@ -97,6 +97,10 @@ class LandmarkStore:
         o = slots % self.B
         return self.pool_mean[b, o], self.pool_cov[b, o]
 
+    def particle_means(self, k: int, slots: np.ndarray) -> np.ndarray:
+        """Particle k's landmark means of ``slots``: (N, dm) copy, world frame."""
+        return self.pool_mean[self.table[k, slots // self.B], slots % self.B]
+
     def make_writable(self, slots: np.ndarray, copy_blocks: CopyBlocksFn | None = None) -> None:
         """Copy on write: give every particle its own pool block for the columns of ``slots``.
 

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from robotd.errors import EstimatorError, InputError, PersistenceError
+from robotd.geometry import euler_to_R, rot2
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
@@ -502,15 +503,22 @@ class FastSlam:
         if not self.params.prune_enabled or self.book.n == 0:
             return 0
         active = self.book.active_slots()
-        b = self.best
-        x = np.broadcast_to(self.pose[b], (active.size, self.dx))
-        zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(x, self.store.gather_particle(b, active)[0])
-        expected = active[np.asarray(self.visible(zc), bool)]
+        expected = active[np.asarray(self.visible(self._best_view(active)), bool)]
         dead = self.book.existence_update(observed, expected, born)
         if dead.size:
             self.book.release(dead)
             logger.debug("FastSLAM pruned %d landmarks", dead.size)
         return int(dead.size)
+
+    def _best_view(self, slots: np.ndarray) -> np.ndarray:
+        """(N, dim) robot-frame positions z = R^T (m - p) of ``slots`` in the best particle (§7.1/§7.2).
+
+        The Cartesian h without its Jacobians and with one rotation: pruning looks at the whole
+        map every frame, and h's per-landmark Jacobians made that O(M) pass ~5× dearer.
+        """
+        x = self.pose[self.best]
+        R = euler_to_R(x[3:6]) if self.dim == 3 else rot2(x[2])
+        return (self.store.particle_means(self.best, slots) - x[: self.dim]) @ R
 
     # ------------------------------------------------------------------------------------ output
 
