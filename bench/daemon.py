@@ -37,8 +37,14 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warmup_s: float, particles: int) -> dict:
+def run_once(
+    detector: str, fps: float, deadline_ms: float, seconds: float, warmup_s: float, particles: int, fixed: bool = False
+) -> dict:
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"robotd-bench-{os.getpid()}"
+    budget: dict[str, float] = {"deadline_ms": deadline_ms}
+    if fixed:
+        # floors at the full settings: the budget may only skip frames (the full-settings cost)
+        budget.update(min_features=load_config(None, {}).frontend.max_features, min_particles=particles)
     cfg = load_config(
         None,
         {
@@ -46,7 +52,7 @@ def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warm
             "vehicle": {"url": f"sim://?fps={fps:g}"},
             "frontend": {"detector": detector},
             "slam": {"n_particles": particles},
-            "budget": {"deadline_ms": deadline_ms},
+            "budget": budget,
             "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]},
             "persistence": {"state_dir": str(tmp), "save_period_s": 0.0},
             "log": {"status_period_s": 5.0},
@@ -92,6 +98,7 @@ def run_once(detector: str, fps: float, deadline_ms: float, seconds: float, warm
         "detector": detector,
         "fps": fps,
         "particles": particles,
+        "fixed_settings": fixed,
         "deadline_ms": round(deadline_ms, 3),
         "seconds": round(wall - warmup_s, 2),
         "latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
@@ -125,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--particles", type=int, default=100)
     ap.add_argument("--detectors", default="orb,sift")
     ap.add_argument("--cases", default="nominal,overload", help="nominal, overload (2x camera rate), or both")
+    ap.add_argument(
+        "--fixed", action="store_true", help="keep features and particles at full settings (the budget may only skip)"
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -135,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
             if label.split()[0] not in cases:
                 continue
-            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles)
+            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed)
             r["case"] = label
             results.append(r)
             print(f"# {det} {label}: p99 {r['latency_p99_ms']} ms", file=sys.stderr)

@@ -128,6 +128,7 @@ class Daemon:
         self._save_q: DropOldestQueue[tuple[int, dict[str, Any]]] = DropOldestQueue(1)
         self.resumed = False
         self.exit_code = 0
+        self._cv_threads: int | None = None  # OpenCV's thread count before startup changed it
 
     # ------------------------------------------------------------------ signals: flags only
     def _on_signal(self, signum: int, _frame: Any) -> None:
@@ -171,6 +172,14 @@ class Daemon:
         from robotd.slam.estimator import warmup_numba
 
         warm_s = warmup_numba()
+        if self.pipeline.frontend.params.parallel_detect:
+            # the front end detects the left and right images on two threads of its own; OpenCV's
+            # worker pool on top of them only adds threads and their spin-waits (≈ 1 ms CPU per
+            # frame on 2 cores); the results do not depend on it. Restored at shutdown.
+            import cv2
+
+            self._cv_threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
         if warm_s is not None:
             logger.info("filter kernels ready in %.1f s", warm_s)
         fps = float(getattr(self.camera, "fps", 0.0) or 30.0)
@@ -558,6 +567,10 @@ class Daemon:
             t.join(JOIN_TIMEOUT_S)
             if t.is_alive():
                 logger.warning("thread %s did not stop within %.1f s", t.name, JOIN_TIMEOUT_S)
+        if self._cv_threads is not None:
+            import cv2
+
+            cv2.setNumThreads(self._cv_threads)
         self.save_final_map()
         lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
         logger.info(
