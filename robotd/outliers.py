@@ -40,6 +40,10 @@ from robotd.geometry import umeyama, umeyama_batch
 logger = logging.getLogger(__name__)
 
 METHODS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")
+# Gauss–Newton stops when its step (|δt| in m, δθ in rad, δσ) falls below this: 0.1 µm is far
+# below any stereo noise, and the iteration converges about 1000× per step, so one more step
+# would change the fit by ≈ 1e-10 only
+GN_STEP_TOL = 1e-7
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,6 +64,8 @@ class OutlierParams:
     local_optimisation: re-fit each new best hypothesis on its inliers (LO-RANSAC) before scoring
       it against the budget, repeated while it improves (at most lo_steps times); the final
       re-fit is Mahalanobis-weighted too (Umeyama for the Euclidean measure).
+    lo_gn_iterations: Gauss–Newton steps of each LO re-fit (from the sample's hypothesis the step
+      is ≈ 1e-5 m after two, far below the stereo noise); the final re-fit takes up to 5.
     """
 
     method: str = "similarity_mahalanobis"
@@ -77,6 +83,7 @@ class OutlierParams:
     batch: int = 32
     local_optimisation: bool = True
     lo_steps: int = 4
+    lo_gn_iterations: int = 2
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -87,10 +94,10 @@ class OutlierParams:
             v = getattr(self, key)
             if not 0.0 < v < 1.0:
                 raise ConfigError(f"frontend.outliers.{key}: expected in (0, 1), got {v}")
-        if self.max_iterations < 1 or self.f_max_iterations < 1 or self.batch < 1:
+        if self.max_iterations < 1 or self.f_max_iterations < 1 or self.batch < 1 or self.lo_gn_iterations < 1:
             raise ConfigError(
-                "frontend.outliers: expected max_iterations, f_max_iterations, batch >= 1, got "
-                f"{self.max_iterations}, {self.f_max_iterations}, {self.batch}"
+                "frontend.outliers: expected max_iterations, f_max_iterations, batch, lo_gn_iterations >= 1, got "
+                f"{self.max_iterations}, {self.f_max_iterations}, {self.batch}, {self.lo_gn_iterations}"
             )
 
     def chi2_threshold(self, dof: int) -> float:
@@ -365,7 +372,7 @@ def fit_similarity_mahalanobis(
         R = _exp_rot(delta[d : d + k_rot]) @ R
         if with_scale:
             s = s * math.exp(float(delta[-1]))
-        if float(np.linalg.norm(delta)) < 1e-10:
+        if float(np.linalg.norm(delta)) < GN_STEP_TOL:
             break
     try:
         cov = np.linalg.inv(H)
@@ -382,6 +389,7 @@ def _refit(
     model: tuple[float, np.ndarray, np.ndarray],
     inl: np.ndarray,
     euclidean: bool,
+    iterations: int = 5,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Re-fit a similarity on the inliers: Umeyama for the Euclidean measure, else Mahalanobis-weighted."""
     if euclidean:
@@ -394,6 +402,7 @@ def _refit(
         model[0],
         model[1],
         model[2],
+        iterations=iterations,
     )
     return s, R, t
 
@@ -470,7 +479,7 @@ def ransac_similarity(
                 # imprecise; re-fitting it on its own inliers recovers most of the consensus
                 inl_k = d2[k] <= thr
                 for _ in range(params.lo_steps):
-                    lo = _refit(a, b, A, B, model, inl_k, euclidean)
+                    lo = _refit(a, b, A, B, model, inl_k, euclidean, params.lo_gn_iterations)
                     d2_lo = similarity_d2(np.array([lo[0]]), lo[1][None], lo[2][None], a, b, A, B, euclidean)
                     _, cnt_lo, cost_lo = _best_of_batch(d2_lo, thr, params.score)
                     if abs(lo[0] - 1.0) > params.max_scale_dev or not _better(cnt_lo, cost_lo, cnt, cost, params.score):
