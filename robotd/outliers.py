@@ -290,16 +290,6 @@ def _better(cnt: int, cost: float, best_cnt: int, best_cost: float, mode: str) -
 # Mahalanobis-weighted similarity fit (re-fit on inliers)
 
 
-def _skew_rows(v: np.ndarray) -> np.ndarray:
-    """(N, d) -> (N, d, k): ∂(exp(δθ) v)/∂δθ at δθ = 0, i.e. −[v]× in 3-D (k = 3), J v⊥ in 2-D (k = 1)."""
-    if v.shape[1] == 3:
-        z = np.zeros(v.shape[0])
-        x, y, w = v[:, 0], v[:, 1], v[:, 2]
-        # −[v]× = [[0, w, −y], [−w, 0, x], [y, −x, 0]]
-        return np.stack([np.stack([z, w, -y], -1), np.stack([-w, z, x], -1), np.stack([y, -x, z], -1)], -2)
-    return np.stack([-v[:, 1], v[:, 0]], -1)[:, :, None]
-
-
 def _exp_rot(w: np.ndarray) -> np.ndarray:
     """Rotation from a 3-vector (3-D) or a 1-vector angle (2-D)."""
     if w.size == 1:
@@ -350,7 +340,7 @@ def fit_similarity_mahalanobis(
         sRa = s * (a @ R.T)
         e = b - (sRa + t)
         # e decreases by the model's increment: ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) sRa)/∂δθ, ∂e/∂δσ = −sRa
-        # −_skew_rows(sRa) written in place: [sRa]× in 3-D, (y, −x) in 2-D (no per-iteration stacking)
+        # ∂e/∂δθ = −∂(exp(δθ) v)/∂δθ = [v]× for v = sRa in 3-D, (v_y, −v_x) in 2-D, written in place
         if d == 3:
             x, y, z = sRa[:, 0], sRa[:, 1], sRa[:, 2]
             J[:, 0, 4], J[:, 0, 5] = -z, y
