@@ -88,6 +88,11 @@ class SlamConfig:
     dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
     n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
+    fs2_weights: str = _f(
+        "sequential",
+        "FastSLAM 2.0 weight: chain rule over the proposal's innovations, or §10's product at the prior",
+        choices=("sequential", "prior"),
+    )
     max_updates_per_frame: int = _f(
         80, "identified measurements fused per frame at most (the filter's cost grows with it)", min=3, max=10000
     )

@@ -72,6 +72,7 @@ def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> 
         "n_particles": cfg.slam.n_particles,
         "n_particles_min": n_min,
         "resample_neff_ratio": cfg.slam.resample_neff_ratio,
+        "fs2_weights": cfg.slam.fs2_weights,
     }
     if rig is not None:
         # the pruning field of view and range follow the rig and the disparity limits (§2.2)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -323,3 +325,86 @@ def test_warmup_numba_loads_kernels() -> None:
 
     took = warmup_numba()
     assert took is not None and took >= 0.0
+
+
+@pytest.mark.parametrize("model", CART, ids=[m.name for m in CART])
+def test_sequential_weights_and_proposal_outputs_agree_across_paths(model: md.MeasurementModel) -> None:
+    """fs2_weights="sequential" and the proposal outputs: numpy, numba and the reference agree."""
+    from robotd.slam._kernels import fastslam_step_numba
+
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 6, 8, 3, seed=13)
+    P, dx = pose.shape
+    outs = []
+    for fn in ("numpy", "numba", "reference"):
+        mean, cov = lm_mean.copy(), lm_cov.copy()
+        mu, Sx = np.empty((P, dx)), np.empty((P, dx, dx))
+        if fn == "numpy":
+            p, w = fastslam_step(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx)
+        elif fn == "numba":
+            p, w = fastslam_step_numba(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, True, mu, Sx)
+        else:
+            p, w = fastslam_step_reference(
+                2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx
+            )
+        outs.append((p, w, mean, cov, mu, Sx))
+    for other in outs[1:]:
+        for a, b in zip(outs[0], other, strict=True):
+            np.testing.assert_allclose(a, b, atol=AGREE, rtol=0)
+    # the chain rule differs from §10's product of marginals at the prior (S counted once per obs)
+    _, w_prior = fastslam_step(2, pose, S, lm_mean.copy(), lm_cov.copy(), so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
+    assert np.max(np.abs(w_prior - outs[0][1])) > 1e-3
+    # the pose drawn is μ_x + chol(Σ_x) ε
+    L = np.linalg.cholesky(outs[0][5])
+    np.testing.assert_allclose(
+        md.wrap_pose(outs[0][4] + np.einsum("pij,pj->pi", L, eps), 2 if dx == 3 else 3), outs[0][0], atol=1e-9
+    )
+
+
+def test_sequential_weight_is_the_joint_marginal_for_a_linear_model() -> None:
+    """With a fixed heading (linear h), the chain rule equals log N(z_1..N; ẑ, H S H^T + blockdiag(Ψ_j))."""
+    model = md.CARTESIAN_2D
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 3, 4, 0, seed=14)
+    S[:, 2, :] = 0.0
+    S[:, :, 2] = 0.0
+    S[:, 2, 2] = 1e-14  # heading known: h is linear in (x, y)
+    _, w = fastslam_step(2, pose, S, lm_mean.copy(), lm_cov.copy(), so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True)
+    for k in range(pose.shape[0]):
+        zhat, Hx, Hm = model.h(np.repeat(pose[k : k + 1], len(so), 0), lm_mean[k, so])
+        H = Hx.reshape(-1, 3)
+        blocks = Hm @ lm_cov[k, so] @ np.swapaxes(Hm, -1, -2) + Qo
+        C = H @ S[k] @ H.T
+        for j in range(len(so)):
+            C[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] += blocks[j]
+        nu = (zo - zhat).ravel()
+        expect = -0.5 * (nu @ np.linalg.solve(C, nu) + np.linalg.slogdet(C)[1] + nu.size * np.log(2 * np.pi))
+        assert abs(w[k] - expect) < 1e-6, (w[k], expect)
+
+
+@pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
+def test_mixture_estimate_does_not_depend_on_resampling(filt: str) -> None:
+    """The reported pose (mean and covariance) is taken before resampling, so forcing a resample
+    after the update changes nothing; the "particles" estimate (after resampling) does change."""
+    ests = {}
+    for mode in ("mixture", "particles"):
+        for ratio in (0.0, 1.0):  # never / always resample
+            world = World(2, np.random.default_rng(4), sigma_z=0.05, sigma_odo=0.02)
+            est = make_estimator(
+                SlamParams(filter=filt, dim=2, n_particles=30, resample_neff_ratio=0.0, pose_estimate=mode),
+                np.random.default_rng(8),
+            )
+            est.update(world.observe())
+            for _ in range(6):  # weights drift apart without resampling
+                est.predict(world.step())
+                est.update(world.observe())
+            est.params = replace(est.params, resample_neff_ratio=ratio)
+            est.predict(world.step())
+            rep = est.update(world.observe())
+            assert rep.neff < 29.0
+            assert rep.resampled == (ratio == 1.0)
+            ests[mode, ratio] = est.estimate()
+    a, b = ests["mixture", 0.0], ests["mixture", 1.0]
+    np.testing.assert_allclose(a.xyz_W_m, b.xyz_W_m, atol=1e-12)
+    np.testing.assert_allclose(a.cov, b.cov, atol=1e-15)
+    assert np.linalg.eigvalsh(a.cov[np.ix_([0, 1, 5], [0, 1, 5])]).min() > 0
+    c, d = ests["particles", 0.0], ests["particles", 1.0]
+    assert np.max(np.abs(c.cov - d.cov)) > 1e-9

@@ -39,3 +39,17 @@ def test_ekf_nees_in_band_when_the_noise_matches_its_model() -> None:
     assert lo <= E.mean() <= hi, (E.mean(), lo, hi)
     inside = np.mean((E > chi2.ppf(0.025, 3)) & (E < chi2.ppf(0.975, 3)))
     assert inside >= 0.88, inside
+
+
+def test_fastslam2_50_particles_near_the_batch_bound_on_the_standard_loop() -> None:
+    """Issue 4: FastSLAM 2.0 with 50 particles against the batch bound on §12's world (stereo noise,
+    1 landmark/m², 20–50 visible per frame), a 40 m loop. Measured over 8 seeds (docs/slam.md):
+    mean 1.42× with the sequential weights (1.55× with §10's product at the prior), worst 1.74×;
+    asserted here on 4 seeds: mean within 1.5×, none beyond 2×."""
+    cfg = SimConfig(dim=2, trajectory="loop", path_length_m=40.0, landmark_density_per_m2=1.0)
+    ratios = []
+    for seed in range(4):
+        sc = make_scenario(cfg, seed)
+        ratios.append(run_filter(sc.run, "fastslam2", seed, n_particles=50, batch_ate=sc.batch_ate).ate_ratio)
+    assert np.mean(ratios) <= 1.5, ratios
+    assert max(ratios) <= 2.0, ratios

@@ -257,6 +257,9 @@ def _particle3(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    seq,
+    out_mu,
+    out_Sx,
     x,
     mu,
     T,
@@ -292,16 +295,19 @@ def _particle3(  # type: ignore[no-untyped-def]
             m = pool_mean[blk, s % bs]
             C = _sym3(pool_cov[blk, s % bs])
             Qj = _sym3(Q_old[j])
-            # weight term: L_w = Ĥ S Ĥ^T + C + R̂ Q R̂^T at x̂
-            d, nu = _innov3t(x, m, z_old[j], R0)
-            HSH = _pose_part3t(Sk, d, R0, sy0, cy0, T)
-            Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R0, Qj)))
-            w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
+            if j == 0 or not seq:
+                # weight term: L_w = Ĥ S Ĥ^T + C + R̂ Q R̂^T at x̂
+                d, nu = _innov3t(x, m, z_old[j], R0)
+                HSH = _pose_part3t(Sk, d, R0, sy0, cy0, T)
+                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R0, Qj)))
+                w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
             if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
                 R = _rot3_cs(cr, sr, cp, sp, cy, sy)
                 d, nu = _innov3t(mu, m, z_old[j], R)
                 HSH = _pose_part3t(Sx, d, R, sy, cy, T)
-                Pinv, _ = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R, Qj)))
+                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R, Qj)))
+                if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
+                    w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
             p00, p01, p02, p11, p12, p22 = Pinv
             a3, a4, a5 = mu[3], mu[4], mu[5]
             # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first three columns); μ_x += K ν_w
@@ -324,6 +330,10 @@ def _particle3(  # type: ignore[no-untyped-def]
                     v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1] + k2 * T[t, 2])
                     Sx[i, t] = v
                     Sx[t, i] = v
+        for i in range(6):
+            out_mu[k, i] = mu[i]
+            for t in range(6):
+                out_Sx[k, i, t] = Sx[i, t]
         if not _cholesky_into(Sx, Lc, 6):
             ev, V = np.linalg.eigh(Sx)
             for i in range(6):
@@ -489,6 +499,9 @@ def _particle2(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    seq,
+    out_mu,
+    out_Sx,
     x,
     mu,
     T,
@@ -518,13 +531,16 @@ def _particle2(  # type: ignore[no-untyped-def]
             Cm = pool_cov[blk, sl % bs]
             C = (Cm[0, 0], Cm[0, 1], Cm[1, 1])
             Qj = (Q_old[j, 0, 0], Q_old[j, 0, 1], Q_old[j, 1, 1])
-            # weight term at x̂ (§10 "Importance weight")
-            d, nu = _innov2t(x, m, z_old[j], c0, s0)
-            Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), _sandwich2(c0, s0, Qj)))
-            w += _logpdf2(nu[0], nu[1], Pinv, det)
+            if j == 0 or not seq:
+                # weight term at x̂ (§10 "Importance weight")
+                d, nu = _innov2t(x, m, z_old[j], c0, s0)
+                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), _sandwich2(c0, s0, Qj)))
+                w += _logpdf2(nu[0], nu[1], Pinv, det)
             if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
                 d, nu = _innov2t(mu, m, z_old[j], c, s)
-                Pinv, _ = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), _sandwich2(c, s, Qj)))
+                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), _sandwich2(c, s, Qj)))
+                if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
+                    w += _logpdf2(nu[0], nu[1], Pinv, det)
             p00, p01, p11 = Pinv
             a2 = mu[2]
             for i in range(3):
@@ -541,6 +557,10 @@ def _particle2(  # type: ignore[no-untyped-def]
                     v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1])
                     Sx[i, t] = v
                     Sx[t, i] = v
+        for i in range(3):
+            out_mu[k, i] = mu[i]
+            for t in range(3):
+                out_Sx[k, i, t] = Sx[i, t]
         if not _cholesky_into(Sx, Lc, 3):
             ev, V = np.linalg.eigh(Sx)
             for i in range(3):
@@ -617,6 +637,9 @@ def _step3(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    seq,
+    out_mu,
+    out_Sx,
     n_chunks,
 ):
     # one contiguous range of particles per thread, with its scratch arrays allocated once
@@ -647,6 +670,9 @@ def _step3(  # type: ignore[no-untyped-def]
                 floor,
                 out_pose,
                 dlogw,
+                seq,
+                out_mu,
+                out_Sx,
                 x,
                 mu,
                 T,
@@ -674,6 +700,9 @@ def _step2(  # type: ignore[no-untyped-def]
     floor,
     out_pose,
     dlogw,
+    seq,
+    out_mu,
+    out_Sx,
     n_chunks,
 ):
     # one contiguous range of particles per thread, with its scratch arrays allocated once
@@ -704,6 +733,9 @@ def _step2(  # type: ignore[no-untyped-def]
                 floor,
                 out_pose,
                 dlogw,
+                seq,
+                out_mu,
+                out_Sx,
                 x,
                 mu,
                 T,
@@ -815,10 +847,16 @@ def _run(
     Q_new: np.ndarray,
     eps: np.ndarray | None,
     floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     P, dx = pose.shape
     out_pose = np.empty_like(pose)
     dlogw = np.zeros(P)
+    # FastSLAM 2.0's proposal means and covariances (the Rao-Blackwellised pose estimate uses them)
+    mu_ = out_mu if out_mu is not None else np.empty((P, dx))
+    Sx_ = out_Sx if out_Sx is not None else np.empty((P, dx, dx))
     S_ = S if S is not None else np.zeros((P, dx, dx))
     eps_ = eps if eps is not None else np.zeros((P, dx))
     args = (
@@ -839,6 +877,9 @@ def _run(
         float(floor),
         out_pose,
         dlogw,
+        bool(seq_weights),
+        mu_,
+        Sx_,
     )
     (_step3 if dx == 6 else _step2)(*args, max(1, min(P, nb.get_num_threads())))
     return out_pose, dlogw
@@ -858,15 +899,36 @@ def fastslam_step_numba(
     Q_new: np.ndarray,
     eps: np.ndarray | None,
     floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """numba ``fastslam_step`` on dense arrays lm_mean (P, cap, dm), lm_cov (P, cap, dm, dm), in place.
 
-    Dense storage is block storage with one block of ``cap`` slots per particle.
+    Dense storage is block storage with one block of ``cap`` slots per particle. ``seq_weights``,
+    ``out_mu`` (P, dx) and ``out_Sx`` (P, dx, dx) as in :func:`robotd.slam.fastslam.fastslam_step`.
     """
     P, cap = lm_mean.shape[:2]
     table = np.arange(P, dtype=np.int64)[:, None]
     return _run(
-        version, pose, S, lm_mean, lm_cov, table, cap, slots_old, z_old, Q_old, slots_new, z_new, Q_new, eps, floor
+        version,
+        pose,
+        S,
+        lm_mean,
+        lm_cov,
+        table,
+        cap,
+        slots_old,
+        z_old,
+        Q_old,
+        slots_new,
+        z_new,
+        Q_new,
+        eps,
+        floor,
+        seq_weights,
+        out_mu,
+        out_Sx,
     )
 
 
@@ -883,6 +945,9 @@ def fastslam_step_numba_store(
     Q_new: np.ndarray,
     eps: np.ndarray | None,
     floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The same step directly in a copy-on-write :class:`LandmarkStore` (no gather/scatter copies).
 
@@ -906,6 +971,9 @@ def fastslam_step_numba_store(
         Q_new,
         eps,
         floor,
+        seq_weights,
+        out_mu,
+        out_Sx,
     )
 
 

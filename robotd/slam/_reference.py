@@ -39,6 +39,9 @@ def fastslam_step_reference(
     eps: np.ndarray | None,
     model: MeasurementModel,
     floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-particle loop version of ``fastslam_step`` (same arguments, same in-place effects)."""
     dim = 2 if model.dx == 3 else 3
@@ -50,7 +53,7 @@ def fastslam_step_reference(
         if version == 2:
             assert S is not None and eps is not None
             # importance weight at the prior x̂ and the landmarks before the update (§10)
-            for j, s in enumerate(slots_old):
+            for j, s in enumerate(slots_old if not seq_weights else []):
                 zhat, Hx, Hm = _h(model, x, lm_mean[k, s])
                 nu = model.innovation(z_old[j].copy(), zhat)
                 L = Hx @ S[k] @ Hx.T + Hm @ lm_cov[k, s] @ Hm.T + Q_old[j]
@@ -61,10 +64,14 @@ def fastslam_step_reference(
                 zhat, Hx, Hm = _h(model, mu_x, lm_mean[k, s])
                 nu = model.innovation(z_old[j].copy(), zhat)
                 Psi = Hx @ Sx @ Hx.T + Hm @ lm_cov[k, s] @ Hm.T + Q_old[j]
+                if seq_weights:  # chain rule: p(z_j | z_<j) under the proposal so far
+                    dlogw[k] += _logpdf(nu, Psi)
                 K = np.linalg.solve(Psi, Hx @ Sx).T  # Σ_x H_x^T Ψ^{-1} (Ψ, Σ_x symmetric)
                 mu_x = wrap_pose(mu_x + K @ nu, dim)
                 Sx = (np.eye(model.dx) - K @ Hx) @ Sx
                 Sx = 0.5 * (Sx + Sx.T)
+            if out_mu is not None and out_Sx is not None:
+                out_mu[k], out_Sx[k] = mu_x, Sx
             try:
                 Lc = np.linalg.cholesky(Sx)
             except np.linalg.LinAlgError:

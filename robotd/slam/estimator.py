@@ -66,6 +66,14 @@ class SlamParams:
     # visual-only prior (whose covariance is optimistic) the gate raised kitti-seq1 drift from
     # 0.98 % to 1.64 %. Without an outlier stage it helps a lot (5 % mismatches: 5.1 m -> 0.6 m).
     fastslam_gate: bool = False
+    # FastSLAM 2.0 importance weight (docs/slam.md "Weights and pose estimate"): "prior" is §10's
+    # product of per-observation marginals at x̂ with S; "sequential" the chain rule from the
+    # proposal's own innovations (exact to first order, no extra cost)
+    fs2_weights: str = "sequential"
+    # FastSLAM pose output: "mixture" = the Rao-Blackwellised estimate (2.0: weights before
+    # resampling over the proposals N(μ_x, Σ_x); 1.0: the weighted samples before resampling);
+    # "particles" = §10's weighted mean and spread of the particles as they are after the step
+    pose_estimate: str = "mixture"
     # Landmark existence counter (§8 bookkeeping) and the default field-of-view test
     prune_enabled: bool = True
     fov_h_rad: float = math.radians(73.0)  # horizontal field of view (OAK-D at 640×400)
@@ -98,6 +106,10 @@ class SlamParams:
             raise bad("n_particles_min", ">= 1", self.n_particles_min)
         if not 0.0 <= self.resample_neff_ratio <= 1.0:
             raise bad("resample_neff_ratio", "in [0, 1]", self.resample_neff_ratio)
+        if self.fs2_weights not in ("prior", "sequential"):
+            raise bad("fs2_weights", "prior | sequential", self.fs2_weights)
+        if self.pose_estimate not in ("mixture", "particles"):
+            raise bad("pose_estimate", "mixture | particles", self.pose_estimate)
         if self.motion_cov_source not in MOTION_COV_SOURCES:
             raise bad("motion_cov_source", " | ".join(MOTION_COV_SOURCES), self.motion_cov_source)
         for f in fields(self):

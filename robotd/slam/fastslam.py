@@ -163,19 +163,23 @@ def fs2_proposal(
     z: np.ndarray,
     Q: np.ndarray,
     model: MeasurementModel,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """FastSLAM 2.0 pose proposal (§10 "Proposal"), Kalman form, observations in turn.
 
     Args:
         pose_hat: (P, dx) prior means x̂ = g(x, u); S: (P, dx, dx) prior covariances S_t.
 
     Returns:
-        μ_x (P, dx) with wrapped angles, Σ_x (P, dx, dx) symmetrised.
+        μ_x (P, dx) with wrapped angles, Σ_x (P, dx, dx) symmetrised, and the sequential log-weight
+        (P,) Σ_j log N(z_j; ĥ_j, Ψ_j) with each Ψ_j = H_x Σ_x H_x^T + Q̃_j at the proposal so far:
+        the chain rule p(z_1..N) = Π_j p(z_j | z_<j), to first order, instead of the product of
+        marginals at the prior that counts S once per observation.
     """
     dim = 2 if model.dx == 3 else 3
     mu_x = pose_hat.copy()
     Sx = S.copy()
     eye = np.eye(model.dx)
+    logw = np.zeros(pose_hat.shape[0])
     for j in range(slots.size):
         s = slots[j]
         zhat, Hx, Hm = model.h(mu_x, lm_mean[:, s])
@@ -184,12 +188,13 @@ def fs2_proposal(
         HxT = np.swapaxes(Hx, -1, -2)
         SHt = Sx @ HxT  # (P, dx, dz)
         Psi = Hx @ SHt + Hm @ lm_cov[:, s] @ HmT + Q[j]  # H_x Σ_x H_x^T + Q̃_j
-        Pinv, _ = inv_det_small(Psi)
+        Pinv, det = inv_det_small(Psi)
+        logw += gauss_logpdf(nu, Pinv, det)
         K = SHt @ Pinv  # (P, dx, dz)
         mu_x = mu_x + np.einsum("pij,pj->pi", K, nu)
         wrap_pose(mu_x, dim)
         Sx = sym((eye - K @ Hx) @ Sx)
-    return mu_x, Sx
+    return mu_x, Sx, logw
 
 
 def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -> np.ndarray:
@@ -218,6 +223,9 @@ def fastslam_step(
     eps: np.ndarray | None,
     model: MeasurementModel,
     floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One FastSLAM measurement step for all particles; the landmark arrays are updated in place.
 
@@ -225,6 +233,9 @@ def fastslam_step(
     Version 2 (§10): ``pose`` are the priors x̂ with covariances ``S`` (P, dx, dx); the proposal
     is built from the identified landmarks, a pose drawn with ``eps`` (P, dx) standard normals,
     then the landmarks are updated at it. New landmarks are initialised from the final pose.
+    ``seq_weights`` takes the importance weight from the proposal's sequential innovations (see
+    :func:`fs2_proposal`) instead of §10's product at the prior; ``out_mu`` (P, dx) and ``out_Sx``
+    (P, dx, dx), when given, receive the proposal means and covariances (version 2).
 
     Returns:
         (pose (P, dx) after the step, log-weight increment (P,)).
@@ -232,8 +243,15 @@ def fastslam_step(
     dim = 2 if model.dx == 3 else 3
     if version == 2:
         assert S is not None and eps is not None
-        dlogw = fs2_weights(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-        mu_x, Sx = fs2_proposal(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+        mu_x, Sx, seq_logw = fs2_proposal(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+        if seq_weights:
+            dlogw = seq_logw
+        else:
+            dlogw = fs2_weights(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
+        if out_mu is not None:
+            out_mu[:] = mu_x
+        if out_Sx is not None:
+            out_Sx[:] = Sx
         pose = sample_poses(mu_x, Sx, eps, dim)
         landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
     else:
@@ -278,6 +296,9 @@ class FastSlam:
         self.neff = float(P)
         self._numba_step = _load_numba(params) if params.use_numba else None
         self._predict3 = _load_predict3() if (params.use_numba and self.dim == 3) else None
+        # Rao-Blackwellised pose estimate of the last update (weights before resampling, means,
+        # covariances or None): see estimate(); None after a predict or a particle-set change
+        self._post: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     @property
     def n_particles(self) -> int:
@@ -308,6 +329,7 @@ class FastSlam:
 
     def _propagate(self, u: np.ndarray, M: np.ndarray, dt: float | None, var_yaw: float) -> None:
         """Sample (1.0) or propagate the prior (2.0). ``var_yaw``: extra final-rotation variance (§6.1)."""
+        self._post = None
         P, dx, nu = self.n_particles, self.dx, u.size
         floor = self.params.process_cov_floor
         extra = np.full(dx, floor)
@@ -396,6 +418,9 @@ class FastSlam:
         slots_new = self.book.allocate(ids[is_new])
         self.store.ensure_capacity(self.book.n_slots)
         n_old, n_new = slots_old.size, slots_new.size
+        seq = self.params.fs2_weights == "sequential"
+        mu_x = np.empty((P, dx)) if self.version == 2 else None
+        S_x = np.empty((P, dx, dx)) if self.version == 2 else None
         if self._numba_step is not None and model is self.model:
             # numba works in the copy-on-write store directly
             self.pose, dlogw = self._numba_step(
@@ -411,6 +436,9 @@ class FastSlam:
                 Q[is_new],
                 eps,
                 self.params.landmark_cov_floor,
+                seq,
+                mu_x,
+                S_x,
             )
         else:
             # the numpy kernels work on dense copies of the touched landmarks (P, N_old + N_new); the
@@ -433,6 +461,9 @@ class FastSlam:
                 eps,
                 model,
                 self.params.landmark_cov_floor,
+                seq,
+                mu_x,
+                S_x,
             )
             self.store.scatter(np.concatenate([slots_old, slots_new]), mean, cov)
         self.pending_S = None
@@ -440,6 +471,11 @@ class FastSlam:
         ln, w = normalize_log_weights(self.log_w + dlogw)
         self.neff = effective_sample_size(w)
         self.best = int(np.argmax(w))
+        if self.params.pose_estimate == "mixture":
+            # before resampling, which only adds Monte Carlo noise (and can leave every particle a
+            # copy of one, i.e. a zero spread): 2.0's weights do not depend on the drawn pose, so
+            # Σ_k w_k N(μ_x,k, Σ_x,k) is the filter's posterior of the pose (Rao-Blackwellised)
+            self._post = (w, mu_x, S_x) if mu_x is not None else (w, self.pose.copy(), None)
         resampled = False
         if self.neff < self.params.resample_neff_ratio * P:
             idx = low_variance_indices(w, u_resample)
@@ -531,7 +567,26 @@ class FastSlam:
         return normalize_log_weights(self.log_w)[1]
 
     def estimate(self) -> PoseEstimate:
-        """Weighted mean (circular for angles) and particle covariance (§10 "Output")."""
+        """Weighted mean (circular for angles) and covariance of the pose (§10 "Output").
+
+        With ``pose_estimate="mixture"`` (default) and an update since the last predict: the
+        mixture of the update's proposals Σ_k w_k N(μ_k, Σ_k) with the weights before resampling
+        (FastSLAM 1.0: the weighted samples before resampling); otherwise the particles as they are.
+        """
+        if self._post is not None:
+            w, x, Sx = self._post
+            mean, cov = weighted_pose_mean(x, w, self.dim)
+            if Sx is not None:
+                cov = cov + np.einsum("p,pij->ij", w, Sx)
+            xyz, rpy = pose_to_xyz_rpy(mean, self.dim)
+            return PoseEstimate(
+                self.t_ns,
+                xyz,
+                rpy,
+                pose_cov_6x6(cov, self.dim, self.params.pose_cov_floor_2d),
+                neff=self.neff,
+                n_particles=self.n_particles,
+            )
         w = self.weights()
         mean, cov = weighted_pose_mean(self.pose, w, self.dim)
         if self.pending_S is not None:
@@ -558,6 +613,7 @@ class FastSlam:
 
     def set_particles(self, n: int) -> int:
         """Resample to ``max(n, min(n_particles_min, n_particles))`` particles (low-variance); returns the count."""
+        self._post = None
         n = max(int(n), min(int(self.params.n_particles_min), int(self.params.n_particles)))
         if n != self.n_particles:
             w = self.weights()
@@ -588,6 +644,7 @@ class FastSlam:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         _check_header(state, self.name, self.dim)
+        self._post = None
         try:
             pose = np.asarray(state["pose"], float)
             mean = np.asarray(state["lm_mean"], float)
