@@ -349,10 +349,12 @@ def refine_disparity(
     cols_s = (u[idx] - di[idx] - search - half)[:, None] + np.arange(2 * (search + half) + 1)[None, :]
     strip = right_img[rows[:, :, None], cols_s[:, None, :]].astype(np.float32)  # (M, P, P + 2r)
     pr = np.lib.stride_tricks.sliding_window_view(strip, 2 * half + 1, axis=2)[:, :, ::-1]  # (M, P, K, P)
-    # ZSSD = Σ ((pr − μ_r) − (pl − μ_l))² = Σ (diff − μ_diff)² with diff = pr − pl
-    diff = pr - pl[:, :, None, :]
-    diff -= diff.mean(axis=(1, 3), keepdims=True)
-    cost = np.einsum("mpkq,mpkq->mk", diff, diff)  # (M, K)
+    # ZSSD = Σ ((pr − μ_r) − (pl − μ_l))² = Σ (diff − μ_diff)² with diff = pr − pl, laid out
+    # (M, K, P·P) so that both reductions run over a contiguous last axis
+    npx = (2 * half + 1) ** 2
+    diff = pr.transpose(0, 2, 1, 3).reshape(idx.size, k.size, npx) - pl.reshape(idx.size, 1, npx)
+    diff -= diff.mean(axis=2, keepdims=True)
+    cost = np.einsum("mkq,mkq->mk", diff, diff)  # (M, K)
     kmin = np.argmin(cost, axis=1)
     at_edge = (kmin == 0) | (kmin == k.size - 1)
     kc = np.clip(kmin, 1, k.size - 2)
