@@ -216,7 +216,7 @@ def warmup_numba() -> float | None:
     """Compile or load the numba FastSLAM kernels now; returns the seconds it took, None without numba.
 
     Call it at daemon start-up (after NUMBA_CACHE_DIR is set) so that the first frame is not
-    delayed: compiling takes ~20–40 s on a 2-core machine, loading the cache ~1–2 s.
+    delayed: compiling takes ~11–16 s on a 2-core machine, loading the cache ~1–2 s.
     """
     import time
 
