@@ -574,24 +574,13 @@ class FastSlam:
         (FastSLAM 1.0: the weighted samples before resampling); otherwise the particles as they are.
         """
         if self._post is not None:
-            w, x, Sx = self._post
-            mean, cov = weighted_pose_mean(x, w, self.dim)
-            if Sx is not None:
-                cov = cov + np.einsum("p,pij->ij", w, Sx)
-            xyz, rpy = pose_to_xyz_rpy(mean, self.dim)
-            return PoseEstimate(
-                self.t_ns,
-                xyz,
-                rpy,
-                pose_cov_6x6(cov, self.dim, self.params.pose_cov_floor_2d),
-                neff=self.neff,
-                n_particles=self.n_particles,
-            )
-        w = self.weights()
-        mean, cov = weighted_pose_mean(self.pose, w, self.dim)
-        if self.pending_S is not None:
-            # not yet sampled (2.0 between predict and update): add the prior's spread
-            cov = cov + np.einsum("p,pij->ij", w, self.pending_S)
+            w, x, spread = self._post
+        else:
+            # as the particles are; between a 2.0 predict and its update, plus the prior's spread
+            w, x, spread = self.weights(), self.pose, self.pending_S
+        mean, cov = weighted_pose_mean(x, w, self.dim)
+        if spread is not None:
+            cov = cov + np.einsum("p,pij->ij", w, spread)
         xyz, rpy = pose_to_xyz_rpy(mean, self.dim)
         return PoseEstimate(
             self.t_ns,
