@@ -13,6 +13,7 @@ Landmark ``k`` of the book occupies ``y[dx + dm·k : dx + dm·(k+1)]``; deletion
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from typing import Any
 
 import numpy as np
@@ -78,7 +79,50 @@ def lm_to_3d(m: np.ndarray, C: np.ndarray, floor: float) -> tuple[np.ndarray, np
     return m3, C3
 
 
-class EkfSlam:
+class UpdateEntryPoints(ABC):
+    """The two public update entry points every filter shares; the filter implements ``_update``.
+
+    ``update`` fuses a frame of Cartesian point observations with the filter's own model;
+    ``update_range_bearing`` (2D only, §7.2) converts and validates, then fuses with that model.
+    """
+
+    dim: int
+    book: LandmarkBook
+    model: MeasurementModel
+    t_ns: int
+
+    @abstractmethod
+    def _update(
+        self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
+    ) -> UpdateReport:
+        """Each filter's measurement step on (N, dz) measurements with (N, dz, dz) covariances."""
+
+    def update(self, obs: Observations) -> UpdateReport:
+        """Fuse one frame: identified landmarks update, new ones are added, then bookkeeping."""
+        z, Q, ids, is_new = split_observations(obs, self.dim)
+        self.book.check(ids, is_new)
+        rep = self._update(z, Q, ids, is_new, self.model)
+        self.t_ns = int(obs.t_ns)
+        return rep
+
+    def update_range_bearing(
+        self,
+        ids: np.ndarray,
+        r: np.ndarray,
+        beta: np.ndarray,
+        R_rb: np.ndarray,
+        is_new: np.ndarray | None = None,
+        t_ns: int | None = None,
+    ) -> UpdateReport:
+        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
+        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
+        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
+        if t_ns is not None:
+            self.t_ns = int(t_ns)
+        return rep
+
+
+class EkfSlam(UpdateEntryPoints):
     """EKF SLAM in 2D or 3D. Build it with :func:`robotd.slam.estimator.make_estimator`."""
 
     name = "ekf"
@@ -133,30 +177,6 @@ class EkfSlam:
             self.t_ns = int(t_ns)
 
     # ------------------------------------------------------------------------------------ update
-
-    def update(self, obs: Observations) -> UpdateReport:
-        """Sequential EKF updates of identified landmarks, augmentation with new ones, pruning (§8)."""
-        z, Q, ids, is_new = split_observations(obs, self.dim)
-        self.book.check(ids, is_new)
-        rep = self._update(z, Q, ids, is_new, self.model)
-        self.t_ns = int(obs.t_ns)
-        return rep
-
-    def update_range_bearing(
-        self,
-        ids: np.ndarray,
-        r: np.ndarray,
-        beta: np.ndarray,
-        R_rb: np.ndarray,
-        is_new: np.ndarray | None = None,
-        t_ns: int | None = None,
-    ) -> UpdateReport:
-        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
-        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
-        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
-        if t_ns is not None:
-            self.t_ns = int(t_ns)
-        return rep
 
     def _update(
         self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel

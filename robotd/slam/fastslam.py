@@ -25,17 +25,16 @@ import numpy as np
 
 from robotd.errors import EstimatorError, InputError, PersistenceError
 from robotd.geometry import euler_to_R, rot2
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
+from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
 from robotd.slam._store import LandmarkStore
-from robotd.slam.ekf import FILTER_CODE, _check_header, _range_bearing_inputs, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
-from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_from_increment, split_observations
+from robotd.slam.ekf import FILTER_CODE, UpdateEntryPoints, _check_header, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
+from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_from_increment
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
     COS_PITCH_MIN,
-    RANGE_BEARING_2D,
     MeasurementModel,
     motion3d,
     odometry2d,
@@ -269,7 +268,7 @@ def psd_sqrt(M: np.ndarray) -> np.ndarray:
 # ============================================================================================
 
 
-class FastSlam:
+class FastSlam(UpdateEntryPoints):
     """FastSLAM 1.0 (``version=1``) or 2.0 (``version=2``). Build with ``make_estimator``."""
 
     def __init__(self, params: SlamParams, rng: np.random.Generator, visible: VisibleFn, version: int = 2) -> None:
@@ -367,30 +366,6 @@ class FastSlam:
         return x, (S if S is not None else np.empty((0, 6, 6)))
 
     # ------------------------------------------------------------------------------------ update
-
-    def update(self, obs: Observations) -> UpdateReport:
-        """Fuse a frame of identified and new landmarks (§9 / §10), prune, maybe resample."""
-        z, Q, ids, is_new = split_observations(obs, self.dim)
-        self.book.check(ids, is_new)
-        rep = self._update(z, Q, ids, is_new, self.model)
-        self.t_ns = int(obs.t_ns)
-        return rep
-
-    def update_range_bearing(
-        self,
-        ids: np.ndarray,
-        r: np.ndarray,
-        beta: np.ndarray,
-        R_rb: np.ndarray,
-        is_new: np.ndarray | None = None,
-        t_ns: int | None = None,
-    ) -> UpdateReport:
-        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
-        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
-        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
-        if t_ns is not None:
-            self.t_ns = int(t_ns)
-        return rep
 
     def _update(
         self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
