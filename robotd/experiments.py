@@ -32,7 +32,7 @@ from robotd.evaluate import anees_band, ate, map_rmse, nees, plot_trajectory, po
 from robotd.geometry import wrap_angle
 from robotd.sim import SimConfig, SimRun, dead_reckoning, inject_mismatches, simulate
 from robotd.slam.batch import solve_sim
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.estimator import SlamParams, covariance_at_prediction, make_estimator
 
 logger = logging.getLogger(__name__)
 
@@ -171,10 +171,13 @@ def run_filter(
     outliers: bool = False,
     batch_ate: float = math.nan,
     overrides: dict[str, Any] | None = None,
+    cov_at: str = "measured",
 ) -> FilterRun:
     """Run one filter over a simulated run and compute the §11 metrics against its truth.
 
     ``overrides``: further :class:`SlamParams` fields (e.g. for a study of one option).
+    ``cov_at``: "measured" (the simulator's Q at the noisy pixels) or "predicted" (re-observations'
+    Q re-evaluated at the filter's prediction, as the pipeline does: :func:`covariance_at_prediction`).
     """
     dim = run.dim
     params = SlamParams(
@@ -211,6 +214,11 @@ def run_filter(
         t0 = time.perf_counter()
         if st.motion is not None:
             est.predict(st.motion)
+        if cov_at == "predicted":
+            c = run.config
+            obs = covariance_at_prediction(
+                obs, est.estimate(), est.landmarks(), c.f_px, c.baseline_m, c.sigma_px, c.sigma_px / math.sqrt(2.0)
+            )
         rep = est.update(obs)
         step_ms[k] = (time.perf_counter() - t0) * 1e3
         e = est.estimate()

@@ -42,7 +42,7 @@ from robotd.geometry import (
     pose2_compose,
     wrap_angle,
 )
-from robotd.msgs import MotionIncrement, Observations
+from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate
 
 logger = logging.getLogger(__name__)
 
@@ -437,9 +437,42 @@ def jac_sparsity(
     return S
 
 
-def solve_sim(run, use_true_ids: bool = True, max_nfev: int = 50, solver: str = "lm") -> BatchResult:  # type: ignore[no-untyped-def]
-    """Batch solution of a :class:`robotd.sim.SimRun` (true correspondences by default: the bound)."""
+def solve_sim(  # type: ignore[no-untyped-def]
+    run, use_true_ids: bool = True, max_nfev: int = 50, solver: str = "lm", cov_at: str = "measured"
+) -> BatchResult:
+    """Batch solution of a :class:`robotd.sim.SimRun` (true correspondences by default: the bound).
+
+    ``cov_at="predicted"``: after the first solution, every measurement's covariance is
+    re-evaluated at the point the solution predicts for it (as the filters' pipeline does for
+    re-observations, :func:`robotd.slam.estimator.covariance_at_prediction`) and the problem is
+    solved again from the first solution: the bound for filters that weight that way.
+    """
     motions = [st.motion for st in run.steps[1:]]
     obs = [st.observations for st in run.steps]
     ids = [st.truth.true_ids for st in run.steps] if use_true_ids else None
-    return solve_batch(motions, obs, run.dim, x0=run.poses_W[0], ids=ids, max_nfev=max_nfev, solver=solver)  # type: ignore[arg-type]
+    res = solve_batch(motions, obs, run.dim, x0=run.poses_W[0], ids=ids, max_nfev=max_nfev, solver=solver)  # type: ignore[arg-type]
+    if cov_at == "measured":
+        return res
+    if cov_at != "predicted":
+        raise InputError(f"batch: cov_at expected 'measured' or 'predicted', got {cov_at!r}")
+    from robotd.slam.estimator import covariance_at_prediction
+
+    c = run.config
+    lm = LandmarkMap(res.landmark_ids, res.landmarks_W, np.tile(np.eye(3), (len(res.landmark_ids), 1, 1)))
+    obs2 = []
+    for k, o in enumerate(obs):
+        k_ids = ids[k] if ids is not None else o.ids
+        every = Observations(o.t_ns, o.xyz_R_m, o.cov_R, k_ids, np.zeros(o.n, bool))
+        pose = PoseEstimate(o.t_ns, res.poses_W[k, :3], res.poses_W[k, 3:], np.eye(6))
+        p = covariance_at_prediction(every, pose, lm, c.f_px, c.baseline_m, c.sigma_px, c.sigma_px / np.sqrt(2.0))
+        obs2.append(Observations(o.t_ns, o.xyz_R_m, p.cov_R, o.ids, o.is_new))
+    return solve_batch(
+        motions,  # type: ignore[arg-type]
+        obs2,
+        run.dim,
+        x0=run.poses_W[0],
+        ids=ids,
+        max_nfev=max_nfev,
+        init_poses=res.poses_W,
+        solver=solver,
+    )
