@@ -72,6 +72,11 @@ class FrontendConfig:
     sigma_x_px: float = _f(0.5, "pixel noise of columns (measurement covariance)", min=0.01, max=10.0)
     sigma_y_px: float = _f(0.3535533905932738, "pixel noise of the mean row", min=0.01, max=10.0)
     cov_inflation: float = _f(1.0, "multiplier on the measurement covariance", min=0.1, max=100.0)
+    cov_at: str = _f(
+        "predicted",
+        "re-observations' covariance at the filter's predicted point (unbiased weights) or at the measured pixels",
+        choices=("predicted", "measured"),
+    )
     debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
     outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_DETECTORS)
     consensus_confidence: float = _f(

@@ -28,7 +28,7 @@ from robotd.frontend.stereo_match import StereoMatchParams
 from robotd.geometry import euler_to_R, se3, se3_inverse
 from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame
 from robotd.outliers import OutlierParams
-from robotd.slam.estimator import Estimator, SlamParams, make_estimator
+from robotd.slam.estimator import Estimator, SlamParams, covariance_at_prediction, make_estimator
 from robotd.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
@@ -151,6 +151,20 @@ class Pipeline:
             if inc is not None:
                 self.estimator.predict(inc)
                 self._last_inc = inc
+        f = self.cfg.frontend
+        if f.cov_at == "predicted" and lm.n:
+            # Q of re-observations at the predicted point, not the noisy pixels (docs/slam.md)
+            obs = covariance_at_prediction(
+                obs,
+                self.estimator.estimate(),
+                lm,
+                self.rig.f_px,
+                self.rig.baseline_m,
+                f.sigma_x_px,
+                f.sigma_y_px,
+                f.cov_inflation,
+                f.depth_min_m,
+            )
         report = self.estimator.update(obs)
         db = self.frontend.database
         if report.n_pruned and db is not None:
