@@ -37,27 +37,52 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _overrides(pairs: list[str]) -> dict[str, dict[str, object]]:
+    """["slam.numba_threads=1", ...] -> {"slam": {"numba_threads": 1}} (values parsed as TOML)."""
+    import tomllib
+
+    out: dict[str, dict[str, object]] = {}
+    for kv in pairs:
+        key, _, val = kv.partition("=")
+        section, _, name = key.strip().partition(".")
+        if not (section and name and val):
+            raise SystemExit(f"--set: expected SECTION.KEY=VALUE, got {kv!r}")
+        try:
+            v = tomllib.loads(f"v = {val}")["v"]
+        except tomllib.TOMLDecodeError:
+            v = val  # a bare string
+        out.setdefault(section, {})[name] = v
+    return out
+
+
 def run_once(
-    detector: str, fps: float, deadline_ms: float, seconds: float, warmup_s: float, particles: int, fixed: bool = False
+    detector: str,
+    fps: float,
+    deadline_ms: float,
+    seconds: float,
+    warmup_s: float,
+    particles: int,
+    fixed: bool = False,
+    extra: dict[str, dict[str, object]] | None = None,
 ) -> dict:
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"robotd-bench-{os.getpid()}"
     budget: dict[str, float] = {"deadline_ms": deadline_ms}
     if fixed:
         # floors at the full settings: the budget may only skip frames (the full-settings cost)
         budget.update(min_features=load_config(None, {}).frontend.max_features, min_particles=particles)
-    cfg = load_config(
-        None,
-        {
-            "camera": {"url": f"sim://?fps={fps:g}"},
-            "vehicle": {"url": f"sim://?fps={fps:g}"},
-            "frontend": {"detector": detector},
-            "slam": {"n_particles": particles},
-            "budget": budget,
-            "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]},
-            "persistence": {"state_dir": str(tmp), "save_period_s": 0.0},
-            "log": {"status_period_s": 5.0},
-        },
-    )
+    tree: dict[str, dict[str, object]] = {
+        "camera": {"url": f"sim://?fps={fps:g}"},
+        "vehicle": {"url": f"sim://?fps={fps:g}"},
+        "frontend": {"detector": detector},
+        "slam": {"n_particles": particles},
+        "budget": budget,
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]},
+        "persistence": {"state_dir": str(tmp), "save_period_s": 0.0},
+        "log": {"status_period_s": 5.0},
+    }
+    for section, kv in (extra or {}).items():
+        tree.setdefault(section, {}).update(kv)
+    cfg = load_config(None, tree)
     d = Daemon(cfg, duration_s=seconds, environ={})
     d.stats.max_latency_window = 10**7
     rss: dict[str, float] = {}
@@ -135,8 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--fixed", action="store_true", help="keep features and particles at full settings (the budget may only skip)"
     )
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override (repeatable)"
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    extra = _overrides(args.set)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     results = []
     nominal_deadline = 1000.0 / args.fps
@@ -145,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
             if label.split()[0] not in cases:
                 continue
-            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed)
+            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
             r["case"] = label
             results.append(r)
             print(f"# {det} {label}: p99 {r['latency_p99_ms']} ms", file=sys.stderr)

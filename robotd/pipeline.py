@@ -73,6 +73,7 @@ def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> 
         "n_particles_min": n_min,
         "resample_neff_ratio": cfg.slam.resample_neff_ratio,
         "fs2_weights": cfg.slam.fs2_weights,
+        "numba_threads": cfg.slam.numba_threads,
     }
     if rig is not None:
         # the pruning field of view and range follow the rig and the disparity limits (§2.2)
