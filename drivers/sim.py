@@ -31,7 +31,9 @@ Timing. Camera and vehicle opened separately share one simulated clock and world
 agree on (seed, world, speed, tilt): a process-wide registry holds the world and the start time
 ``t0_ns`` taken on time.monotonic_ns() at the first open (or given as the ``t0_ns=`` option).
 Frame k is captured at ``t0_ns + round(k · 1e9 / fps)``, odometry sample j at
-``t0_ns + round(j · 1e9 / odom_hz)``. With ``realtime=1`` a frame is yielded at its capture time;
+``t0_ns + round(j · 1e9 / odom_hz)``. With ``realtime=1`` a frame is yielded at its capture time,
+rendered just before it (the recent 90th-percentile render time plus 1 ms ahead), as a camera
+delivers a frame that was imaged on the device;
 a consumer that pulls late gets the newest frame and the skipped ones count as ``dropped``
 (the simulated camera never slows down). With ``realtime=0`` frames come as fast as they are
 pulled, with the same timestamps, so a run is reproducible.
@@ -396,6 +398,15 @@ class SimCamera:
             if p.duration > 0 and k / p.fps >= p.duration:
                 return
             t_ns = self.frame_t_ns(k)
+            if p.realtime and len(self._render_ms) >= 3:
+                # Render just in time, like a camera whose imaging happens before the capture is
+                # delivered (an OAK-D does it on the device): start when the recent 90th
+                # percentile render time plus 1 ms remains, not right after the previous frame,
+                # which would put this process's rendering on top of the consumer's busiest stage.
+                lead_ns = (float(np.percentile(np.fromiter(self._render_ms, float)[-30:], 90)) + 1.0) * 1e6
+                wait_s = (t_ns - lead_ns - time.monotonic_ns()) / 1e9
+                if wait_s > 0 and self._closed.wait(wait_s):
+                    return
             start = time.perf_counter()
             frame, _ = self._rig.render(k, t_ns)
             self._render_ms.append((time.perf_counter() - start) * 1e3)
