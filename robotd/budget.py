@@ -134,10 +134,12 @@ class LatencyBudget:
             return False
         return True
 
-    def record(self, frame_ms: float) -> BudgetState:
+    def record(self, frame_ms: float, latency_ms: float | None = None) -> BudgetState:
         """Account one processed frame's work; returns the state for the next frame.
 
-        A processed frame may take at most the deadline (latency) and at most ``skip_every`` frame
+        ``frame_ms``: the step's own time (the load); ``latency_ms``: capture to the end of the
+        step, queue wait included (the deadline's quantity; ``frame_ms`` when not given). A
+        processed frame may take at most the deadline (latency) and at most ``skip_every`` frame
         periods (throughput); a step back up is taken when the load would fit the rung above with
         margin.
         """
@@ -146,7 +148,8 @@ class LatencyBudget:
             return self.state  # first frames (caches, map start) say nothing about steady load
         self._ewma = frame_ms if self._ewma is None else (1 - EWMA_ALPHA) * self._ewma + EWMA_ALPHA * frame_ms
         budget_now = self._allowed_ms(self.state.skip_every)
-        over = frame_ms > budget_now
+        late_ms = frame_ms if latency_ms is None else max(frame_ms, latency_ms)
+        over = late_ms > budget_now
         if over:
             self.deadline_misses += 1
         self._misses.append(over)
@@ -155,7 +158,7 @@ class LatencyBudget:
             if self._since_step_up > PROBE_FRAMES * self.recover_after:
                 self._backoff[self.level] = 1  # the probe held: the rung is affordable again
                 self._since_step_up = None
-        too_late = frame_ms > GROSS_OVERRUN * budget_now or sum(self._misses) >= MISSES_TO_DEGRADE
+        too_late = late_ms > GROSS_OVERRUN * budget_now or sum(self._misses) >= MISSES_TO_DEGRADE
         if (too_late or self._ewma > DEGRADE_LOAD * budget_now) and self.level < self.max_level:
             if self._since_step_up is not None:
                 # the rung we stepped up to did not hold: wait longer before probing it again

@@ -325,11 +325,13 @@ class Daemon:
                 logger.error("frame %d skipped: %s", frame.seq, exc)
                 continue
             frame_ms = (time.perf_counter() - t0) * 1e3
+            # the budget judges what the deadline is about: capture to result, queue wait included
+            latency_ms = (time.monotonic_ns() - frame.t_ns) / 1e6
             last_t = frame.t_ns
             self.integrator.prune_before(frame.t_ns)
             for k, v in result.timings_ms.items():
                 self.timer.add(k, v)
-            state = budget.record(frame_ms)
+            state = budget.record(frame_ms, latency_ms)
             pipeline.set_max_features(state.max_features)
             if self.cfg.slam.filter != "ekf":
                 pipeline.set_particles(state.n_particles)

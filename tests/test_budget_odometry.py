@@ -174,3 +174,16 @@ def test_failed_probes_back_off() -> None:
     # waits of 30, 60, ..., 960 frames (capped at 32×): about 5 + 5000 / 960 probes, not 5000 / 30
     assert 5 <= probes <= 12
     assert b.deadline_misses <= 3 * probes + 1
+
+
+def test_queue_wait_counts_against_the_deadline() -> None:
+    """The deadline is capture-to-result: a 22 ms step that waited 15 ms in the queue is late
+    (37 ms), and frequent such frames degrade; the load (EWMA) is still the step's own time."""
+    b = LatencyBudget(33.0, 1000, 100, 200, 20, recover_after_frames=30)
+    for _ in range(50):
+        b.record(22.0, latency_ms=24.0)
+    assert b.state.level == 0 and b.deadline_misses == 0
+    for k in range(30):
+        b.record(22.0, latency_ms=37.0 if k % 10 == 0 else 24.0)
+    assert b.deadline_misses == 3 and b.state.level == 1
+    assert b.health()["load_ms"] == pytest.approx(22.0)
