@@ -619,7 +619,7 @@ def _particle2(  # type: ignore[no-untyped-def]
 
 
 @nb.njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
-def _step3(  # type: ignore[no-untyped-def]
+def _step(  # type: ignore[no-untyped-def]
     version,
     pose,
     S,
@@ -642,106 +642,75 @@ def _step3(  # type: ignore[no-untyped-def]
     out_Sx,
     n_chunks,
 ):
-    # one contiguous range of particles per thread, with its scratch arrays allocated once
-    P = pose.shape[0]
+    # one contiguous range of particles per thread, with its scratch arrays allocated once;
+    # the pose dimension (6: 3D, 3: 2D) picks the specialised per-particle step
+    P, dx = pose.shape
+    dm = 3 if dx == 6 else 2
     for c in nb.prange(n_chunks):
-        x = np.empty(6)
-        mu = np.empty(6)
-        T = np.empty((6, 3))
-        Sx = np.empty((6, 6))
-        Lc = np.empty((6, 6))
+        x = np.empty(dx)
+        mu = np.empty(dx)
+        T = np.empty((dx, dm))
+        Sx = np.empty((dx, dx))
+        Lc = np.empty((dx, dx))
         for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-            _particle3(
-                k,
-                version,
-                pose,
-                S,
-                pool_mean,
-                pool_cov,
-                table,
-                bs,
-                slots_old,
-                z_old,
-                Q_old,
-                slots_new,
-                z_new,
-                Q_new,
-                eps,
-                floor,
-                out_pose,
-                dlogw,
-                seq,
-                out_mu,
-                out_Sx,
-                x,
-                mu,
-                T,
-                Sx,
-                Lc,
-            )
-
-
-@nb.njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
-def _step2(  # type: ignore[no-untyped-def]
-    version,
-    pose,
-    S,
-    pool_mean,
-    pool_cov,
-    table,
-    bs,
-    slots_old,
-    z_old,
-    Q_old,
-    slots_new,
-    z_new,
-    Q_new,
-    eps,
-    floor,
-    out_pose,
-    dlogw,
-    seq,
-    out_mu,
-    out_Sx,
-    n_chunks,
-):
-    # one contiguous range of particles per thread, with its scratch arrays allocated once
-    P = pose.shape[0]
-    for c in nb.prange(n_chunks):
-        x = np.empty(3)
-        mu = np.empty(3)
-        T = np.empty((3, 2))
-        Sx = np.empty((3, 3))
-        Lc = np.empty((3, 3))
-        for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-            _particle2(
-                k,
-                version,
-                pose,
-                S,
-                pool_mean,
-                pool_cov,
-                table,
-                bs,
-                slots_old,
-                z_old,
-                Q_old,
-                slots_new,
-                z_new,
-                Q_new,
-                eps,
-                floor,
-                out_pose,
-                dlogw,
-                seq,
-                out_mu,
-                out_Sx,
-                x,
-                mu,
-                T,
-                Sx,
-                Lc,
-            )
+            if dx == 6:
+                _particle3(
+                    k,
+                    version,
+                    pose,
+                    S,
+                    pool_mean,
+                    pool_cov,
+                    table,
+                    bs,
+                    slots_old,
+                    z_old,
+                    Q_old,
+                    slots_new,
+                    z_new,
+                    Q_new,
+                    eps,
+                    floor,
+                    out_pose,
+                    dlogw,
+                    seq,
+                    out_mu,
+                    out_Sx,
+                    x,
+                    mu,
+                    T,
+                    Sx,
+                    Lc,
+                )
+            else:
+                _particle2(
+                    k,
+                    version,
+                    pose,
+                    S,
+                    pool_mean,
+                    pool_cov,
+                    table,
+                    bs,
+                    slots_old,
+                    z_old,
+                    Q_old,
+                    slots_new,
+                    z_new,
+                    Q_new,
+                    eps,
+                    floor,
+                    out_pose,
+                    dlogw,
+                    seq,
+                    out_mu,
+                    out_Sx,
+                    x,
+                    mu,
+                    T,
+                    Sx,
+                    Lc,
+                )
 
 
 @nb.njit(cache=True, nogil=True, fastmath=_FM)
@@ -881,7 +850,7 @@ def _run(
         mu_,
         Sx_,
     )
-    (_step3 if dx == 6 else _step2)(*args, max(1, min(P, nb.get_num_threads())))
+    _step(*args, max(1, min(P, nb.get_num_threads())))
     return out_pose, dlogw
 
 
