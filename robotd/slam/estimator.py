@@ -333,7 +333,7 @@ def covariance_at_prediction(
     more weight, which biases every estimator towards nearer landmarks. For a landmark already in
     the map the filter's prediction ẑ = R(η)ᵀ(m − p) is a far better estimate of the true depth,
     so Q(ẑ) is used instead (the measurement z itself is unchanged; new landmarks keep Q(z)).
-    On §12's 2D loop this takes EKF SLAM's ATE from 0.134 to 0.044 m (docs/slam.md).
+    On §12's 2D loop this takes EKF SLAM's ATE from 0.135 to 0.047 m (docs/slam.md).
 
     Args:
         obs: the frame's observations (robot frame, FRD at the baseline centre); ids of
