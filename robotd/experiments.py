@@ -217,7 +217,14 @@ def run_filter(
         if cov_at == "predicted":
             c = run.config
             obs = covariance_at_prediction(
-                obs, est.estimate(), est.landmarks(), c.f_px, c.baseline_m, c.sigma_px, c.sigma_px / math.sqrt(2.0)
+                obs,
+                est.estimate(),
+                est.landmarks(),
+                c.f_px,
+                c.baseline_m,
+                c.sigma_px,
+                c.sigma_px / math.sqrt(2.0),
+                planar=dim == 2,
             )
         rep = est.update(obs)
         step_ms[k] = (time.perf_counter() - t0) * 1e3

@@ -165,6 +165,7 @@ class Pipeline:
                 f.sigma_y_px,
                 f.cov_inflation,
                 f.depth_min_m,
+                planar=self.cfg.slam.dim == 2,
             )
         report = self.estimator.update(obs)
         db = self.frontend.database

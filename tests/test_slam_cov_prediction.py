@@ -67,3 +67,27 @@ def test_predicted_covariance_removes_most_of_the_stereo_bias() -> None:
         e = {c: run_filter(run, "ekf", seed, cov_at=c).ate_rmse_m for c in ("measured", "predicted")}
         assert b["predicted"] < 0.5 * b["measured"], b
         assert e["predicted"] < 0.7 * e["measured"], e
+
+
+def test_non_finite_prediction_keeps_the_measured_covariance() -> None:
+    """NaN cannot reach it (the message types refuse it), but an absurd map point can overflow."""
+    z = np.array([[3.0, 0.2, 0.1], [2.0, -0.3, 0.0]])
+    Q = covariance_from_points(z, F, B, SX, SY)
+    obs = Observations(0, z, Q, np.array([1, 2], np.int64), np.zeros(2, bool))
+    lm = LandmarkMap(
+        np.array([1, 2], np.int64), np.array([[1e200, 0.0, 0.0], [4.0, 0.0, 0.0]]), np.tile(np.eye(3), (2, 1, 1))
+    )
+    out = covariance_at_prediction(obs, _pose([0, 0, 0], [0, 0, 0]), lm, F, B, SX, SY)
+    np.testing.assert_array_equal(out.cov_R[0], Q[0])  # overflowed prediction: measured Q kept
+    assert np.all(np.isfinite(out.cov_R))
+    assert not np.allclose(out.cov_R[1], Q[1])  # the other one is re-evaluated
+
+
+def test_planar_keeps_the_measured_height() -> None:
+    z = np.array([[3.0, 0.2, 0.4]])
+    obs = Observations(0, z, covariance_from_points(z, F, B, SX, SY), np.array([5], np.int64), np.zeros(1, bool))
+    lm = LandmarkMap(np.array([5], np.int64), np.array([[3.0, 0.2, 0.0]]), np.eye(3)[None])
+    out = covariance_at_prediction(obs, _pose([0, 0, 0], [0, 0, 0]), lm, F, B, SX, SY, planar=True)
+    np.testing.assert_allclose(out.cov_R[0], covariance_from_points(z, F, B, SX, SY)[0], rtol=1e-12)
+    flat = covariance_at_prediction(obs, _pose([0, 0, 0], [0, 0, 0]), lm, F, B, SX, SY)
+    assert not np.allclose(flat.cov_R[0], out.cov_R[0])  # 3D: the map's height 0 is used

@@ -464,7 +464,9 @@ def solve_sim(  # type: ignore[no-untyped-def]
         k_ids = ids[k] if ids is not None else o.ids
         every = Observations(o.t_ns, o.xyz_R_m, o.cov_R, k_ids, np.zeros(o.n, bool))
         pose = PoseEstimate(o.t_ns, res.poses_W[k, :3], res.poses_W[k, 3:], np.eye(6))
-        p = covariance_at_prediction(every, pose, lm, c.f_px, c.baseline_m, c.sigma_px, c.sigma_px / np.sqrt(2.0))
+        p = covariance_at_prediction(
+            every, pose, lm, c.f_px, c.baseline_m, c.sigma_px, c.sigma_px / np.sqrt(2.0), planar=run.dim == 2
+        )
         obs2.append(Observations(o.t_ns, o.xyz_R_m, p.cov_R, o.ids, o.is_new))
     return solve_batch(
         motions,  # type: ignore[arg-type]

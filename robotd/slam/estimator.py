@@ -325,6 +325,7 @@ def covariance_at_prediction(
     sigma_y_px: float,
     inflation: float = 1.0,
     min_depth_m: float = 0.3,
+    planar: bool = False,
 ) -> Observations:
     """The observations with each re-observation's covariance evaluated at its *predicted* point.
 
@@ -343,6 +344,10 @@ def covariance_at_prediction(
         f_px, baseline_m, sigma_x_px, sigma_y_px, inflation: the rig and the §3 noise model.
         min_depth_m: predicted depths are clamped to at least this (a wildly wrong prior must
             not give a zero or negative-depth covariance).
+        planar: a 2D filter's map has no heights: the measured height is kept for ẑ.
+
+    A re-observation whose predicted covariance is not finite (a non-finite pose or landmark)
+    keeps its measured one, so a broken prediction never turns a valid frame into an error.
     """
     old = np.flatnonzero(~obs.is_new)
     if old.size == 0 or landmarks.n == 0:
@@ -357,9 +362,12 @@ def covariance_at_prediction(
         return obs
     R = euler_to_R(pose.rpy_rad)
     z = (landmarks.xyz_W_m[rows] - pose.xyz_W_m) @ R  # rows: Rᵀ(m − p), §7.1
-    if not np.any(landmarks.xyz_W_m[:, 2]):
-        z[:, 2] = obs.xyz_R_m[old, 2]  # a planar map has no heights: keep the measured one
+    if planar:
+        z[:, 2] = obs.xyz_R_m[old, 2]
     z[:, 0] = np.maximum(z[:, 0], min_depth_m)
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite results are screened below
+        Qp = inflation * covariance_from_points(z, f_px, baseline_m, sigma_x_px, sigma_y_px)
+    ok = np.isfinite(Qp).all(axis=(1, 2))
     cov = obs.cov_R.copy()
-    cov[old] = inflation * covariance_from_points(z, f_px, baseline_m, sigma_x_px, sigma_y_px)
+    cov[old[ok]] = Qp[ok]
     return Observations(obs.t_ns, obs.xyz_R_m, cov, obs.ids, obs.is_new)
