@@ -59,6 +59,9 @@ def test_int_is_accepted_for_float() -> None:
         ({"zenoh": {"enabled": "yes"}}, "zenoh.enabled: expected a boolean"),
         ({"robot": {"id": "1robot"}}, "robot.id: expected a name matching"),
         ({"slam": 3}, "slam: expected a table"),
+        ({"slam": {"fs2_weights": "joint"}}, "slam.fs2_weights"),
+        ({"frontend": {"cov_at": "pixels"}}, "frontend.cov_at"),
+        ({"slam": {"numba_threads": -1}}, "slam.numba_threads"),
     ],
 )
 def test_bad_values_name_the_key(data: dict, message: str) -> None:

@@ -146,3 +146,7 @@ def test_bad_config_is_rejected_with_key():
         SimConfig(dim=4)
     with pytest.raises(ConfigError, match="mismatch_rate"):
         SimConfig(mismatch_rate=1.5)
+    with pytest.raises(ConfigError, match="sim.noise_model"):
+        SimConfig(noise_model="laplace")
+    with pytest.raises(ConfigError, match="sim.isotropic_sigma_m"):
+        SimConfig(noise_model="isotropic", isotropic_sigma_m=0.0)

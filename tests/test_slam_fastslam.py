@@ -408,3 +408,12 @@ def test_mixture_estimate_does_not_depend_on_resampling(filt: str) -> None:
     assert np.linalg.eigvalsh(a.cov[np.ix_([0, 1, 5], [0, 1, 5])]).min() > 0
     c, d = ests["particles", 0.0], ests["particles", 1.0]
     assert np.max(np.abs(c.cov - d.cov)) > 1e-9
+
+
+def test_bad_estimator_options_name_the_key() -> None:
+    from robotd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="slam.fs2_weights"):
+        SlamParams(fs2_weights="joint")
+    with pytest.raises(ConfigError, match="slam.pose_estimate"):
+        SlamParams(pose_estimate="best")
