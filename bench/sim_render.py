@@ -18,9 +18,13 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
+
+# the project root first: bench/drivers.py (a benchmark) would otherwise shadow the drivers package
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.sim import SimParams, SimRig
 from drivers.simworld import build_world

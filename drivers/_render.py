@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numba as nb
 import numpy as np
 
 from drivers.simworld import Surface
@@ -23,6 +24,34 @@ from drivers.simworld import Surface
 Z_NEAR_M = 0.05
 # depth band edges [m]: a surface spanning several bands is drawn once per band
 _BANDS = (Z_NEAR_M, 1.0, 2.0, 4.0, 8.0, 16.0, 1e9)
+
+
+@nb.njit(cache=True, nogil=True)
+def _composite(
+    img: np.ndarray,
+    izbuf: np.ndarray,
+    warped: np.ndarray,
+    mask: np.ndarray,
+    x0: int,
+    y0: int,
+    a: float,
+    b: float,
+    c: float,
+) -> None:  # pragma: no cover - compiled
+    """Depth-tested write of one band, in one pass: where ``mask`` is set and the band's inverse
+    depth 1/Z = a x + b y + c (float32, as the buffer) is nearer than ``izbuf``, write the texel and
+    the depth. ``warped``/``mask`` (bh, bw) cover the image window starting at (x0, y0)."""
+    bh, bw = warped.shape
+    fa, fb, fc = np.float32(a), np.float32(b), np.float32(c)
+    for r in range(bh):
+        row = np.float32(y0 + r)
+        base = fb * row + fc
+        for q in range(bw):
+            if mask[r, q]:
+                iz = fa * np.float32(x0 + q) + base
+                if iz > izbuf[y0 + r, x0 + q]:
+                    izbuf[y0 + r, x0 + q] = iz
+                    img[y0 + r, x0 + q] = warped[r, q]
 
 
 def clip_polygon_z(poly: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray:
@@ -58,8 +87,6 @@ class ViewRenderer:
         self.f, self.px, self.py = float(f_px), float(px), float(py)
         self.w, self.h = int(width), int(height)
         self.K = np.array([[self.f, 0.0, self.px], [0.0, self.f, self.py], [0.0, 0.0, 1.0]])
-        self._xs = np.arange(self.w, dtype=np.float32)
-        self._ys = np.arange(self.h, dtype=np.float32)
         rows = np.linspace(235.0, 150.0, self.h, dtype=np.float32)[:, None]
         self.sky = np.broadcast_to(rows, (self.h, self.w)).astype(np.uint8)
         # stacked geometry for the vectorised cull
@@ -146,8 +173,4 @@ class ViewRenderer:
             mask = np.zeros((bh, bw), np.uint8)
             fixed = np.round((pts - (x0, y0)) * 16.0).astype(np.int32)
             cv2.fillConvexPoly(mask, fixed, 1, cv2.LINE_8, 4)
-            iz = (np.float32(a) * self._xs[x0:x1])[None, :] + (np.float32(b) * self._ys[y0:y1] + np.float32(c))[:, None]
-            zroi = izbuf[y0:y1, x0:x1]
-            m = (iz > zroi) & mask.view(bool)
-            np.copyto(img[y0:y1, x0:x1], warped, where=m)
-            np.copyto(zroi, iz, where=m)
+            _composite(img, izbuf, warped, mask, x0, y0, a, b, c)

@@ -51,6 +51,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
+import cv2
 import numpy as np
 
 from drivers._render import ViewRenderer
@@ -268,23 +269,28 @@ class SimRig:
         i = int(rng.integers(len(self._noise_pos)))
         dy, dx = (int(v) for v in rng.integers(0, self._pad, 2))
         h, w = img.shape
-        # saturating uint8 arithmetic: img + max(n, 0) − max(−n, 0)
-        out = np.minimum(img.astype(np.int16) + self._noise_pos[i][dy : dy + h, dx : dx + w], 255)
-        out = np.maximum(out - self._noise_neg[i][dy : dy + h, dx : dx + w], 0)
-        return out.astype(np.uint8)
+        # saturating uint8 arithmetic: min(img + max(n, 0), 255), then max(· − max(−n, 0), 0);
+        # OpenCV's saturating add/subtract do it in place without int16 temporaries (≈ 8× faster)
+        cv2.add(img, self._noise_pos[i][dy : dy + h, dx : dx + w], dst=img)
+        cv2.subtract(img, self._noise_neg[i][dy : dy + h, dx : dx + w], dst=img)
+        return img
 
-    def render(self, k: int, t_ns: int) -> tuple[StereoFrame, np.ndarray]:
+    def render(self, k: int, t_ns: int, depth: bool = True) -> tuple[StereoFrame, np.ndarray | None]:
         """Frame ``k`` stamped ``t_ns``, and the left camera's depth buffer (H, W) float32 [m]
-        (Z along the optical axis = X_r depth; +inf where nothing was hit)."""
+        (Z along the optical axis = X_r depth; +inf where nothing was hit; None when ``depth`` is
+        False: the camera's frame stream does not need it)."""
         T_world_robot = self.world.trajectory.state(self.frame_time_s(k)).T_world_robot
         left, iz = self._renderer.render(T_world_robot @ self.T_robot_left)
         right, _ = self._renderer.render(T_world_robot @ self.T_robot_right)
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)
+        frame = StereoFrame(t_ns, k, left, right, True, T_world_robot)
+        if not depth:
+            return frame, None
         with np.errstate(divide="ignore"):
-            depth = np.where(iz > 0, 1.0 / iz, np.inf).astype(np.float32)
-        return StereoFrame(t_ns, k, left, right, True, T_world_robot), depth
+            z = np.where(iz > 0, 1.0 / iz, np.inf).astype(np.float32)
+        return frame, z
 
 
 # --------------------------------------------------------------------------------------------
@@ -373,7 +379,9 @@ class SimCamera:
         """Frame ``k`` and its left depth buffer [m], off the clock (tests, evaluation)."""
         self.open()
         assert self._rig is not None
-        return self._rig.render(k, self.frame_t_ns(k))
+        frame, depth = self._rig.render(k, self.frame_t_ns(k))
+        assert depth is not None
+        return frame, depth
 
     def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
         """Yield frames until ``duration`` is reached or :meth:`close` is called.
@@ -408,7 +416,7 @@ class SimCamera:
                 if wait_s > 0 and self._closed.wait(wait_s):
                     return
             start = time.perf_counter()
-            frame, _ = self._rig.render(k, t_ns)
+            frame, _ = self._rig.render(k, t_ns, depth=False)
             self._render_ms.append((time.perf_counter() - start) * 1e3)
             self._rendered += 1
             if p.realtime:
