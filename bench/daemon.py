@@ -55,6 +55,39 @@ def _overrides(pairs: list[str]) -> dict[str, dict[str, object]]:
     return out
 
 
+def thread_cpu_s() -> dict[int, tuple[str, float]]:
+    """CPU seconds (user + system) of each of this process's threads, by native id (Linux /proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[int, tuple[str, float]] = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue  # the thread ended
+        comm = stat[stat.index("(") + 1 : stat.rindex(")")]
+        fields = stat[stat.rindex(")") + 2 :].split()
+        out[int(task.name)] = (comm, (int(fields[11]) + int(fields[12])) / tick)
+    return out
+
+
+def _cpu_by_thread(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]]) -> dict[str, float]:
+    """CPU seconds spent between two samples, grouped by Python thread name (others by OS name)."""
+    names = {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
+    names.update(_seen_threads)
+    out: dict[str, float] = {}
+    for tid, (comm, cpu) in after.items():
+        used = cpu - before.get(tid, (comm, 0.0))[1]
+        if tid == os.getpid():
+            key = "main"
+        else:
+            key = names.get(tid, comm)
+        out[key] = out.get(key, 0.0) + used
+    return out
+
+
+_seen_threads: dict[int, str] = {}
+
+
 def run_once(
     detector: str,
     fps: float,
@@ -98,10 +131,18 @@ def run_once(
         marks["dropped"] = d.frame_q.dropped
         marks["skipped"] = d.budget.skipped if d.budget else 0
 
+    threads_cpu: dict[str, dict[int, tuple[str, float]]] = {}
+
     def sample_cpu() -> None:
         time.sleep(warmup_s)
         marks["cpu_s"] = time.process_time()
         marks["load1"] = os.getloadavg()[0]
+        threads_cpu["start"] = thread_cpu_s()
+        _seen_threads.update({t.native_id: t.name for t in threading.enumerate() if t.native_id is not None})
+        # the daemon's threads end with the run: sample them just before it stops
+        time.sleep(max(0.0, seconds - warmup_s - 0.5))
+        _seen_threads.update({t.native_id: t.name for t in threading.enumerate() if t.native_id is not None})
+        threads_cpu["end"] = thread_cpu_s()
 
     th = threading.Thread(target=sample, daemon=True)
     th.start()
@@ -116,6 +157,7 @@ def run_once(
     cpu_s = time.process_time() - marks.get("cpu_s", 0.0)
     lat = np.asarray(d.stats.latencies_ms[marks.get("latencies", 0) :])
     b = d.budget
+    by_thread = _cpu_by_thread(threads_cpu.get("start", {}), threads_cpu.get("end", {}))
     processed = d.stats.steps - marks.get("processed", 0)
     # the last 300 frames' stage times (wall clock, as the budget sees them)
     stages = {k: {"p50": round(v["p50"], 2), "p99": round(v["p99"], 2)} for k, v in d.timer.percentiles().items()}
@@ -146,6 +188,12 @@ def run_once(
         "load1_start": round(marks.get("load1", float("nan")), 2),
         "load1_end": round(os.getloadavg()[0], 2),
         "stage_ms": stages,
+        # CPU per processed frame of each thread (sampled from the warm-up to 0.5 s before the end)
+        "cpu_ms_per_frame_by_thread": {
+            k: round(1e3 * v / processed, 2) for k, v in sorted(by_thread.items(), key=lambda kv: -kv[1]) if v > 0
+        }
+        if processed
+        else {},
     }
 
 
@@ -218,6 +266,10 @@ def main(argv: list[str] | None = None) -> int:
         st = r["stage_ms"]
         cells = [f"{st[k]['p50']:.1f} / {st[k]['p99']:.1f}" if k in st else "-" for k in names]
         print(f"| {r['detector']} | {r['case']} | " + " | ".join(cells) + " |")
+    print("\nCPU per processed frame by thread [ms] (after the warm-up)\n")
+    for r in results:
+        parts = ", ".join(f"{k} {v:.1f}" for k, v in r["cpu_ms_per_frame_by_thread"].items() if v >= 0.05)
+        print(f"- {r['detector']} {r['case']}: {parts}")
     return 0
 
 
