@@ -55,6 +55,37 @@ def _overrides(pairs: list[str]) -> dict[str, dict[str, object]]:
     return out
 
 
+_PROBE = """
+import sys, time
+t_end = time.perf_counter() + float(sys.argv[1])
+out = []
+while time.perf_counter() < t_end:
+    t0 = time.perf_counter()
+    x = 0
+    for i in range(40000):
+        x += i * i
+    out.append((time.perf_counter() - t0) * 1e3)
+print(" ".join(f"{v:.4f}" for v in out))
+"""
+
+
+def host_jitter(seconds: float = 3.0, workers: int = 2) -> dict[str, float]:
+    """How steady this machine's CPUs are right now: ``workers`` processes (default: one per core of
+    a 2-core machine) run the same fixed pure-Python work unit back to back for ``seconds``; the
+    unit's time p50 / p99 [ms] over all of them, and p99 / p50. On a quiet machine the ratio is
+    ≈ 1.1; on a shared VM whose neighbours are busy it reaches 1.5–1.8, and every stage of the
+    pipeline slows by as much at the same moments."""
+    import subprocess
+
+    procs = [
+        subprocess.Popen([sys.executable, "-c", _PROBE, str(seconds)], stdout=subprocess.PIPE, text=True)
+        for _ in range(workers)
+    ]
+    times = np.concatenate([np.array(p.communicate()[0].split(), float) for p in procs])
+    p50, p99 = (float(v) for v in np.percentile(times, [50, 99]))
+    return {"p50_ms": round(p50, 3), "p99_ms": round(p99, 3), "p99_over_p50": round(p99 / p50, 3)}
+
+
 def thread_cpu_s() -> dict[int, tuple[str, float]]:
     """CPU seconds (user + system) of each of this process's threads, by native id (Linux /proc)."""
     tick = os.sysconf("SC_CLK_TCK")
@@ -197,6 +228,12 @@ def run_once(
     }
 
 
+def _cell(col: str, v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.2f}" if col.startswith("host_") else f"{v:.1f}"
+    return str(v)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="run length per case, warm-up included")
@@ -211,6 +248,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override (repeatable)"
     )
+    ap.add_argument("--repeat", type=int, default=1, help="run each case this many times")
+    ap.add_argument(
+        "--probe-seconds",
+        type=float,
+        default=2.0,
+        help="host CPU steadiness probe before and after each case (see host_jitter; 0 = off)",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     extra = _overrides(args.set)
@@ -222,10 +266,20 @@ def main(argv: list[str] | None = None) -> int:
         for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
             if label.split()[0] not in cases:
                 continue
-            r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
-            r["case"] = label
-            results.append(r)
-            print(f"# {det} {label}: p99 {r['latency_p99_ms']} ms", file=sys.stderr)
+            for _ in range(max(1, args.repeat)):
+                before = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
+                r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
+                after = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
+                r["case"] = label
+                # the host's p99/p50 on two busy cores just before and after the case (≈ 1.1 quiet)
+                r["host_jitter_before"] = before["p99_over_p50"] if before else None
+                r["host_jitter_after"] = after["p99_over_p50"] if after else None
+                results.append(r)
+                print(
+                    f"# {det} {label}: p50 {r['latency_p50_ms']:.1f} p99 {r['latency_p99_ms']:.1f} ms, level "
+                    f"{r['budget_level_end']}, host jitter {r['host_jitter_before']} / {r['host_jitter_after']}",
+                    file=sys.stderr,
+                )
     machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
     if args.json:
         print(json.dumps({"machine": machine, "results": results}))
@@ -252,11 +306,13 @@ def main(argv: list[str] | None = None) -> int:
         "cpu_ms_per_frame",
         "load1_start",
         "load1_end",
+        "host_jitter_before",
+        "host_jitter_after",
     ]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in results:
-        cells = [f"{r[c]:.1f}" if isinstance(r[c], float) else str(r[c]) for c in cols]
+        cells = [_cell(c, r[c]) for c in cols]
         print("| " + " | ".join(cells) + " |")
     names = sorted({k for r in results for k in r["stage_ms"]})
     print("\nStage wall times p50 / p99 [ms] (last 300 frames of each case)\n")
