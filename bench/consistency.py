@@ -12,7 +12,10 @@ Runs EKF SLAM and FastSLAM 2.0 on the same simulated 2D loops under three measur
 and reports, per (noise, path length, filter, particles, option): ATE / batch bound (mean, max),
 the ANEES over the runs against its two-sided 95 % band, and the fraction of single steps whose
 NEES lies in the single-run 95 % interval. ``--options`` adds FastSLAM 2.0 variants given as
-SlamParams overrides, e.g. ``fs2_weights=sequential``.
+SlamParams overrides, e.g. ``fs2_weights=sequential``, plus two study-only keys: ``q_scale`` and
+``m_scale`` multiply the measurement (Q) and motion (M) covariances the filter is given (algorithms.md
+§11's inflation remedy; the simulated noise is unchanged). The JSON also holds each case's mean
+NEES in each tenth of the run (``nees_tenths``), printed as a second table.
 
     python bench/consistency.py [--seeds 6] [--lengths 12,40] [--particles 50]
         [--noise stereo,gaussian,isotropic] [--options ""] [--json]
@@ -21,6 +24,7 @@ SlamParams overrides, e.g. ``fs2_weights=sequential``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -34,7 +38,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from robotd.evaluate import anees_band
 from robotd.experiments import make_scenario, run_filter
-from robotd.sim import SimConfig
+from robotd.sim import SimConfig, SimRun
+
+STUDY_KEYS = ("q_scale", "m_scale")  # option keys applied to the data given to the filter
+
+
+def inflated(run: SimRun, q_scale: float, m_scale: float) -> SimRun:
+    """The run with every observation covariance × ``q_scale`` and motion covariance × ``m_scale``."""
+    if q_scale == 1.0 and m_scale == 1.0:
+        return run
+    steps = []
+    for st in run.steps:
+        obs = dataclasses.replace(st.observations, cov_R=st.observations.cov_R * q_scale)
+        mot = None if st.motion is None else dataclasses.replace(st.motion, cov=st.motion.cov * m_scale)
+        steps.append(dataclasses.replace(st, observations=obs, motion=mot))
+    return dataclasses.replace(run, steps=steps)
 
 
 def _parse_options(spec: str) -> list[dict[str, Any]]:
@@ -63,8 +81,17 @@ def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str
             cases += [("fastslam2", n, o) for n in particles for o in _parse_options(options)]
             for filt, n, opt in cases:
                 t0 = time.perf_counter()
+                slam_opt = {k: v for k, v in opt.items() if k not in STUDY_KEYS}
+                qs, ms = float(opt.get("q_scale", 1.0)), float(opt.get("m_scale", 1.0))
                 runs = [
-                    run_filter(sc.run, filt, s, n_particles=max(n, 1), batch_ate=sc.batch_ate, overrides=opt)
+                    run_filter(
+                        inflated(sc.run, qs, ms),
+                        filt,
+                        s,
+                        n_particles=max(n, 1),
+                        batch_ate=sc.batch_ate,
+                        overrides=slam_opt,
+                    )
                     for s, sc in enumerate(scs)
                 ]
                 ratio = np.array([r.ate_ratio for r in runs])
@@ -85,6 +112,10 @@ def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str
                         "anees_band": [lo, hi],
                         "in_band": bool(lo <= anees <= hi),
                         "steps_in_interval": float(np.mean((E > lo1) & (E < hi1))),
+                        "resamples_mean": float(np.mean([r.n_resamples for r in runs])),
+                        "nees_tenths": [
+                            float(np.mean(part)) for part in np.array_split(np.mean([r.nees for r in runs], 0), 10)
+                        ],
                         "seconds": time.perf_counter() - t0,
                     }
                 )
@@ -107,6 +138,14 @@ def table(results: list[dict], seeds: int) -> str:
             f"| {r['batch_ate_m']:.3f} | {r['ate_ratio_mean']:.2f} | {r['ate_ratio_max']:.2f} "
             f"| {r['anees']:.3g} | {lo:.2f}–{hi:.2f} | {'yes' if r['in_band'] else 'no'} "
             f"| {r['steps_in_interval']:.2f} |"
+        )
+    lines += ["", "Mean NEES over the runs in each tenth of the run, and resamplings per run", ""]
+    lines += ["| noise | path m | filter | N | option | NEES by tenth | resamples |", "|---|---|---|---|---|---|---|"]
+    for r in results:
+        tenths = " ".join(f"{v:.3g}" for v in r["nees_tenths"])
+        lines.append(
+            f"| {r['noise']} | {r['path_m']:g} | {r['filter']} | {r['particles'] or '-'} | {r['option']} "
+            f"| {tenths} | {r['resamples_mean']:.0f} |"
         )
     return "\n".join(lines)
 
