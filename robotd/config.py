@@ -85,6 +85,9 @@ class FrontendConfig:
     ransac_max_iterations: int = _f(500, "RANSAC iteration cap", min=1, max=100000)
     min_inliers: int = _f(6, "fewer inliers: no correspondence accepted this frame", min=3)
     restrict_to_fov: bool = _f(True, "match only landmarks predicted inside the field of view")
+    parallel_detect: bool = _f(
+        True, "detect the left and right images on two threads (one thread: a steadier tail on a busy 2-core host)"
+    )
 
 
 @dataclass(frozen=True)

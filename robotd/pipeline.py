@@ -61,7 +61,7 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         max_iterations=f.ransac_max_iterations,
         min_inliers=f.min_inliers,
     )
-    return FrontendParams(detector=det, stereo=stereo, outliers=outl)
+    return FrontendParams(detector=det, stereo=stereo, outliers=outl, parallel_detect=f.parallel_detect)
 
 
 def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:

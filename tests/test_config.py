@@ -62,12 +62,21 @@ def test_int_is_accepted_for_float() -> None:
         ({"slam": {"fs2_weights": "joint"}}, "slam.fs2_weights"),
         ({"frontend": {"cov_at": "pixels"}}, "frontend.cov_at"),
         ({"slam": {"numba_threads": -1}}, "slam.numba_threads"),
+        ({"frontend": {"parallel_detect": "no"}}, "frontend.parallel_detect: expected a boolean"),
     ],
 )
 def test_bad_values_name_the_key(data: dict, message: str) -> None:
     with pytest.raises(ConfigError) as err:
         config_from_dict(data)
     assert message in str(err.value)
+
+
+def test_parallel_detect_reaches_the_front_end() -> None:
+    from robotd.pipeline import frontend_params_from_config
+
+    assert frontend_params_from_config(config_from_dict({})).parallel_detect is True
+    one = config_from_dict({"frontend": {"parallel_detect": False}})
+    assert frontend_params_from_config(one).parallel_detect is False
 
 
 def test_file_errors_name_the_file(tmp_path: Path) -> None:
