@@ -107,6 +107,12 @@ class SlamConfig:
     max_new_per_frame: int = _f(40, "landmarks initialised per frame at most (nearest first)", min=0, max=10000)
     motion_noise_scale: float = _f(1.0, "multiplier on the odometry covariance", min=0.01, max=100.0)
     numba_threads: int = _f(0, "threads of the FastSLAM kernel; 0: one per core", min=0, max=256)
+    blas_threads: int = _f(
+        1,
+        "OpenBLAS threads in the daemon (1: no spinning worker; EKF SLAM on a large map gains from more)",
+        min=1,
+        max=256,
+    )
 
 
 @dataclass(frozen=True)
