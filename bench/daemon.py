@@ -23,6 +23,10 @@ import threading
 import time
 from pathlib import Path
 
+# as the robotd command does (robotd.cli), before numpy loads: one BLAS thread (the daemon also
+# limits it at startup, but OpenBLAS honours a limit set before loading more reliably)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

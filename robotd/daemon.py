@@ -129,7 +129,7 @@ class Daemon:
         self.resumed = False
         self.exit_code = 0
         self._cv_threads: int | None = None  # OpenCV's thread count before startup changed it
-        self._blas_limits: Any = None  # threadpoolctl limits set at startup (restored at shutdown)
+        self._blas_limits: list[tuple[Any, int]] | None = None  # BLAS pools and their thread counts before startup
 
     # ------------------------------------------------------------------ signals: flags only
     def _on_signal(self, signum: int, _frame: Any) -> None:
@@ -186,9 +186,7 @@ class Daemon:
         # spin-waits between calls: with SIFT (float descriptor products) it burned half a core,
         # with ORB ≈ 0.7 ms of CPU per frame, on the cores the detection threads need. Restored at
         # shutdown.
-        from threadpoolctl import threadpool_limits
-
-        self._blas_limits = threadpool_limits(limits=cfg.slam.blas_threads, user_api="blas")
+        self._blas_limits = _limit_blas_threads(cfg.slam.blas_threads)
         if warm_s is not None:
             logger.info("filter kernels ready in %.1f s", warm_s)
         fps = float(getattr(self.camera, "fps", 0.0) or 30.0)
@@ -583,7 +581,7 @@ class Daemon:
 
             cv2.setNumThreads(self._cv_threads)
         if self._blas_limits is not None:
-            self._blas_limits.restore_original_limits()
+            _restore_blas_threads(self._blas_limits)
         self.save_final_map()
         lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
         logger.info(
@@ -595,6 +593,33 @@ class Daemon:
             time.monotonic() - t0,
         )
         self.notifier.close()
+
+
+def _limit_blas_threads(n: int) -> list[tuple[Any, int]]:
+    """Set every loaded BLAS pool (numpy's, SciPy's and OpenCV's OpenBLAS each have one) to ``n``
+    threads; returns the pools with their previous counts for :func:`_restore_blas_threads`.
+
+    Best effort: OpenBLAS may ignore a second change in one process (seen when an earlier daemon in
+    the same process had limited and restored it, the limit then being set from another thread);
+    that is logged. ``robotd`` itself sets OPENBLAS_NUM_THREADS=1 before numpy loads (robotd.cli),
+    which this only repeats; it matters for daemons embedded in other programs (bench/daemon.py)."""
+    from threadpoolctl import ThreadpoolController
+
+    changed: list[tuple[Any, int]] = []
+    for lib in ThreadpoolController().select(user_api="blas").lib_controllers:
+        before = int(lib.get_num_threads())
+        if before != n:
+            lib.set_num_threads(n)
+            changed.append((lib, before))
+            now = int(lib.get_num_threads())
+            if now != n:
+                logger.warning("BLAS %s kept %d threads (asked for %d: slam.blas_threads)", lib.filepath, now, n)
+    return changed
+
+
+def _restore_blas_threads(changed: list[tuple[Any, int]]) -> None:
+    for lib, before in changed:
+        lib.set_num_threads(before)
 
 
 def _safe_stats(dev: Any) -> dict[str, Any]:

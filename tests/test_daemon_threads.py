@@ -1,46 +1,61 @@
-"""The daemon's thread settings: OpenBLAS limited while it runs (slam.blas_threads), restored after."""
+"""The daemon's thread settings: OpenBLAS limited while it runs (slam.blas_threads), restored after.
+
+In a fresh process (the robotd command's situation): an earlier limit-and-restore in the same
+process can leave OpenBLAS ignoring the next change (robotd.daemon._limit_blas_threads).
+"""
 
 from __future__ import annotations
 
-import threading
-import time
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
+SCRIPT = r"""
+import json, sys, threading, time
+import numpy  # noqa: F401  (loads OpenBLAS with one thread per core)
 from threadpoolctl import threadpool_info
-
 from robotd.config import load_config
 from robotd.daemon import Daemon
 
-
-def _blas_threads() -> list[int]:
+def blas():
     return [int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]
+
+before = blas()
+cfg = load_config(None, {
+    "camera": {"url": "sim://?fps=10"}, "vehicle": {"url": "sim://?fps=10"}, "zenoh": {"enabled": False},
+    "slam": {"blas_threads": int(sys.argv[2])},
+    "persistence": {"state_dir": sys.argv[1], "save_period_s": 0.0},
+})
+d = Daemon(cfg, duration_s=3.0, environ={})
+th = threading.Thread(target=d.run)
+th.start()
+during = []
+t_end = time.monotonic() + 20
+while th.is_alive() and time.monotonic() < t_end:
+    if d.stats.steps > 0:
+        during = blas()
+        break
+    time.sleep(0.05)
+th.join(30)
+print(json.dumps({"before": before, "during": during, "after": blas(), "steps": d.stats.steps}))
+"""
 
 
 def test_blas_threads_limited_while_running_and_restored(tmp_path: Path) -> None:
-    before = _blas_threads()
-    assert before, "numpy should be linked against a BLAS threadpoolctl can see"
-    cfg = load_config(
-        None,
-        {
-            "camera": {"url": "sim://?fps=10"},
-            "vehicle": {"url": "sim://?fps=10"},
-            "zenoh": {"enabled": False},
-            "slam": {"blas_threads": 1},
-            "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
-        },
+    env_free = {k: v for k, v in os.environ.items() if not k.startswith("OPENBLAS")}
+    out = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(tmp_path), "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**env_free, "OPENBLAS_NUM_THREADS": "2"},
+        cwd=Path(__file__).resolve().parents[1],
     )
-    d = Daemon(cfg, duration_s=4.0, environ={})
-    th = threading.Thread(target=d.run)
-    th.start()
-    during: list[int] = []
-    t_end = time.monotonic() + 20
-    while th.is_alive() and time.monotonic() < t_end:
-        if d.stats.steps > 0:
-            during = _blas_threads()
-            break
-        time.sleep(0.05)
-    th.join(30)
-    assert not th.is_alive()
-    assert d.stats.steps > 0
-    assert during and all(n == 1 for n in during), during
-    assert _blas_threads() == before
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["steps"] > 0
+    assert r["before"] and max(r["before"]) == 2, r  # OpenBLAS started with two threads
+    assert r["during"] and all(n == 1 for n in r["during"]), r
+    assert r["after"] == r["before"], r
