@@ -82,7 +82,12 @@ def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str
             for filt, n, opt in cases:
                 t0 = time.perf_counter()
                 slam_opt = {k: v for k, v in opt.items() if k not in STUDY_KEYS}
-                qs, ms = float(opt.get("q_scale", 1.0)), float(opt.get("m_scale", 1.0))
+                try:
+                    qs, ms = float(opt.get("q_scale", 1.0)), float(opt.get("m_scale", 1.0))
+                except (TypeError, ValueError):
+                    raise SystemExit(f"--options: q_scale and m_scale must be numbers, got {opt}") from None
+                if not (qs > 0 and ms > 0 and np.isfinite(qs) and np.isfinite(ms)):
+                    raise SystemExit(f"--options: q_scale and m_scale must be finite and > 0, got {qs}, {ms}")
                 runs = [
                     run_filter(
                         inflated(sc.run, qs, ms),

@@ -86,6 +86,9 @@ def host_jitter(seconds: float = 3.0, workers: int = 2) -> dict[str, float]:
         for _ in range(workers)
     ]
     times = np.concatenate([np.array(p.communicate()[0].split(), float) for p in procs])
+    if times.size == 0:  # a probe process failed: say nothing rather than a made-up figure
+        print("# host_jitter: the probe processes returned no timings", file=sys.stderr)
+        return {"p50_ms": float("nan"), "p99_ms": float("nan"), "p99_over_p50": float("nan")}
     p50, p99 = (float(v) for v in np.percentile(times, [50, 99]))
     return {"p50_ms": round(p50, 3), "p99_ms": round(p99, 3), "p99_over_p50": round(p99 / p50, 3)}
 

@@ -606,20 +606,33 @@ def _limit_blas_threads(n: int) -> list[tuple[Any, int]]:
     from threadpoolctl import ThreadpoolController
 
     changed: list[tuple[Any, int]] = []
-    for lib in ThreadpoolController().select(user_api="blas").lib_controllers:
-        before = int(lib.get_num_threads())
-        if before != n:
+    try:
+        libs = ThreadpoolController().select(user_api="blas").lib_controllers
+    except Exception as exc:  # a thread-count setting is not worth failing startup over
+        logger.warning("BLAS thread pools not inspectable (%s); slam.blas_threads not applied", exc)
+        return changed
+    for lib in libs:
+        try:
+            before = int(lib.get_num_threads())
+            if before == n:
+                continue
             lib.set_num_threads(n)
             changed.append((lib, before))
             now = int(lib.get_num_threads())
-            if now != n:
-                logger.warning("BLAS %s kept %d threads (asked for %d: slam.blas_threads)", lib.filepath, now, n)
+        except Exception as exc:
+            logger.warning("BLAS %s: threads not set (%s)", getattr(lib, "filepath", "?"), exc)
+            continue
+        if now != n:
+            logger.warning("BLAS %s kept %d threads (asked for %d: slam.blas_threads)", lib.filepath, now, n)
     return changed
 
 
 def _restore_blas_threads(changed: list[tuple[Any, int]]) -> None:
     for lib, before in changed:
-        lib.set_num_threads(before)
+        try:
+            lib.set_num_threads(before)
+        except Exception as exc:
+            logger.warning("BLAS %s: thread count not restored (%s)", getattr(lib, "filepath", "?"), exc)
 
 
 def _safe_stats(dev: Any) -> dict[str, Any]:

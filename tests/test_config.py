@@ -63,6 +63,7 @@ def test_int_is_accepted_for_float() -> None:
         ({"frontend": {"cov_at": "pixels"}}, "frontend.cov_at"),
         ({"slam": {"numba_threads": -1}}, "slam.numba_threads"),
         ({"frontend": {"parallel_detect": "no"}}, "frontend.parallel_detect: expected a boolean"),
+        ({"slam": {"blas_threads": 0}}, "slam.blas_threads: expected an integer >= 1, got 0"),
     ],
 )
 def test_bad_values_name_the_key(data: dict, message: str) -> None:
