@@ -26,6 +26,7 @@ from pathlib import Path
 # as the robotd command does (robotd.cli), before numpy loads: one BLAS thread (the daemon also
 # limits it at startup, but OpenBLAS honours a limit set before loading more reliably)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.cli: OpenMP workers sleep, not spin
 
 import numpy as np
 

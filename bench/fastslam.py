@@ -30,6 +30,7 @@ from typing import Any
 # spinning against the numba threads on a shared 2-core machine made them ~15× slower. The daemon
 # should do the same (OPENBLAS_NUM_THREADS=1 in the service environment).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.cli: OpenMP workers sleep, not spin
 
 import numpy as np
 

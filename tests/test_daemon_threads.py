@@ -59,3 +59,39 @@ def test_blas_threads_limited_while_running_and_restored(tmp_path: Path) -> None
     assert r["before"] and max(r["before"]) == 2, r  # OpenBLAS started with two threads
     assert r["during"] and all(n == 1 for n in r["during"]), r
     assert r["after"] == r["before"], r
+
+
+ENV_SCRIPT = r"""
+import json, os, sys
+import robotd.cli  # noqa: F401  (the robotd command's module: sets the defaults at import)
+print(json.dumps({
+    "omp": os.environ.get("OMP_WAIT_POLICY"),
+    "blas": os.environ.get("OPENBLAS_NUM_THREADS"),
+}))
+"""
+
+
+def _cli_env(extra: dict[str, str]) -> dict[str, object]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OPENBLAS", "OMP_"))}
+    out = subprocess.run(
+        [sys.executable, "-c", ENV_SCRIPT],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**env, **extra},
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    r: dict[str, object] = json.loads(out.stdout.strip().splitlines()[-1])
+    return r
+
+
+def test_cli_sets_thread_environment_defaults() -> None:
+    # one BLAS thread and sleeping (not spinning) OpenMP workers unless the user says otherwise
+    r = _cli_env({})
+    assert r["omp"] == "passive" and r["blas"] == "1", r
+
+
+def test_cli_keeps_the_users_thread_environment() -> None:
+    r = _cli_env({"OMP_WAIT_POLICY": "active", "OPENBLAS_NUM_THREADS": "3"})
+    assert r["omp"] == "active" and r["blas"] == "3", r
