@@ -173,6 +173,9 @@ class Daemon:
         from robotd.slam.estimator import warmup_numba
 
         warm_s = warmup_numba()
+        from robotd.frontend.stereo_match import warmup as warmup_stereo
+
+        warm_s = warmup_stereo() + (warm_s or 0.0)
         if self.pipeline.frontend.params.parallel_detect:
             # the front end detects the left and right images on two threads of its own; OpenCV's
             # worker pool on top of them only adds threads and their spin-waits (≈ 1 ms CPU per
@@ -188,7 +191,7 @@ class Daemon:
         # shutdown.
         self._blas_limits = _limit_blas_threads(cfg.slam.blas_threads)
         if warm_s is not None:
-            logger.info("filter kernels ready in %.1f s", warm_s)
+            logger.info("filter and matcher kernels ready in %.1f s", warm_s)
         fps = float(getattr(self.camera, "fps", 0.0) or 30.0)
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
         self.budget = LatencyBudget(

@@ -7,7 +7,9 @@ pass an absolute descriptor-distance limit. Then the cross-check keeps mutual be
 
 Candidate generation uses row bucketing: right features sorted by row, a binary search per left
 feature gives the band of rows within ε_y, so only O(N·band) pairs are ever scored (≈ 1.5 % of
-the L×R pairs on KITTI), and all of it is flat numpy.
+the L×R pairs on KITTI). The per-pair loops (candidate pairs, ratio and cross-check, the
+sub-pixel refinement below) are numba kernels (``_stereo_kernels``); the tests hold them to the
+numpy references kept here (``*_numpy``) and to brute force (candidate pairs).
 
 Sub-pixel disparity. ORB keypoints on pyramid level k are quantised to 1.2^k px, far coarser than
 the 0.5 px σ_x the covariance model assumes (§3.1); SIFT/SURF positions are sub-pixel but the
@@ -23,11 +25,13 @@ such matches are dropped (``refine_reject_edge``), which also removes many stere
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from robotd.errors import ConfigError, InputError
+from robotd.frontend import _stereo_kernels as _k
 from robotd.frontend.features import Features
 from robotd.stereo import RectifiedStereo, debias_points, triangulate, triangulation_covariance
 
@@ -94,6 +98,47 @@ def ratio_and_cross_check(
     cross_check: bool = True,
 ) -> tuple[np.ndarray, dict[str, int]]:
     """Select mutual best matches from sparse candidate pairs (algorithms.md §4.1–§4.2).
+
+    ``i``, ``j``: (P,) indices of candidate pairs; ``dist``: (P,) their descriptor distances.
+    For each i the best pair is kept if dist < ratio · second-best distance, or, when it is the
+    only candidate, if dist ≤ ``max_single``. Then the cross-check keeps (i, j) only if i is also
+    j's nearest candidate. Returns the indices (into the pair arrays) of accepted pairs and counts.
+    Ties: the earliest pair wins. (numba kernel; numpy reference: :func:`ratio_and_cross_check_numpy`.)
+    """
+    p = int(np.shape(i)[0])
+    stats = {"pairs": p, "ratio_rejected": 0, "single_rejected": 0, "cross_rejected": 0}
+    if p == 0:
+        return np.zeros(0, np.int64), stats
+    i = np.asarray(i, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    dist = np.asarray(dist)
+    if dist.dtype != np.float32:
+        dist = dist.astype(np.float64)
+    # every caller passes pairs grouped by i (row-major); only an unsorted i is sorted
+    if np.any(i[1:] < i[:-1]):
+        order = np.argsort(i, kind="stable")
+        i_s, d_s = i[order], dist[order]
+    else:
+        order, i_s, d_s = np.arange(p), i, dist
+    out = np.empty(p, np.int64)
+    counts = np.zeros(3, np.int64)
+    n = _k.ratio_cross_kernel(
+        i_s, d_s, order, j, dist, int(n_j), float(ratio), dist.dtype.type(max_single), bool(cross_check), out, counts
+    )
+    stats["ratio_rejected"], stats["single_rejected"], stats["cross_rejected"] = (int(c) for c in counts)
+    return out[:n], stats
+
+
+def ratio_and_cross_check_numpy(
+    i: np.ndarray,
+    j: np.ndarray,
+    dist: np.ndarray,
+    n_j: int,
+    ratio: float,
+    max_single: float,
+    cross_check: bool = True,
+) -> tuple[np.ndarray, dict[str, int]]:
+    """numpy reference of :func:`ratio_and_cross_check` (same result, by segment reductions).
 
     ``i``, ``j``: (P,) indices of candidate pairs; ``dist``: (P,) their descriptor distances.
     For each i the best pair is kept if dist < ratio · second-best distance, or, when it is the
@@ -280,20 +325,31 @@ def candidate_pairs(
     yr_s = yr[order_r]
     lo = np.searchsorted(yr_s, yl - params.row_tol_px, side="left")
     hi = np.searchsorted(yr_s, yl + params.row_tol_px, side="right")
-    cnt = hi - lo
-    total = int(cnt.sum())
+    total = int((hi - lo).sum())
     if total == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    i = np.repeat(np.arange(left.n), cnt)
-    # position inside each left feature's band: running index minus the band's start offset
-    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    j = order_r[np.repeat(lo, cnt) + offs]
-    d = left.xy[i, 0].astype(np.float64) - right.xy[j, 0].astype(np.float64)
-    ok = (d >= d_min) & (d <= d_max)
-    if params.use_laplacian and np.any(left.laplacian) and np.any(right.laplacian):
-        # (a sign of 0 means unknown: ORB and SIFT give none, and the test would pass every pair)
-        li, lj = left.laplacian[i], right.laplacian[j]
-        ok &= (li == 0) | (lj == 0) | (li == lj)
+    # (a Laplacian sign of 0 means unknown: ORB and SIFT give none, and the test would pass every pair)
+    use_lap = bool(params.use_laplacian and np.any(left.laplacian) and np.any(right.laplacian))
+    out_i = np.empty(total, np.int64)
+    out_j = np.empty(total, np.int64)
+    n = _k.candidate_pairs_kernel(
+        np.ascontiguousarray(left.xy[:, 0]),
+        np.ascontiguousarray(right.xy[:, 0]),
+        np.ascontiguousarray(left.laplacian, dtype=np.int8),
+        np.ascontiguousarray(right.laplacian, dtype=np.int8),
+        use_lap,
+        order_r.astype(np.int64, copy=False),
+        lo.astype(np.int64, copy=False),
+        hi.astype(np.int64, copy=False),
+        float(d_min),
+        float(d_max),
+        out_i,
+        out_j,
+    )
+    i, j = out_i[:n], out_j[:n]
+    if params.max_scale_ratio is None and params.max_angle_deg is None:
+        return i, j
+    ok = np.ones(n, bool)
     if params.max_scale_ratio is not None:
         r = left.size[i] / np.maximum(right.size[j], 1e-6)
         ok &= (r <= params.max_scale_ratio) & (r >= 1.0 / params.max_scale_ratio)
@@ -314,6 +370,45 @@ def refine_disparity(
     search: int = 2,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel disparity by ZSSD patch cost and a parabola fit along the row (module doc).
+
+    ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
+    (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum
+    on the search border). Where ``ok`` is False, ``d`` is ``d0``. The cost is measured at the
+    integer column rint(xl); the caller keeps the keypoint's sub-pixel column and assumes the
+    disparity is constant over that < 0.5 px offset. (numba kernel; numpy reference:
+    :func:`refine_disparity_numpy`.)
+    """
+    n = np.shape(xl)[0]
+    d_out = np.array(d0, dtype=np.float64)
+    ok = np.zeros(n, bool)
+    edge = np.zeros(n, bool)
+    if n == 0:
+        return d_out, ok, edge
+    _k.refine_kernel(
+        np.ascontiguousarray(left_img, dtype=np.uint8),
+        np.ascontiguousarray(right_img, dtype=np.uint8),
+        np.rint(xl).astype(np.int64),
+        np.rint(yl).astype(np.int64),
+        np.rint(d0).astype(np.int64),
+        int(half),
+        int(search),
+        d_out,
+        ok,
+        edge,
+    )
+    return d_out, ok, edge
+
+
+def refine_disparity_numpy(
+    left_img: np.ndarray,
+    right_img: np.ndarray,
+    xl: np.ndarray,
+    yl: np.ndarray,
+    d0: np.ndarray,
+    half: int = 3,
+    search: int = 2,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """numpy reference of :func:`refine_disparity` (same result; the kernel avoids the temporaries).
 
     ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
     (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum
@@ -343,33 +438,49 @@ def refine_disparity(
     rows = v[idx, None] + r[None, :]  # (M, P)
     cols_l = u[idx, None] + r[None, :]
     # gather from the uint8 images and convert only the patches (not two whole images)
-    pl = left_img[rows[:, :, None], cols_l[:, None, :]].astype(np.float32)  # (M, P, P)
+    pl = left_img[rows[:, :, None], cols_l[:, None, :]].astype(np.int64)  # (M, P, P)
     # one right strip per keypoint, columns u − d0 − r − h … u − d0 + r + h: the patch for
     # disparity d0 + k (centre u − d0 − k) is the strip's window at offset r − k
     cols_s = (u[idx] - di[idx] - search - half)[:, None] + np.arange(2 * (search + half) + 1)[None, :]
-    strip = right_img[rows[:, :, None], cols_s[:, None, :]].astype(np.float32)  # (M, P, P + 2r)
+    strip = right_img[rows[:, :, None], cols_s[:, None, :]].astype(np.int64)  # (M, P, P + 2r)
     pr = np.lib.stride_tricks.sliding_window_view(strip, 2 * half + 1, axis=2)[:, :, ::-1]  # (M, P, K, P)
-    # ZSSD = Σ ((pr − μ_r) − (pl − μ_l))² = Σ (diff − μ_diff)² with diff = pr − pl, laid out
-    # (M, K, P·P) so that both reductions run over a contiguous last axis
+    # P × ZSSD = P Σ diff² − (Σ diff)² with diff = pr − pl, exact in integers, laid out (M, K, P·P)
+    # so that both sums run over a contiguous last axis
     npx = (2 * half + 1) ** 2
     diff = pr.transpose(0, 2, 1, 3).reshape(idx.size, k.size, npx) - pl.reshape(idx.size, 1, npx)
-    diff -= diff.mean(axis=2, keepdims=True)
-    cost = np.einsum("mkq,mkq->mk", diff, diff)  # (M, K)
+    cost = npx * np.einsum("mkq,mkq->mk", diff, diff) - diff.sum(axis=2) ** 2  # (M, K) int64
     kmin = np.argmin(cost, axis=1)
     at_edge = (kmin == 0) | (kmin == k.size - 1)
     kc = np.clip(kmin, 1, k.size - 2)
     m = np.arange(idx.size)
-    c_m, c_0, c_p = cost[m, kc - 1], cost[m, kc], cost[m, kc + 1]
+    c_m, c_0, c_p = (cost[m, kc + o].astype(np.float64) for o in (-1, 0, 1))
     den = c_m - 2.0 * c_0 + c_p
-    delta = np.where(den > 1e-9, 0.5 * (c_m - c_p) / np.where(den > 1e-9, den, 1.0), 0.0)
+    delta = np.where(den > 0.5, 0.5 * (c_m - c_p) / np.where(den > 0.5, den, 1.0), 0.0)
     d_new = di[idx] + k[kc] + np.clip(delta, -0.5, 0.5)
-    good = ~at_edge & (den > 1e-9)
+    good = ~at_edge & (den > 0.5)
     # the cost was measured at the integer column u; the caller keeps the keypoint's sub-pixel
     # column and assumes the disparity is constant over that < 0.5 px offset
     d_out[idx[good]] = d_new[good]
     ok[idx[good]] = True
     edge[idx[at_edge]] = True
     return d_out, ok, edge
+
+
+def warmup() -> float:
+    """Compile or load the matcher's numba kernels now (tiny inputs, the daemon's dtypes); returns
+    the seconds it took. The daemon calls it at start-up so that its first frame is not delayed."""
+    t0 = time.perf_counter()
+    img = np.zeros((16, 32), np.uint8)
+    x = np.array([20.0], np.float32)
+    lap = np.zeros(1, np.int8)
+    zero, one = np.zeros(1, np.int64), np.ones(1, np.int64)
+    out_i, out_j = np.empty(1, np.int64), np.empty(1, np.int64)
+    _k.candidate_pairs_kernel(x, x - 5.0, lap, lap, False, zero, zero, one, 1.0, 100.0, out_i, out_j)
+    d = np.zeros(1, np.float32)
+    _k.ratio_cross_kernel(zero, d, zero, zero, d, 1, 0.8, np.float32(60.0), True, out_i, np.zeros(3, np.int64))
+    c = np.full(1, 8, np.int64)
+    _k.refine_kernel(img, img, np.full(1, 16, np.int64), c, c, 3, 2, np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))
+    return time.perf_counter() - t0
 
 
 def match_stereo(

@@ -1,0 +1,180 @@
+"""numba kernels of the stereo matcher's per-pair loops; the readable numpy versions are in ``stereo_match.py``.
+
+Each kernel computes exactly what its numpy reference computes (``tests/test_frontend_kernels.py``
+checks equality on random and rendered inputs), in one pass and without the numpy version's
+temporaries: at 1000 ORB features per image the three together took ≈ 2.2 ms per frame in numpy
+and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads run meanwhile.
+
+- :func:`candidate_pairs_kernel`: the (i, j) pairs inside the row band and the disparity range.
+- :func:`ratio_cross_kernel`: ratio test (or lone-candidate limit) and cross-check.
+- :func:`refine_kernel`: ZSSD patch cost at integer disparities and the parabola fit.
+
+Disk caching as in ``_surf_kernels`` (``NUMBA_CACHE_DIR`` for read-only installs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robotd.frontend._surf_kernels import _jit
+
+
+@_jit
+def candidate_pairs_kernel(
+    xl: np.ndarray,
+    xr: np.ndarray,
+    lap_l: np.ndarray,
+    lap_r: np.ndarray,
+    use_lap: bool,
+    order_r: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    d_min: float,
+    d_max: float,
+    out_i: np.ndarray,
+    out_j: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Write the pairs (i, order_r[p]) for lo[i] ≤ p < hi[i] with d_min ≤ xl[i] − xr[j] ≤ d_max (in
+    float64) and, when ``use_lap``, compatible Laplacian signs (0 = unknown passes); grouped by i,
+    in the band's order. ``out_i``/``out_j`` hold at least Σ(hi − lo) entries; returns the count."""
+    n = 0
+    for i in range(xl.shape[0]):
+        x = np.float64(xl[i])
+        li = lap_l[i]
+        for p in range(lo[i], hi[i]):
+            j = order_r[p]
+            d = x - np.float64(xr[j])
+            if d < d_min or d > d_max:
+                continue
+            if use_lap:
+                lj = lap_r[j]
+                if li != 0 and lj != 0 and li != lj:
+                    continue
+            out_i[n] = i
+            out_j[n] = j
+            n += 1
+    return n
+
+
+@_jit
+def ratio_cross_kernel(
+    i_s: np.ndarray,
+    d_s: np.ndarray,
+    order: np.ndarray,
+    j: np.ndarray,
+    dist: np.ndarray,
+    n_j: int,
+    ratio: float,
+    max_single: np.float32,
+    cross_check: bool,
+    out: np.ndarray,
+    counts: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Mutual best matches among candidate pairs (``stereo_match.ratio_and_cross_check``).
+
+    ``i_s``/``d_s``: (P,) the pairs' left indices and float32 distances sorted by i (stable);
+    ``order``: (P,) their positions in the original arrays ``j``/``dist``. The best pair of a
+    group is its smallest distance, the earliest in sorted order on ties; it passes if its distance
+    is below ``ratio`` × the group's second-best (float64), or, alone, ≤ ``max_single`` (float32).
+    The cross-check keeps it if it is also the nearest pair of its j over all pairs (earliest in
+    original order on ties). Writes accepted original positions into ``out`` in group order and
+    [ratio_rejected, single_rejected, cross_rejected] into ``counts``; returns how many.
+    """
+    p = i_s.shape[0]
+    best_of_j = np.full(n_j, p, np.int64)
+    if cross_check:
+        min_j = np.full(n_j, np.inf)
+        for q in range(p):
+            dq = np.float64(dist[q])
+            jq = j[q]
+            if dq < min_j[jq]:
+                min_j[jq] = dq
+                best_of_j[jq] = q
+    n = 0
+    s = 0
+    while s < p:
+        e = s + 1
+        while e < p and i_s[e] == i_s[s]:
+            e += 1
+        b = s
+        for q in range(s + 1, e):
+            if d_s[q] < d_s[b]:
+                b = q
+        if e - s > 1:
+            second = np.inf
+            for q in range(s, e):
+                if q != b and np.float64(d_s[q]) < second:
+                    second = np.float64(d_s[q])
+            ok = np.float64(d_s[b]) < ratio * second
+            if not ok:
+                counts[0] += 1
+        else:
+            ok = d_s[b] <= max_single
+            if not ok:
+                counts[1] += 1
+        if ok:
+            bo = order[b]
+            if cross_check and best_of_j[j[bo]] != bo:
+                counts[2] += 1
+            else:
+                out[n] = bo
+                n += 1
+        s = e
+    return n
+
+
+@_jit
+def refine_kernel(
+    left: np.ndarray,
+    right: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    di: np.ndarray,
+    half: int,
+    search: int,
+    d_out: np.ndarray,
+    ok: np.ndarray,
+    edge: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Sub-pixel disparity of keypoint (u, v) [px, integers] around integer disparity ``di``.
+
+    For k = −search … search: the zero-mean SSD Σ (e − ē)² over the P = (2h+1)² patch pixels,
+    e = right[v+r, u−di−k+c] − left[v+r, u+c], computed exactly in integers as
+    P·Σe² − (Σe)² (P × the ZSSD: the same minimum and parabola, and ties go to the first k rather
+    than to rounding). Minimum on the window's border: ``edge``; else the parabola through the
+    minimum and its neighbours, when it curves up, gives d_out = di + k + δ (|δ| ≤ 0.5) and
+    ``ok``. Patches that leave either image are skipped.
+    """
+    h, w = left.shape
+    k_n = 2 * search + 1
+    npx = (2 * half + 1) * (2 * half + 1)
+    cost = np.empty(k_n, np.int64)
+    for m in range(u.shape[0]):
+        uu, vv, dd = u[m], v[m], di[m]
+        if vv - half < 0 or vv + half >= h or uu - half < 0 or uu + half >= w:
+            continue
+        if uu - dd - search - half < 0 or uu - dd + search + half >= w:
+            continue
+        for kk in range(k_n):
+            k = kk - search
+            s1 = np.int64(0)
+            s2 = np.int64(0)
+            for r in range(-half, half + 1):
+                for c in range(-half, half + 1):
+                    x = np.int64(right[vv + r, uu - dd - k + c]) - np.int64(left[vv + r, uu + c])
+                    s1 += x
+                    s2 += x * x
+            cost[kk] = npx * s2 - s1 * s1
+        kmin = 0
+        for kk in range(1, k_n):
+            if cost[kk] < cost[kmin]:
+                kmin = kk
+        if kmin == 0 or kmin == k_n - 1:
+            edge[m] = True
+            continue
+        c_m, c_0, c_p = np.float64(cost[kmin - 1]), np.float64(cost[kmin]), np.float64(cost[kmin + 1])
+        den = c_m - 2.0 * c_0 + c_p
+        if den > 0.5:
+            delta = min(max(0.5 * (c_m - c_p) / den, -0.5), 0.5)
+            d_out[m] = dd + (kmin - search) + delta
+            ok[m] = True
