@@ -173,9 +173,12 @@ class Daemon:
         from robotd.slam.estimator import warmup_numba
 
         warm_s = warmup_numba()
-        from robotd.frontend.stereo_match import warmup as warmup_stereo
+        from robotd.frontend import detectors, stereo_match
 
-        warm_s = warmup_stereo() + (warm_s or 0.0)
+        t_warm = time.perf_counter()
+        detectors.warmup()
+        stereo_match.warmup()
+        warm_s = time.perf_counter() - t_warm + (warm_s or 0.0)
         if self.pipeline.frontend.params.parallel_detect:
             # the front end detects the left and right images on two threads of its own; OpenCV's
             # worker pool on top of them only adds threads and their spin-waits (≈ 1 ms CPU per

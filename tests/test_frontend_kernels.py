@@ -89,3 +89,45 @@ def test_match_stereo_on_rendered_pair(sim_pair):
     np.testing.assert_array_equal(sel, sel_r)
     m = match_stereo(fl, fr, rig, p, left, right)
     assert m.n > 300 and m.refined.mean() > 0.9
+
+
+def test_bucket_kernel_equals_numpy(rng):
+    from robotd.frontend.detectors import bucket_select, bucket_select_numpy
+
+    for trial in range(80):
+        n = int(rng.integers(1, 5000))
+        xy = rng.uniform(0, [640, 400], (n, 2)).astype(np.float32)
+        if trial % 4 == 0:
+            xy[: n // 2] = rng.uniform(0, [100, 80], (n // 2, 2))  # crowded corner: sparse cells elsewhere
+        # FAST scores are small integers: ties everywhere; SIFT/SURF responses are floats
+        resp = rng.integers(0, 30, n).astype(np.float32) if trial % 2 else rng.random(n).astype(np.float32)
+        cap = int(rng.integers(1, 1500))
+        rows, cols = (4, 8) if trial % 3 else (int(rng.integers(1, 7)), int(rng.integers(1, 9)))
+        got = bucket_select(xy, resp, (400, 640), cap, rows, cols)
+        ref = bucket_select_numpy(xy, resp, (400, 640), cap, rows, cols)
+        np.testing.assert_array_equal(got, ref)
+
+
+def test_warmup_compiles_every_signature_the_pipeline_uses():
+    # the daemon warms the kernels at start-up: its frames must not trigger a compile
+    from robotd.config import load_config
+    from robotd.frontend import _detect_kernels, _stereo_kernels, detectors, stereo_match
+    from robotd.pipeline import Pipeline
+
+    kernels = [
+        _detect_kernels.bucket_kernel,
+        _stereo_kernels.candidate_pairs_kernel,
+        _stereo_kernels.ratio_cross_kernel,
+        _stereo_kernels.refine_kernel,
+    ]
+    detectors.warmup()
+    stereo_match.warmup()
+    before = [set(k.signatures) for k in kernels]
+    cfg = load_config(None, {"camera": {"url": "sim://?realtime=0"}, "vehicle": {"url": "sim://?realtime=0"}})
+    with drivers.open_camera("sim://?realtime=0&fps=30") as cam:
+        pipe = Pipeline(cfg, cam.rectified_model(), np.random.default_rng(0))
+        it = cam.frames()
+        for _ in range(4):  # the first frame starts the map; the next ones identify against it
+            pipe.step(next(it), None)
+    after = [set(k.signatures) for k in kernels]
+    assert after == before, [a - b for a, b in zip(after, before, strict=True)]

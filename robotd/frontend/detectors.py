@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from robotd.errors import ConfigError, InputError
+from robotd.frontend import _detect_kernels as _dk
 from robotd.frontend.features import Features
 
 logger = logging.getLogger(__name__)
@@ -126,7 +127,34 @@ def bucket_select(
     ``xy``: (N, 2) [px] (column, row); ``response``: (N,); ``shape``: (H, W). Each cell keeps up to
     ceil(max_features / cells) of its strongest features; the quota unused by sparse cells is
     filled with the strongest of the remaining features. Returned in decreasing response order.
+    (numba kernel; numpy reference: :func:`bucket_select_numpy`.)
     """
+    n = xy.shape[0]
+    if n <= max_features:
+        return np.argsort(-response, kind="stable")
+    h, w = shape
+    col = np.clip((xy[:, 0] * grid_cols / max(w, 1)).astype(np.int64), 0, grid_cols - 1)
+    row = np.clip((xy[:, 1] * grid_rows / max(h, 1)).astype(np.int64), 0, grid_rows - 1)
+    resp = np.ascontiguousarray(response, dtype=np.float32 if response.dtype == np.float32 else np.float64)
+    cell = row * grid_cols + col
+    n_cells = grid_rows * grid_cols
+    # (−response, cell, index) order from two stable sorts; a small cell key sorts by radix
+    by_cell = np.argsort(cell.astype(np.int16) if n_cells <= np.iinfo(np.int16).max else cell, kind="stable")
+    g = by_cell[np.argsort(-resp[by_cell], kind="stable")]
+    out: np.ndarray = _dk.bucket_kernel(g, cell, resp, int(max_features), n_cells)
+    return out
+
+
+def warmup() -> None:
+    """Compile or load the bucketing kernel now (the daemon calls it at start-up)."""
+    idx = np.arange(3, dtype=np.int64)
+    _dk.bucket_kernel(idx, np.array([0, 1, 1], np.int64), np.array([3.0, 2.0, 1.0], np.float32), 2, 2)
+
+
+def bucket_select_numpy(
+    xy: np.ndarray, response: np.ndarray, shape: tuple[int, int], max_features: int, grid_rows: int, grid_cols: int
+) -> np.ndarray:
+    """numpy reference of :func:`bucket_select` (same indices in the same order)."""
     n = xy.shape[0]
     if n <= max_features:
         return np.argsort(-response, kind="stable")

@@ -25,7 +25,6 @@ such matches are dropped (``refine_reject_edge``), which also removes many stere
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -109,11 +108,10 @@ def ratio_and_cross_check(
     stats = {"pairs": p, "ratio_rejected": 0, "single_rejected": 0, "cross_rejected": 0}
     if p == 0:
         return np.zeros(0, np.int64), stats
-    i = np.asarray(i, dtype=np.int64)
-    j = np.asarray(j, dtype=np.int64)
-    dist = np.asarray(dist)
-    if dist.dtype != np.float32:
-        dist = dist.astype(np.float64)
+    # contiguous int64 / float32|float64: one compiled signature each (np.nonzero returns strided views)
+    i = np.ascontiguousarray(i, dtype=np.int64)
+    j = np.ascontiguousarray(j, dtype=np.int64)
+    dist = np.ascontiguousarray(dist, dtype=np.float32 if np.asarray(dist).dtype == np.float32 else np.float64)
     # every caller passes pairs grouped by i (row-major); only an unsorted i is sorted
     if np.any(i[1:] < i[:-1]):
         order = np.argsort(i, kind="stable")
@@ -466,10 +464,9 @@ def refine_disparity_numpy(
     return d_out, ok, edge
 
 
-def warmup() -> float:
-    """Compile or load the matcher's numba kernels now (tiny inputs, the daemon's dtypes); returns
-    the seconds it took. The daemon calls it at start-up so that its first frame is not delayed."""
-    t0 = time.perf_counter()
+def warmup() -> None:
+    """Compile or load the matcher's numba kernels now (tiny inputs, the daemon's dtypes). The
+    daemon calls it at start-up so that its first frame is not delayed."""
     img = np.zeros((16, 32), np.uint8)
     x = np.array([20.0], np.float32)
     lap = np.zeros(1, np.int8)
@@ -480,7 +477,6 @@ def warmup() -> float:
     _k.ratio_cross_kernel(zero, d, zero, zero, d, 1, 0.8, np.float32(60.0), True, out_i, np.zeros(3, np.int64))
     c = np.full(1, 8, np.int64)
     _k.refine_kernel(img, img, np.full(1, 16, np.int64), c, c, 3, 2, np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))
-    return time.perf_counter() - t0
 
 
 def match_stereo(
