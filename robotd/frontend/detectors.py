@@ -135,12 +135,12 @@ def bucket_select(
     h, w = shape
     col = np.clip((xy[:, 0] * grid_cols / max(w, 1)).astype(np.int64), 0, grid_cols - 1)
     row = np.clip((xy[:, 1] * grid_rows / max(h, 1)).astype(np.int64), 0, grid_rows - 1)
-    resp = np.ascontiguousarray(response, dtype=np.float32 if response.dtype == np.float32 else np.float64)
+    resp: np.ndarray = np.ascontiguousarray(response, dtype=np.float32 if response.dtype == np.float32 else np.float64)
     cell = row * grid_cols + col
     n_cells = grid_rows * grid_cols
     # (−response, cell, index) order from two stable sorts; a small cell key sorts by radix
     by_cell = np.argsort(cell.astype(np.int16) if n_cells <= np.iinfo(np.int16).max else cell, kind="stable")
-    g = by_cell[np.argsort(-resp[by_cell], kind="stable")]
+    g = by_cell[np.argsort(np.negative(resp[by_cell]), kind="stable")]
     out: np.ndarray = _dk.bucket_kernel(g, cell, resp, int(max_features), n_cells)
     return out
 
