@@ -173,11 +173,13 @@ class Daemon:
         from robotd.slam.estimator import warmup_numba
 
         warm_s = warmup_numba()
+        from robotd import outliers
         from robotd.frontend import detectors, stereo_match
 
         t_warm = time.perf_counter()
         detectors.warmup()
         stereo_match.warmup()
+        outliers.warmup()
         warm_s = time.perf_counter() - t_warm + (warm_s or 0.0)
         if self.pipeline.frontend.params.parallel_detect:
             # the front end detects the left and right images on two threads of its own; OpenCV's

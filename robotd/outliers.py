@@ -16,8 +16,9 @@ sets, never the filter's pose.
 samples have 2 pairs and the thresholds are χ²₂ (§5.1).
 
 All RANSAC variants share one loop (§5.3): distinct random samples from an injected
-``np.random.Generator``, degenerate samples skipped, hypotheses scored in batches (one numpy call
-for a batch of hypotheses × all pairs, 3×3 systems solved in closed form), best = most inliers
+``np.random.Generator``, degenerate samples skipped, hypotheses scored in batches (one call
+for a batch of hypotheses × all pairs, 3×3 systems solved in closed form; a numba kernel in
+``_outlier_kernels`` for the Mahalanobis consensus), best = most inliers
 with ties to the smaller Σd² (each new best locally optimised by a weighted re-fit on its
 inliers), the adaptive budget K = ⌈log(1−p)/log(1−w^m)⌉ with a cap, one
 re-fit on the inliers and one re-classification, and "accept none" below ``min_inliers``.
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from robotd._outlier_kernels import similarity_d2_kernel
 from robotd.errors import ConfigError, InputError
 from robotd.geometry import umeyama, umeyama_batch
 
@@ -244,8 +246,42 @@ def similarity_d2(
     """Squared consensus distance (K, N) of every pair under every hypothesis (§5.2).
 
     Mahalanobis: d² = eᵀ C⁻¹ e with C_i = B_i + s² R A_i Rᵀ (A: (N, d, d) covariance of a in its
-    frame, B: (N, d, d) of b). Euclidean: d² = |e|².
+    frame, B: (N, d, d) of b); a C that is not positive definite gives +inf. Euclidean: d² = |e|².
+    (Mahalanobis: numba kernel; numpy reference: :func:`similarity_d2_numpy`.)
     """
+    if euclidean:
+        e = similarity_residuals(s, R, t, a, b)
+        return np.einsum("kni,kni->kn", e, e)
+    s = np.ascontiguousarray(s, dtype=np.float64)
+    R = np.ascontiguousarray(R, dtype=np.float64)
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    b = np.ascontiguousarray(b, dtype=np.float64)
+    none = np.zeros((1, 1, 1))
+    A_ = none if A is None else np.ascontiguousarray(A, dtype=np.float64)
+    B_ = none if B is None else np.ascontiguousarray(B, dtype=np.float64)
+    out = np.empty((s.shape[0], a.shape[0]))
+    similarity_d2_kernel(s, R, t, a, b, A_, B_, A is not None, B is not None, out)
+    return out
+
+
+def warmup() -> None:
+    """Compile or load the consensus kernel now (the daemon calls it at start-up)."""
+    z = np.zeros((1, 3))
+    similarity_d2(np.ones(1), np.eye(3)[None], z, z, z, np.eye(3)[None], np.eye(3)[None])
+
+
+def similarity_d2_numpy(
+    s: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    A: np.ndarray | None,
+    B: np.ndarray | None,
+    euclidean: bool = False,
+) -> np.ndarray:
+    """numpy reference of :func:`similarity_d2` (the same formulas; the kernel agrees to rounding)."""
     e = similarity_residuals(s, R, t, a, b)
     if euclidean:
         return np.einsum("kni,kni->kn", e, e)

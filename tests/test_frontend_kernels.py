@@ -1,4 +1,4 @@
-"""The stereo matcher's numba kernels compute what their numpy references compute.
+"""The front end's numba kernels compute what their numpy references compute.
 
 Inputs: random ones with many ties (integer distances), and a rendered sim:// pair with its ORB
 features, the daemon's own workload.
@@ -110,6 +110,7 @@ def test_bucket_kernel_equals_numpy(rng):
 
 def test_warmup_compiles_every_signature_the_pipeline_uses():
     # the daemon warms the kernels at start-up: its frames must not trigger a compile
+    from robotd import _outlier_kernels, outliers
     from robotd.config import load_config
     from robotd.frontend import _detect_kernels, _stereo_kernels, detectors, stereo_match
     from robotd.pipeline import Pipeline
@@ -119,9 +120,11 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
         _stereo_kernels.candidate_pairs_kernel,
         _stereo_kernels.ratio_cross_kernel,
         _stereo_kernels.refine_kernel,
+        _outlier_kernels.similarity_d2_kernel,
     ]
     detectors.warmup()
     stereo_match.warmup()
+    outliers.warmup()
     before = [set(k.signatures) for k in kernels]
     cfg = load_config(None, {"camera": {"url": "sim://?realtime=0"}, "vehicle": {"url": "sim://?realtime=0"}})
     with drivers.open_camera("sim://?realtime=0&fps=30") as cam:

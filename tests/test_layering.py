@@ -11,6 +11,7 @@ CORE = [
     "robotd/stereo.py",
     "robotd/msgs.py",
     "robotd/outliers.py",
+    "robotd/_outlier_kernels.py",
     "robotd/frontend",
     "robotd/slam",
 ]
@@ -23,6 +24,7 @@ ALLOWED_ROBOTD = (
     "robotd.frontend",
     "robotd.slam",
     "robotd.outliers",
+    "robotd._outlier_kernels",
 )
 STDLIB_OK = {
     "__future__",

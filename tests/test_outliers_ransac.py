@@ -22,6 +22,7 @@ from robotd.outliers import (
     sample_indices,
     sampson_sq,
     similarity_d2,
+    similarity_d2_numpy,
 )
 
 CHI2_3_099 = 11.345
@@ -87,6 +88,31 @@ def test_batched_d2_matches_one_at_a_time(rng):
             e = b[i] - (s[q] * R[q] @ a[i] + t[q])
             C = B[i] + s[q] ** 2 * R[q] @ A[i] @ R[q].T
             assert d2[q, i] == pytest.approx(e @ np.linalg.solve(C, e), rel=1e-9)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("which", ["AB", "A", "B"])
+def test_d2_kernel_matches_numpy_reference(rng, d, which):
+    n, k = 300, 24
+    a, b = rng.normal(size=(n, d)) * 5, rng.normal(size=(n, d)) * 5
+    A = _spd(rng, n, d, 0.01) if "A" in which else None
+    B = _spd(rng, n, d, 0.02) if "B" in which else None
+    s = rng.uniform(0.9, 1.1, k)
+    if d == 3:
+        R = np.stack([_random_similarity(rng)[1] for _ in range(k)])
+    else:
+        th = rng.uniform(-np.pi, np.pi, k)
+        R = np.stack([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]).transpose(2, 0, 1)
+    t = rng.normal(size=(k, d))
+    got = similarity_d2(s, R, t, a, b, A, B)
+    ref = similarity_d2_numpy(s, R, t, a, b, A, B)
+    np.testing.assert_allclose(got, ref, rtol=1e-10)
+    # an indefinite covariance (det < 0) never gives an inlier
+    if B is not None:
+        B[0] = np.diag([1.0, -1.0, 1.0][:d])
+        if A is not None:
+            A[0] = 0.0
+        assert np.all(np.isinf(similarity_d2(s, R, t, a, b, A, B)[:, 0]))
 
 
 def test_consensus_rate_matches_chi2_level_gaussian(rng):
