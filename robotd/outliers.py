@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from robotd._outlier_kernels import similarity_d2_kernel
+from robotd._outlier_kernels import gn_fit, gn_weights, similarity_d2_kernel
 from robotd.errors import ConfigError, InputError
 from robotd.geometry import umeyama, umeyama_batch
 
@@ -266,9 +266,12 @@ def similarity_d2(
 
 
 def warmup() -> None:
-    """Compile or load the consensus kernel now (the daemon calls it at start-up)."""
+    """Compile or load the consensus and re-fit kernels now (the daemon calls it at start-up)."""
     z = np.zeros((1, 3))
     similarity_d2(np.ones(1), np.eye(3)[None], z, z, z, np.eye(3)[None], np.eye(3)[None])
+    a = np.eye(3)
+    C = np.broadcast_to(np.eye(3), (3, 3, 3)).copy()
+    fit_similarity_mahalanobis(a, a, C, C, 1.0, np.eye(3), np.zeros(3), iterations=1)
 
 
 def similarity_d2_numpy(
@@ -354,10 +357,63 @@ def fit_similarity_mahalanobis(
 
     Cᵢ = Bᵢ + s0² R0 Aᵢ R0ᵀ (§5.2) is held at the start value. Unweighted least squares (Umeyama)
     is dominated by the far points, whose depth error grows with X² (§3.2); this weighting is what
-    makes the re-fit on inliers improve the hypothesis. Perturbation: t + δt, exp(δθ) R, s·e^{δσ}.
+    makes the re-fit on inliers improve the hypothesis; a pair whose Cᵢ is not positive definite
+    is left out. Perturbation: t + δt, exp(δθ) R, s·e^{δσ}.
     ``a``, ``b``: (N, d), d = 2 or 3; ``A``, ``B``: (N, d, d) or None. Returns (s, R, t, cov) with
     cov the inverse Gauss–Newton information over (δt, δθ[, δσ]).
     """
+    n, d = a.shape
+    if A is not None or B is not None:
+        none = np.zeros((1, 1, 1))
+        W = np.empty((n, d, d))
+        gn_weights(
+            none if A is None else np.ascontiguousarray(A, dtype=np.float64),
+            none if B is None else np.ascontiguousarray(B, dtype=np.float64),
+            float(s0),
+            np.ascontiguousarray(R0, dtype=np.float64),
+            A is not None,
+            B is not None,
+            W,
+        )
+    else:
+        W = np.broadcast_to(np.eye(d), (n, d, d))
+    k_rot = 3 if d == 3 else 1
+    npar = d + k_rot + (1 if with_scale else 0)
+    H = np.eye(npar)
+    # the Gauss–Newton loop in one numba call (_outlier_kernels.gn_fit): H = Σ Jᵢᵀ Wᵢ Jᵢ and
+    # g = Σ Jᵢᵀ Wᵢ eᵢ with ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) v)/∂δθ = [v]× for v = sRa in 3-D,
+    # (v_y, −v_x) in 2-D, ∂e/∂δσ = −v; δ = −H⁻¹g until |δ| < GN_STEP_TOL
+    s, R, t = gn_fit(
+        np.ascontiguousarray(a, dtype=np.float64),
+        np.ascontiguousarray(b, dtype=np.float64),
+        np.ascontiguousarray(W, dtype=np.float64),
+        float(s0),
+        np.ascontiguousarray(R0, dtype=np.float64),
+        np.ascontiguousarray(t0, dtype=np.float64),
+        bool(with_scale),
+        int(iterations),
+        GN_STEP_TOL,
+        H,
+    )
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.full((npar, npar), np.inf)
+    return s, R, t, 0.5 * (cov + cov.T)
+
+
+def fit_similarity_mahalanobis_numpy(
+    a: np.ndarray,
+    b: np.ndarray,
+    A: np.ndarray | None,
+    B: np.ndarray | None,
+    s0: float,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    with_scale: bool = True,
+    iterations: int = 5,
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """numpy reference of :func:`fit_similarity_mahalanobis` (the kernel agrees to rounding)."""
     n, d = a.shape
     C = np.zeros((n, d, d))
     if A is not None:

@@ -121,6 +121,8 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
         _stereo_kernels.ratio_cross_kernel,
         _stereo_kernels.refine_kernel,
         _outlier_kernels.similarity_d2_kernel,
+        _outlier_kernels.gn_weights,
+        _outlier_kernels.gn_fit,
     ]
     detectors.warmup()
     stereo_match.warmup()

@@ -14,6 +14,7 @@ from robotd.outliers import (
     OutlierParams,
     detect_outliers,
     fit_similarity_mahalanobis,
+    fit_similarity_mahalanobis_numpy,
     fundamental_8point,
     iteration_budget,
     mahalanobis_sq,
@@ -113,6 +114,30 @@ def test_d2_kernel_matches_numpy_reference(rng, d, which):
         if A is not None:
             A[0] = 0.0
         assert np.all(np.isinf(similarity_d2(s, R, t, a, b, A, B)[:, 0]))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("with_scale", [True, False])
+def test_weighted_fit_kernel_matches_numpy_reference(rng, d, with_scale):
+    n = 200
+    if d == 3:
+        s, R, t = _random_similarity(rng)
+    else:
+        th = rng.uniform(-np.pi, np.pi)
+        s, R, t = (
+            rng.uniform(0.95, 1.05),
+            np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]),
+            rng.normal(size=2),
+        )
+    a = rng.uniform(-10, 10, (n, d))
+    A, B = _spd(rng, n, d, 0.01), _spd(rng, n, d, 0.02)
+    b = s * a @ R.T + t + rng.normal(scale=0.1, size=(n, d))
+    # start away from the optimum, so that Gauss-Newton takes several steps
+    R0 = R @ (_random_similarity(rng)[1] if d == 3 else np.eye(2))
+    got = fit_similarity_mahalanobis(a, b, A, B, 1.0, R0, t + 0.2, with_scale=with_scale)
+    ref = fit_similarity_mahalanobis_numpy(a, b, A, B, 1.0, R0, t + 0.2, with_scale=with_scale)
+    for x, y in zip(got, ref, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12)
 
 
 def test_consensus_rate_matches_chi2_level_gaussian(rng):
