@@ -171,7 +171,7 @@ class Pipeline:
         db = self.frontend.database
         if report.n_pruned and db is not None:
             # the filter's existence counter is the master; the descriptor database follows it
-            db.remove(np.setdiff1d(db.ids, self.estimator.landmark_ids()))
+            db.remove(np.setdiff1d(db.ids, self.estimator.landmark_ids(), assume_unique=True))
         timings["filter"] = (time.perf_counter() - t0) * 1e3
 
         pose = self.estimator.estimate()
@@ -211,7 +211,7 @@ class Pipeline:
         if new.size > k_new:
             tr = np.trace(obs.cov_R[new], axis1=1, axis2=2)
             keep_new = np.sort(new[np.argsort(tr, kind="stable")[:k_new]])
-            dropped = np.setdiff1d(new, keep_new)
+            dropped = np.setdiff1d(new, keep_new, assume_unique=True)
             if self.frontend.database is not None:
                 self.frontend.database.remove(obs.ids[dropped])
             new = keep_new

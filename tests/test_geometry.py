@@ -197,3 +197,12 @@ def test_umeyama_never_returns_a_reflection(rng: np.random.Generator) -> None:
     b = a * np.array([1, 1, -1])  # a mirror image: the best proper rotation, never det -1
     _, R, _ = g.umeyama(a, b)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_euler_to_R_is_the_product_of_elementary_rotations():
+    # the closed form must equal Rz(yaw) Ry(pitch) Rx(roll) for any batch shape
+    rng = np.random.default_rng(7)
+    for shape in [(3,), (50, 3), (4, 6, 3)]:
+        rpy = rng.uniform(-4.0, 4.0, shape)
+        ref = g.rot_z(rpy[..., 2]) @ g.rot_y(rpy[..., 1]) @ g.rot_x(rpy[..., 0])
+        np.testing.assert_allclose(g.euler_to_R(rpy), ref, rtol=0, atol=1e-15)

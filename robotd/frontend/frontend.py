@@ -259,7 +259,7 @@ class Frontend:
 
         if n_visible_pred >= 0:
             identified = corr.ids[corr.status == IDENTIFIED]
-            db.mark_missed(np.setdiff1d(cand, identified))
+            db.mark_missed(np.setdiff1d(cand, identified, assume_unique=True))  # ids are unique
         db.commit(corr, meas.desc)
 
         # --- frame-to-frame motion (visual-odometry prior)
