@@ -64,6 +64,7 @@ class Published:
     quality: int
     frame_seq: int
     landmarks: Any = None  # LandmarkMap snapshot, taken by the SLAM thread when a map update is due
+    event: str | None = None  # a pose discontinuity in this step (ResetEvent), for the autopilot
 
 
 @dataclass
@@ -333,6 +334,7 @@ class Daemon:
             if last_t is not None:
                 inc = self.integrator.integrate(last_t, frame.t_ns)
             t0 = time.perf_counter()
+            n_reloc = pipeline.counters.relocalisations
             try:
                 result = pipeline.step(frame, inc)
             except RobotdError as exc:
@@ -363,7 +365,8 @@ class Daemon:
             if self._save_request.is_set():
                 self._save_request.clear()
                 self._save_q.put((frame.t_ns, pipeline.state_dict()))
-            self.pub_q.put(Published(result, frame.truth_T_world_robot, pipeline.quality(result), frame.seq, lm))
+            event = ResetEvent.RELOCALISATION if pipeline.counters.relocalisations > n_reloc else None
+            self.pub_q.put(Published(result, frame.truth_T_world_robot, pipeline.quality(result), frame.seq, lm, event))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
@@ -388,7 +391,7 @@ class Daemon:
             with self._lock:
                 self._last_result = item
             seq += 1
-            event, self._pending_event = self._pending_event, None
+            event, self._pending_event = self._pending_event or item.event, None
             self.stats.reset_counter = self.reset_policy.update(res.pose, event)
             if self.publisher is not None:
                 self.publisher.publish_pose(

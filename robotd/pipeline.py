@@ -23,10 +23,10 @@ from robotd.autopilot import quality_from
 from robotd.config import Config
 from robotd.frontend.association import LandmarkDatabase
 from robotd.frontend.detectors import DetectorParams, make_detector
-from robotd.frontend.frontend import Frontend, FrontendParams
+from robotd.frontend.frontend import Frontend, FrontendParams, FrontendResult
 from robotd.frontend.stereo_match import StereoMatchParams
-from robotd.geometry import euler_to_R, se3, se3_inverse
-from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame
+from robotd.geometry import R_to_euler, euler_to_R, se3, se3_inverse
+from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.outliers import OutlierParams
 from robotd.slam.estimator import Estimator, SlamParams, covariance_at_prediction, make_estimator
 from robotd.stereo import RectifiedStereo
@@ -34,6 +34,12 @@ from robotd.stereo import RectifiedStereo
 logger = logging.getLogger(__name__)
 
 LOST_AFTER_FRAMES = 5  # frames without accepted correspondences before tracking is declared lost
+# Relocalisation against a loaded map (the saved pose may be stale: the rover moved while robotd was
+# down, or a simulated rover restarted its path): identify against the whole map, and accept the
+# RANSAC similarity only with this many inliers (sim://, map of 120 frames: 10-30 inliers, pose
+# within 4-8 cm of the first run's); give up after this many frames
+RELOC_MIN_INLIERS = 12
+RELOC_MAX_FRAMES = 30
 
 
 def frontend_params_from_config(cfg: Config, max_features: int | None = None) -> FrontendParams:
@@ -96,6 +102,8 @@ class PipelineCounters:
     constant_velocity_priors: int = 0
     frames_without_correspondences: int = 0
     lost_events: int = 0
+    relocalisations: int = 0
+    relocalisation_failures: int = 0
 
 
 class Pipeline:
@@ -115,6 +123,7 @@ class Pipeline:
         self._no_corr = 0
         self.tracking = True
         self.max_features = cfg.frontend.max_features
+        self._reloc_frames_left = 0  # > 0: relocalise against the map before trusting the pose
 
     # ---------------------------------------------------------------- degradation hooks
     def set_max_features(self, n: int) -> None:
@@ -136,18 +145,25 @@ class Pipeline:
         want_motion = increment is None
         if self.frontend.params.motion != want_motion:
             self.frontend.params = replace(self.frontend.params, motion=want_motion)
+        reloc = self._reloc_frames_left > 0 and lm.n > 0
         fr = self.frontend.process(
             frame.left,
             frame.right,
             frame.t_ns,
             lm,
-            pose_to_T(prior) if self._restrict_fov and lm.n else None,
+            # relocalising: no pose prior, so identification considers the whole map
+            pose_to_T(prior) if self._restrict_fov and lm.n and not reloc else None,
         )
         timings.update(fr.timings_ms)
+        relocalised = False
+        if reloc:
+            relocalised = self._relocalise(fr)
+            if not relocalised:
+                return self._reloc_wait(frame, fr, timings, t_start)
         obs = self._limit(fr.observations)
 
         t0 = time.perf_counter()
-        if self._last_t_ns is not None:
+        if self._last_t_ns is not None and not relocalised:
             inc = self._choose_increment(increment, fr, frame.t_ns)
             if inc is not None:
                 self.estimator.predict(inc)
@@ -196,6 +212,74 @@ class Pipeline:
         counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
         counts["identified"] = n_identified
         return StepResult(frame.t_ns, pose, report, timings, counts, self.tracking)
+
+    def _relocalise(self, fr: FrontendResult) -> bool:
+        """Put the filter's pose where the frame's map correspondences say (after a map load).
+
+        The outlier stage's similarity b = sRa + t maps world landmarks a into this frame's robot
+        frame; with at least RELOC_MIN_INLIERS inliers its inverse is the pose. Returns True when
+        the pose was reset; counts down the attempts otherwise.
+        """
+        res = fr.outlier_result
+        sim = fr.similarity
+        n_in = 0 if res is None else int(res.n_inliers)
+        if sim is None or n_in < RELOC_MIN_INLIERS:
+            self._reloc_frames_left -= 1
+            if self._reloc_frames_left == 0:
+                self.counters.relocalisation_failures += 1
+                logger.warning(
+                    "relocalisation against the loaded map failed for %d frames (best: %d inliers); "
+                    "continuing from the saved pose",
+                    RELOC_MAX_FRAMES,
+                    n_in,
+                )
+            return False
+        s_ = float(np.cbrt(np.linalg.det(sim[:3, :3])))
+        R = sim[:3, :3] / s_
+        p = -R.T @ sim[:3, 3] / s_  # the robot origin (b = 0) in the world frame
+        T = se3(R.T, p)
+        dim = self.cfg.slam.dim
+        if dim == 3:
+            x = np.r_[p, R_to_euler(R.T)]
+            cov = np.diag([0.05**2] * 3 + [0.02**2] * 3)
+        else:
+            x = np.array([p[0], p[1], float(np.arctan2(T[1, 0], T[0, 0]))])
+            cov = np.diag([0.05**2, 0.05**2, 0.02**2])
+        self.estimator.reset_pose(x, cov)
+        self._reloc_frames_left = 0
+        self._last_inc = None
+        self.counters.relocalisations += 1
+        logger.info(
+            "relocalised against the map: %d inliers of %d, pose x %.2f y %.2f z %.2f m",
+            n_in,
+            int(res.n_input) if res is not None else 0,
+            p[0],
+            p[1],
+            p[2],
+        )
+        return True
+
+    def _reloc_wait(
+        self, frame: StereoFrame, fr: FrontendResult, timings: dict[str, float], t_start: float
+    ) -> StepResult:
+        """A frame that did not relocalise: the map is left as it is (no update, the new
+        descriptors are taken back out of the database), and the step reports not tracking."""
+        obs = fr.observations
+        db = self.frontend.database
+        if db is not None and obs.n:
+            db.remove(obs.ids[obs.is_new])
+        self.tracking = False
+        self._last_t_ns = frame.t_ns
+        pose = self.estimator.estimate()
+        self._last_T = pose_to_T(pose)
+        self.counters.frames += 1
+        timings["filter"] = 0.0
+        timings["total"] = (time.perf_counter() - t_start) * 1e3
+        counts = dict(fr.counts)
+        counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
+        counts["identified"] = 0
+        report = UpdateReport()
+        return StepResult(frame.t_ns, pose, report, timings, counts, False)
 
     def _limit(self, obs: Observations) -> Observations:
         """Cap the filter's work per frame: a spread subset of the identified measurements, and the
@@ -271,6 +355,9 @@ class Pipeline:
         if db:
             self.frontend.database = _db_from_state(db)
         self.frontend.reset()
+        # the saved pose may be stale (the rover moved while robotd was down): find it in the map
+        self._reloc_frames_left = RELOC_MAX_FRAMES
+        self._last_t_ns = None
 
     def relative_to_last(self, T_world_robot: np.ndarray) -> np.ndarray | None:
         if self._last_T is None:

@@ -178,6 +178,8 @@ def test_daemon_end_to_end(tmp_path: Path) -> None:
         code2, _, out2 = _stop(proc2)
     notify2.close()
     assert "resumed from saved map" in out2, out2[-3000:]
+    # the simulated rover starts its path again: the saved pose is stale, the map finds the new one
+    assert "relocalised against the map" in out2, out2[-3000:]
     assert code2 == 0
     assert poses2 and all(p["reset_counter"] >= 1 for p in poses2)  # a map load is a discontinuity
     assert blob2 is not None and decode_map(blob2)[1].n >= lm.n * 0.5

@@ -296,6 +296,16 @@ class EkfSlam(UpdateEntryPoints):
         m3, C3 = lm_to_3d(m, C, self.params.pose_cov_floor_2d)
         return LandmarkMap(self.landmark_ids(), m3, C3)
 
+    def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
+        """Relocalisation: the pose mean becomes ``x`` (dx,), its covariance ``cov`` (default: a
+        1 cm / 0.1° floor) and its correlations with the landmarks zero; the landmarks are kept."""
+        dx = self.dx
+        self.mu[:dx] = np.asarray(x, dtype=float).reshape(dx)
+        self.Sigma[:dx, :] = 0.0
+        self.Sigma[:, :dx] = 0.0
+        floor = np.diag([1e-4] * (dx // 2 if dx == 6 else 2) + [3e-6] * (3 if dx == 6 else 1))
+        self.Sigma[:dx, :dx] = floor if cov is None else np.asarray(cov, dtype=float)
+
     def set_particles(self, n: int) -> int:
         """The EKF has no particles; returns 0."""
         return 0

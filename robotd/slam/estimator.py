@@ -158,6 +158,10 @@ class Estimator(Protocol):
         """Change the particle count (clamped to [n_particles_min, ∞)); returns the new count. EKF: no-op."""
         ...
 
+    def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
+        """Relocalisation: put the pose at ``x`` (dx,) with covariance ``cov``; the map is kept."""
+        ...
+
     def state_dict(self) -> dict[str, np.ndarray | float | int]:
         """Everything needed to resume: numpy arrays and scalars only."""
         ...

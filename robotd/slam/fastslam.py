@@ -575,6 +575,24 @@ class FastSlam(UpdateEntryPoints):
         m, C = lm_to_3d(*self.store.gather_particle(self.best, s), self.params.pose_cov_floor_2d)
         return LandmarkMap(self.book.slot_id[s].copy(), m, C)
 
+    def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
+        """Relocalisation: every particle's pose drawn from N(x, cov) (exactly x when ``cov`` is None).
+
+        ``x``: (dx,) pose (2D: x, y, yaw; 3D: x, y, z, roll, pitch, yaw), ``cov``: (dx, dx). The
+        particles keep their maps (in the world frame); the weights become uniform.
+        """
+        x = np.asarray(x, dtype=float).reshape(self.dx)
+        P = self.pose.shape[0]
+        if cov is None:
+            self.pose = np.broadcast_to(x, (P, self.dx)).copy()
+        else:
+            L = np.linalg.cholesky(np.asarray(cov, dtype=float) + 1e-12 * np.eye(self.dx))
+            self.pose = wrap_pose(x + self.rng.standard_normal((P, self.dx)) @ L.T, self.dim)
+        self.log_w = np.full(P, -np.log(P))
+        self.neff = float(P)
+        self.pending_S = None
+        self._post = None
+
     def set_particles(self, n: int) -> int:
         """Resample to ``max(n, min(n_particles_min, n_particles))`` particles (low-variance); returns the count."""
         self._post = None

@@ -1,0 +1,79 @@
+"""After a map load the pipeline finds its pose in the map (the saved pose may be stale).
+
+A map built over frames 0–119 of the simulated rover is loaded into a fresh pipeline, which is then
+fed frame 60 again: as if the rover had been moved back 2 m while robotd was down. The pipeline
+must relocalise on that frame to where the first run had it, and keep tracking. A map of another
+world must not relocalise: the map is left untouched while it tries, and it gives up after a
+bounded number of frames.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import drivers
+import robotd.pipeline as pl
+from robotd.config import load_config
+from robotd.geometry import se3_inverse
+from robotd.pipeline import Pipeline, pose_to_T
+
+
+def _frames(seed: int, n: int) -> tuple[list, object]:
+    url = f"sim://?realtime=0&fps=30&seed={seed}"
+    with drivers.open_camera(url) as cam:
+        it = cam.frames()
+        frames = [next(it) for _ in range(n)]
+        rig = cam.rectified_model()
+    return frames, rig
+
+
+def _pipeline(rig) -> Pipeline:
+    cfg = load_config(None, {"camera": {"url": "sim://?realtime=0"}, "vehicle": {"url": "sim://?realtime=0"}})
+    return Pipeline(cfg, rig, np.random.default_rng(3))
+
+
+@pytest.fixture(scope="module")
+def mapped():
+    frames, rig = _frames(1, 120)
+    a = _pipeline(rig)
+    poses = [pose_to_T(a.step(f, None).pose) for f in frames]
+    return frames, rig, poses, a.state_dict()
+
+
+def test_relocalises_after_a_map_load(mapped):
+    frames, rig, poses, state = mapped
+    b = _pipeline(rig)
+    b.load_state_dict(state)
+    stale = pose_to_T(b.estimator.estimate())
+    assert np.linalg.norm(stale[:3, 3] - poses[60][:3, 3]) > 1.0  # the saved pose is far from frame 60's
+    r = b.step(frames[60], None)
+    assert b.counters.relocalisations == 1 and r.tracking
+    D = se3_inverse(poses[60]) @ pose_to_T(r.pose)
+    assert np.linalg.norm(D[:3, 3]) < 0.10, D[:3, 3]
+    assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 2.0
+    # and it keeps tracking from there
+    for k in range(61, 75):
+        r = b.step(frames[k], None)
+    D = se3_inverse(poses[74]) @ pose_to_T(r.pose)
+    assert r.tracking and np.linalg.norm(D[:3, 3]) < 0.15, D[:3, 3]
+    assert b.counters.relocalisations == 1
+
+
+def test_foreign_map_does_not_relocalise_and_is_left_untouched(mapped, monkeypatch, caplog):
+    _, rig, _, state = mapped
+    other, _ = _frames(2, 8)  # another world
+    monkeypatch.setattr(pl, "RELOC_MAX_FRAMES", 4)
+    b = _pipeline(rig)
+    b.load_state_dict(state)
+    ids0 = b.estimator.landmark_ids().copy()
+    for k in range(4):
+        r = b.step(other[k], None)
+        assert not r.tracking
+        np.testing.assert_array_equal(b.estimator.landmark_ids(), ids0)  # no update while trying
+        db = b.frontend.database
+        assert db is not None and np.all(np.isin(db.ids, ids0))  # nor descriptors of new landmarks
+    assert b.counters.relocalisations == 0 and b.counters.relocalisation_failures == 1
+    assert "relocalisation against the loaded map failed" in caplog.text
+    b.step(other[4], None)  # then it carries on from the saved pose and maps again
+    assert np.setdiff1d(b.estimator.landmark_ids(), ids0).size > 0
