@@ -131,6 +131,7 @@ class Daemon:
         self.exit_code = 0
         self._cv_threads: int | None = None  # OpenCV's thread count before startup changed it
         self._blas_limits: list[tuple[Any, int]] | None = None  # BLAS pools and their thread counts before startup
+        self._prev_handlers: dict[int, Any] = {}  # signal handlers replaced by install_signal_handlers
 
     # ------------------------------------------------------------------ signals: flags only
     def _on_signal(self, signum: int, _frame: Any) -> None:
@@ -139,8 +140,15 @@ class Daemon:
 
     def install_signal_handlers(self) -> None:
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, self._on_signal)
-            signal.signal(signal.SIGINT, self._on_signal)
+            self._prev_handlers = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def restore_signal_handlers(self) -> None:
+        """Put back the handlers the daemon replaced (a program that embeds it keeps its own
+        Ctrl-C after the daemon stops, and the stopped daemon is not kept alive by them)."""
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in self._prev_handlers.items():
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        self._prev_handlers = {}
 
     # ------------------------------------------------------------------ startup
     def startup(self, stack: contextlib.ExitStack) -> None:
@@ -472,22 +480,25 @@ class Daemon:
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
         self.install_signal_handlers()
-        with contextlib.ExitStack() as stack:
-            try:
-                self.startup(stack)
-            except RobotdError as exc:
-                if self.stop_event.is_set():
-                    logger.info("stopped during startup (%s)", self.stop_reason)
-                    return 0
-                logger.error("startup failed: %s", exc)
-                self.notifier.notify(f"STATUS=startup failed: {exc}", "ERRNO=1")
-                return 2
-            self._start_threads()
-            try:
-                self._supervise()
-            finally:
-                self._shutdown()
-        return self.exit_code
+        try:
+            with contextlib.ExitStack() as stack:
+                try:
+                    self.startup(stack)
+                except RobotdError as exc:
+                    if self.stop_event.is_set():
+                        logger.info("stopped during startup (%s)", self.stop_reason)
+                        return 0
+                    logger.error("startup failed: %s", exc)
+                    self.notifier.notify(f"STATUS=startup failed: {exc}", "ERRNO=1")
+                    return 2
+                self._start_threads()
+                try:
+                    self._supervise()
+                finally:
+                    self._shutdown()
+            return self.exit_code
+        finally:
+            self.restore_signal_handlers()
 
     def _start_threads(self) -> None:
         for name, fn in (

@@ -95,3 +95,37 @@ def test_cli_sets_thread_environment_defaults() -> None:
 def test_cli_keeps_the_users_thread_environment() -> None:
     r = _cli_env({"OMP_WAIT_POLICY": "active", "OPENBLAS_NUM_THREADS": "3"})
     assert r["omp"] == "active" and r["blas"] == "3", r
+
+
+def test_signal_handlers_are_restored_after_the_daemon_stops(tmp_path: Path) -> None:
+    # a program embedding the daemon gets its own handlers back, and the stopped daemon is freed
+    import gc
+    import signal
+    import weakref
+
+    from robotd.config import load_config
+    from robotd.daemon import Daemon
+
+    def mine(signum: int, frame: object) -> None:  # pragma: no cover - never called
+        pass
+
+    old = signal.signal(signal.SIGTERM, mine)
+    try:
+        cfg = load_config(
+            None,
+            {
+                "camera": {"url": "sim://?fps=10"},
+                "vehicle": {"url": "sim://?fps=10"},
+                "zenoh": {"enabled": False},
+                "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
+            },
+        )
+        d = Daemon(cfg, duration_s=1.0, environ={})
+        assert d.run() == 0
+        assert signal.getsignal(signal.SIGTERM) is mine
+        ref = weakref.ref(d)
+        del d
+        gc.collect()
+        assert ref() is None, "the stopped daemon is still referenced"
+    finally:
+        signal.signal(signal.SIGTERM, old)
