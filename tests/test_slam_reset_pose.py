@@ -1,0 +1,46 @@
+"""reset_pose (relocalisation): every filter puts its pose where told and keeps tracking its map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robotd.slam.estimator import SlamParams, make_estimator
+from tests._slam_world import World
+
+
+def _vec(est) -> np.ndarray:
+    p = est.estimate()
+    return np.r_[p.xyz_W_m[:2], p.rpy_rad[2]] if est.dim == 2 else np.r_[p.xyz_W_m, p.rpy_rad]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("name", ["ekf", "fastslam1", "fastslam2"])
+def test_reset_pose_then_track_from_there(name: str, dim: int) -> None:
+    world = World(dim, np.random.default_rng(1), sigma_z=0.02, sigma_odo=0.005)
+    est = make_estimator(SlamParams(filter=name, dim=dim, n_particles=50), np.random.default_rng(2))
+    est.update(world.observe())
+    for _ in range(15):
+        est.predict(world.step())
+        est.update(world.observe())
+    # the robot moves 12 steps while the filter hears nothing (robotd was down), then is found
+    for _ in range(12):
+        world.step()
+    x = world.pose()
+    assert np.linalg.norm(_vec(est)[:2] - x[:2]) > 1.5  # the filter's pose is stale
+    dx = 3 if dim == 2 else 6
+    est.reset_pose(x, None if name == "ekf" else np.diag([1e-4] * dx))
+    assert np.linalg.norm(_vec(est)[:2] - x[:2]) < 0.03
+    if name == "ekf":
+        S = est.covariance()
+        assert np.all(S[:dx, dx:] == 0) and np.all(S[dx:, :dx] == 0)  # no stale correlations
+        assert np.linalg.eigvalsh(S).min() > -1e-12
+    else:
+        w = est.weights()
+        np.testing.assert_allclose(w, 1.0 / w.size)
+    n_lm = est.landmarks().n
+    for _ in range(5):
+        est.predict(world.step())
+        est.update(world.observe())
+    assert np.linalg.norm(_vec(est)[:2] - world.pose()[:2]) < 0.1
+    assert est.landmarks().n >= n_lm  # the map was kept
