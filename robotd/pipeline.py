@@ -355,8 +355,10 @@ class Pipeline:
         if db:
             self.frontend.database = _db_from_state(db)
         self.frontend.reset()
-        # the saved pose may be stale (the rover moved while robotd was down): find it in the map
-        self._reloc_frames_left = RELOC_MAX_FRAMES
+        # the saved pose may be stale (the rover moved while robotd was down): find it in the map.
+        # 3-D maps only: a planar map has no landmark heights, and the 3-D consensus against it
+        # found 0-10 inliers on sim:// (a planar resume continues from the saved pose, as before)
+        self._reloc_frames_left = RELOC_MAX_FRAMES if self.cfg.slam.dim == 3 else 0
         self._last_t_ns = None
 
     def relative_to_last(self, T_world_robot: np.ndarray) -> np.ndarray | None:

@@ -77,3 +77,20 @@ def test_foreign_map_does_not_relocalise_and_is_left_untouched(mapped, monkeypat
     assert "relocalisation against the loaded map failed" in caplog.text
     b.step(other[4], None)  # then it carries on from the saved pose and maps again
     assert np.setdiff1d(b.estimator.landmark_ids(), ids0).size > 0
+
+
+def test_planar_resume_continues_from_the_saved_pose():
+    # a 2-D map has no heights to match against: no relocalisation is tried, tracking goes on
+    frames, rig = _frames(1, 30)
+    cfg = load_config(
+        None,
+        {"camera": {"url": "sim://?realtime=0"}, "vehicle": {"url": "sim://?realtime=0"}, "slam": {"dim": 2}},
+    )
+    a = Pipeline(cfg, rig, np.random.default_rng(3))
+    for f in frames[:25]:
+        a.step(f, None)
+    b = Pipeline(cfg, rig, np.random.default_rng(4))
+    b.load_state_dict(a.state_dict())
+    r = b.step(frames[25], None)
+    assert b.counters.relocalisations == 0 and b.counters.relocalisation_failures == 0
+    assert r.tracking and r.counts["identified"] > 0
