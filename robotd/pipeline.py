@@ -27,7 +27,7 @@ from robotd.frontend.frontend import Frontend, FrontendParams, FrontendResult
 from robotd.frontend.stereo_match import StereoMatchParams
 from robotd.geometry import R_to_euler, euler_to_R, se3, se3_inverse
 from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
-from robotd.outliers import OutlierParams
+from robotd.outliers import OutlierParams, OutlierResult
 from robotd.slam.estimator import Estimator, SlamParams, covariance_at_prediction, make_estimator
 from robotd.stereo import RectifiedStereo
 
@@ -214,48 +214,37 @@ class Pipeline:
         return StepResult(frame.t_ns, pose, report, timings, counts, self.tracking)
 
     def _relocalise(self, fr: FrontendResult) -> bool:
-        """Put the filter's pose where the frame's map correspondences say (after a map load).
+        """Put the filter's pose where the frame's map correspondences say (after a 3-D map load).
 
         The outlier stage's similarity b = sRa + t maps world landmarks a into this frame's robot
         frame; with at least RELOC_MIN_INLIERS inliers its inverse is the pose. Returns True when
         the pose was reset; counts down the attempts otherwise.
         """
         res = fr.outlier_result
-        sim = fr.similarity
-        n_in = 0 if res is None else int(res.n_inliers)
-        if sim is None or n_in < RELOC_MIN_INLIERS:
+        n_in = 0 if res is None or fr.similarity is None else int(res.n_inliers)
+        fix = _pose_from_similarity(res) if res is not None and n_in >= RELOC_MIN_INLIERS else None
+        if fix is None:
             self._reloc_frames_left -= 1
             if self._reloc_frames_left == 0:
                 self.counters.relocalisation_failures += 1
                 logger.warning(
-                    "relocalisation against the loaded map failed for %d frames (best: %d inliers); "
+                    "relocalisation against the loaded map failed for %d frames (last: %d inliers); "
                     "continuing from the saved pose",
                     RELOC_MAX_FRAMES,
                     n_in,
                 )
             return False
-        s_ = float(np.cbrt(np.linalg.det(sim[:3, :3])))
-        R = sim[:3, :3] / s_
-        p = -R.T @ sim[:3, 3] / s_  # the robot origin (b = 0) in the world frame
-        T = se3(R.T, p)
-        dim = self.cfg.slam.dim
-        if dim == 3:
-            x = np.r_[p, R_to_euler(R.T)]
-            cov = np.diag([0.05**2] * 3 + [0.02**2] * 3)
-        else:
-            x = np.array([p[0], p[1], float(np.arctan2(T[1, 0], T[0, 0]))])
-            cov = np.diag([0.05**2, 0.05**2, 0.02**2])
-        self.estimator.reset_pose(x, cov)
+        self.estimator.reset_pose(fix, np.diag([0.05**2] * 3 + [0.02**2] * 3))
         self._reloc_frames_left = 0
         self._last_inc = None
         self.counters.relocalisations += 1
         logger.info(
             "relocalised against the map: %d inliers of %d, pose x %.2f y %.2f z %.2f m",
             n_in,
-            int(res.n_input) if res is not None else 0,
-            p[0],
-            p[1],
-            p[2],
+            res.n_input if res is not None else 0,
+            fix[0],
+            fix[1],
+            fix[2],
         )
         return True
 
@@ -365,6 +354,17 @@ class Pipeline:
         if self._last_T is None:
             return None
         return se3_inverse(self._last_T) @ T_world_robot
+
+
+def _pose_from_similarity(res: OutlierResult) -> np.ndarray | None:
+    """(x, y, z, roll, pitch, yaw) of the robot from the similarity b = sRa + t that maps world
+    points a into the robot frame (its inverse at b = 0); None when it is missing or not finite."""
+    if res.s is None or res.R is None or res.t is None or not res.s > 0:
+        return None
+    R_wr = np.asarray(res.R, dtype=float).T  # the robot's orientation in the world
+    p = -R_wr @ np.asarray(res.t, dtype=float) / float(res.s)
+    x = np.r_[p, R_to_euler(R_wr)]
+    return x if np.all(np.isfinite(x)) else None
 
 
 def _db_state(db: LandmarkDatabase | None) -> dict[str, Any]:

@@ -44,3 +44,40 @@ def test_reset_pose_then_track_from_there(name: str, dim: int) -> None:
         est.update(world.observe())
     assert np.linalg.norm(_vec(est)[:2] - world.pose()[:2]) < 0.1
     assert est.landmarks().n >= n_lm  # the map was kept
+
+
+@pytest.mark.parametrize("name", ["ekf", "fastslam2"])
+def test_reset_pose_refuses_bad_input_and_changes_nothing(name: str) -> None:
+    from robotd.errors import InputError
+
+    world = World(3, np.random.default_rng(1), sigma_z=0.02)
+    est = make_estimator(SlamParams(filter=name, dim=3, n_particles=20), np.random.default_rng(2))
+    est.update(world.observe())
+    before = _vec(est)
+    bad = [
+        (np.r_[1.0, np.nan, 0, 0, 0, 0], None, "finite"),
+        (np.zeros(3), None, r"shape \(6,\)"),
+        (np.zeros(6), np.eye(3), r"shape \(6, 6\)"),
+        (np.zeros(6), -np.eye(6), "positive semi-definite"),
+        (np.zeros(6), np.full((6, 6), np.inf), "finite"),
+    ]
+    for x, cov, msg in bad:
+        with pytest.raises(InputError, match=msg):
+            est.reset_pose(x, cov)
+        np.testing.assert_array_equal(_vec(est), before)
+
+
+def test_pose_from_a_similarity_that_is_not_finite_is_none() -> None:
+    from robotd.outliers import OutlierResult
+    from robotd.pipeline import _pose_from_similarity
+
+    def res(s, R, t):
+        return OutlierResult(
+            "similarity_mahalanobis", np.ones(3, bool), True, 3, 3, 1, 0, 0, 0.0, 1.0, np.zeros(3), s, R, t
+        )
+
+    assert _pose_from_similarity(res(1.0, np.eye(3), np.array([np.nan, 0, 0]))) is None
+    assert _pose_from_similarity(res(0.0, np.eye(3), np.zeros(3))) is None
+    assert _pose_from_similarity(res(None, None, None)) is None
+    x = _pose_from_similarity(res(1.0, np.eye(3), np.array([-1.0, 2.0, 0.0])))  # world → robot shift
+    np.testing.assert_allclose(x, [1.0, -2.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)

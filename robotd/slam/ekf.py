@@ -29,6 +29,7 @@ from robotd.slam.estimator import (
     SlamParams,
     VisibleFn,
     check_finite,
+    check_reset_pose,
     control_from_increment,
     split_observations,
 )
@@ -300,11 +301,12 @@ class EkfSlam(UpdateEntryPoints):
         """Relocalisation: the pose mean becomes ``x`` (dx,), its covariance ``cov`` (default: a
         1 cm / 0.1° floor) and its correlations with the landmarks zero; the landmarks are kept."""
         dx = self.dx
-        self.mu[:dx] = np.asarray(x, dtype=float).reshape(dx)
+        x, cov = check_reset_pose(x, cov, dx)
+        self.mu[:dx] = x
         self.Sigma[:dx, :] = 0.0
         self.Sigma[:, :dx] = 0.0
         floor = np.diag([1e-4] * (dx // 2 if dx == 6 else 2) + [3e-6] * (3 if dx == 6 else 1))
-        self.Sigma[:dx, :dx] = floor if cov is None else np.asarray(cov, dtype=float)
+        self.Sigma[:dx, :dx] = floor if cov is None else cov
 
     def set_particles(self, n: int) -> int:
         """The EKF has no particles; returns 0."""

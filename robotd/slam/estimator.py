@@ -267,6 +267,26 @@ def check_finite(name: str, *arrays: Any) -> None:
             raise InputError(f"{name}: expected finite values, got {int(np.sum(~np.isfinite(arr)))} non-finite")
 
 
+def check_reset_pose(x: Any, cov: Any, dx: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Validate a relocalisation pose ``x`` (dx,) and its covariance ``cov`` (dx, dx) symmetric
+    positive semi-definite, or None; raises InputError before any filter state is touched."""
+    x = np.asarray(x, dtype=float)
+    if x.shape != (dx,):
+        raise InputError(f"reset_pose: expected a pose of shape ({dx},), got {x.shape}")
+    check_finite("reset_pose x", x)
+    if cov is None:
+        return x, None
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (dx, dx):
+        raise InputError(f"reset_pose: expected a covariance of shape ({dx}, {dx}), got {cov.shape}")
+    check_finite("reset_pose cov", cov)
+    cov = 0.5 * (cov + cov.T)
+    ev = np.linalg.eigvalsh(cov)
+    if ev.min() < -1e-12 * max(1.0, float(np.abs(cov).max())):
+        raise InputError(f"reset_pose: expected a positive semi-definite covariance, got eigenvalues {ev}")
+    return x, cov
+
+
 def control_from_increment(inc: MotionIncrement, params: SlamParams) -> tuple[np.ndarray, np.ndarray]:
     """The control u and its covariance M_t in control space for ``params.dim``.
 

@@ -30,7 +30,7 @@ from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
 from robotd.slam._store import LandmarkStore
 from robotd.slam.ekf import FILTER_CODE, UpdateEntryPoints, _check_header, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
-from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, control_from_increment
+from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, check_reset_pose, control_from_increment
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
@@ -581,12 +581,12 @@ class FastSlam(UpdateEntryPoints):
         ``x``: (dx,) pose (2D: x, y, yaw; 3D: x, y, z, roll, pitch, yaw), ``cov``: (dx, dx). The
         particles keep their maps (in the world frame); the weights become uniform.
         """
-        x = np.asarray(x, dtype=float).reshape(self.dx)
+        x, cov = check_reset_pose(x, cov, self.dx)
         P = self.pose.shape[0]
         if cov is None:
             self.pose = np.broadcast_to(x, (P, self.dx)).copy()
         else:
-            L = np.linalg.cholesky(np.asarray(cov, dtype=float) + 1e-12 * np.eye(self.dx))
+            L = np.linalg.cholesky(cov + 1e-12 * np.eye(self.dx))
             self.pose = wrap_pose(x + self.rng.standard_normal((P, self.dx)) @ L.T, self.dim)
         self.log_w = np.full(P, -np.log(P))
         self.neff = float(P)
