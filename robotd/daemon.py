@@ -189,7 +189,7 @@ class Daemon:
         detectors.warmup()
         stereo_match.warmup()
         outliers.warmup()
-        warm_s = time.perf_counter() - t_warm + (warm_s or 0.0)
+        warm_s = (warm_s or 0.0) + time.perf_counter() - t_warm
         if self.pipeline.frontend.params.parallel_detect:
             # the front end detects the left and right images on two threads of its own; OpenCV's
             # worker pool on top of them only adds threads and their spin-waits (≈ 1 ms CPU per
@@ -204,8 +204,7 @@ class Daemon:
         # with ORB ≈ 0.7 ms of CPU per frame, on the cores the detection threads need. Restored at
         # shutdown.
         self._blas_limits = _limit_blas_threads(cfg.slam.blas_threads)
-        if warm_s is not None:
-            logger.info("filter and matcher kernels ready in %.1f s", warm_s)
+        logger.info("filter and matcher kernels ready in %.1f s", warm_s)
         fps = float(getattr(self.camera, "fps", 0.0) or 30.0)
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
         self.budget = LatencyBudget(

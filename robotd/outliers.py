@@ -342,6 +342,15 @@ def _exp_rot(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
 
 
+def _fit_covariance(H: np.ndarray) -> np.ndarray:
+    """The fit's covariance: the inverse Gauss–Newton information, symmetrised; inf when singular."""
+    try:
+        cov = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.full(H.shape, np.inf)
+    return 0.5 * (cov + cov.T)
+
+
 def fit_similarity_mahalanobis(
     a: np.ndarray,
     b: np.ndarray,
@@ -395,11 +404,7 @@ def fit_similarity_mahalanobis(
         GN_STEP_TOL,
         H,
     )
-    try:
-        cov = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        cov = np.full((npar, npar), np.inf)
-    return s, R, t, 0.5 * (cov + cov.T)
+    return s, R, t, _fit_covariance(H)
 
 
 def fit_similarity_mahalanobis_numpy(
@@ -456,11 +461,7 @@ def fit_similarity_mahalanobis_numpy(
             s = s * math.exp(float(delta[-1]))
         if float(np.linalg.norm(delta)) < GN_STEP_TOL:
             break
-    try:
-        cov = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        cov = np.full((npar, npar), np.inf)
-    return s, R, t, 0.5 * (cov + cov.T)
+    return s, R, t, _fit_covariance(H)
 
 
 def _refit(
