@@ -260,6 +260,21 @@ def similarity_d2(
     none = np.zeros((1, 1, 1))
     A_ = none if A is None else np.ascontiguousarray(A, dtype=np.float64)
     B_ = none if B is None else np.ascontiguousarray(B, dtype=np.float64)
+    # the kernel indexes without bounds checks: refuse what numpy would have raised on
+    k, (n, d) = s.shape[0], a.shape
+    if (
+        d not in (2, 3)
+        or b.shape != (n, d)
+        or R.shape != (k, d, d)
+        or t.shape != (k, d)
+        or (A is not None and A_.shape != (n, d, d))
+        or (B is not None and B_.shape != (n, d, d))
+    ):
+        raise InputError(
+            f"similarity_d2: expected s (K,), R (K, d, d), t (K, d), a, b (N, d), A, B (N, d, d) with d = 2 or 3, "
+            f"got {s.shape}, {R.shape}, {t.shape}, {a.shape}, {b.shape}, {None if A is None else A_.shape}, "
+            f"{None if B is None else B_.shape}"
+        )
     out = np.empty((s.shape[0], a.shape[0]))
     similarity_d2_kernel(s, R, t, a, b, A_, B_, A is not None, B is not None, out)
     return out
@@ -372,6 +387,14 @@ def fit_similarity_mahalanobis(
     cov the inverse Gauss–Newton information over (δt, δθ[, δσ]).
     """
     n, d = a.shape
+    # the kernels index without bounds checks: refuse what numpy would have raised on
+    for name, M, shape in (("b", b, (n, d)), ("A", A, (n, d, d)), ("B", B, (n, d, d)), ("R0", R0, (d, d))):
+        if M is not None and np.shape(M) != shape:
+            raise InputError(f"fit_similarity_mahalanobis: expected {name} of shape {shape}, got {np.shape(M)}")
+    if d not in (2, 3) or np.shape(t0) != (d,):
+        raise InputError(
+            f"fit_similarity_mahalanobis: expected d = 2 or 3 and t0 ({d},), got a {a.shape}, t0 {np.shape(t0)}"
+        )
     if A is not None or B is not None:
         none = np.zeros((1, 1, 1))
         W = np.empty((n, d, d))

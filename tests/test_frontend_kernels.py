@@ -136,3 +136,23 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
             pipe.step(next(it), None)
     after = [set(k.signatures) for k in kernels]
     assert after == before, [a - b for a, b in zip(after, before, strict=True)]
+
+
+def test_kernel_wrappers_refuse_inputs_the_kernels_would_read_past():
+    # the kernels have no bounds checks: the wrappers must say what is wrong instead
+    from robotd.errors import InputError
+    from robotd.outliers import fit_similarity_mahalanobis, similarity_d2
+
+    i, j, d = np.array([0, 0, 1]), np.array([0, 5, 1]), np.ones(3, np.float32)
+    with pytest.raises(InputError, match="0 <= j < n_j = 4"):
+        ratio_and_cross_check(i, j, d, 4, 0.8, 60.0)
+    with pytest.raises(InputError, match="one length"):
+        ratio_and_cross_check(i, j[:2], d, 8, 0.8, 60.0)
+    img = np.zeros((20, 40), np.uint8)
+    with pytest.raises(InputError, match="one length"):
+        refine_disparity(img, img, np.ones(3), np.ones(2), np.ones(3))
+    a = np.zeros((5, 3))
+    with pytest.raises(InputError, match="similarity_d2"):
+        similarity_d2(np.ones(2), np.eye(3)[None], np.zeros((2, 3)), a, a, None, np.eye(3)[None].repeat(5, 0))
+    with pytest.raises(InputError, match="expected B of shape"):
+        fit_similarity_mahalanobis(a, a, None, np.eye(3)[None].repeat(4, 0), 1.0, np.eye(3), np.zeros(3))

@@ -111,6 +111,13 @@ def ratio_and_cross_check(
     # contiguous int64 / float32|float64: one compiled signature each (np.nonzero returns strided views)
     i = np.ascontiguousarray(i, dtype=np.int64)
     j = np.ascontiguousarray(j, dtype=np.int64)
+    # the kernel indexes without bounds checks: refuse what numpy would have raised on
+    if j.shape != (p,) or np.shape(dist) != (p,) or i.shape != (p,):
+        raise InputError(
+            f"ratio_and_cross_check: expected i, j, dist of one length, got {i.shape}, {j.shape}, {np.shape(dist)}"
+        )
+    if j.min() < 0 or j.max() >= n_j:
+        raise InputError(f"ratio_and_cross_check: expected 0 <= j < n_j = {n_j}, got j in [{j.min()}, {j.max()}]")
     dist = np.ascontiguousarray(dist, dtype=np.float32 if np.asarray(dist).dtype == np.float32 else np.float64)
     # every caller passes pairs grouped by i (row-major); only an unsorted i is sorted
     if np.any(i[1:] < i[:-1]):
@@ -377,6 +384,11 @@ def refine_disparity(
     :func:`refine_disparity_numpy`.)
     """
     n = np.shape(xl)[0]
+    if np.shape(yl) != (n,) or np.shape(d0) != (n,) or np.shape(left_img) != np.shape(right_img):
+        raise InputError(
+            f"refine_disparity: expected xl, yl, d0 of one length and images of one size, got "
+            f"{np.shape(xl)}, {np.shape(yl)}, {np.shape(d0)}, {np.shape(left_img)}, {np.shape(right_img)}"
+        )
     d_out = np.array(d0, dtype=np.float64)
     ok = np.zeros(n, bool)
     edge = np.zeros(n, bool)
