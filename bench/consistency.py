@@ -2,7 +2,7 @@
 """Filter consistency study (algorithms.md §11 NEES, §12 simulation world, 2D loop).
 
 Runs EKF SLAM and FastSLAM 2.0 on the same simulated 2D loops under three measurement-noise models
-(robotd.sim ``noise_model``):
+(robotd.research.landmark_sim ``noise_model``):
 
 - ``stereo``: §12's recipe, pixel noise then triangulation, Q from the noisy pixels (the default
   and what a real front end delivers);
@@ -36,9 +36,9 @@ from scipy.stats import chi2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from robotd.evaluate import anees_band
-from robotd.experiments import make_scenario, run_filter
-from robotd.sim import SimConfig, SimRun
+from robotd.research.evaluate import anees_band
+from robotd.research.experiments import make_scenario, run_filter
+from robotd.research.landmark_sim import SimConfig, SimRun
 
 STUDY_KEYS = ("q_scale", "m_scale")  # option keys applied to the data given to the filter
 

@@ -37,8 +37,9 @@ import numpy as np
 from robotd.geometry import euler_to_R
 from robotd.msgs import MotionIncrement, Observations
 from robotd.slam.ekf import EkfSlam
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
+from robotd.slam.params import SlamParams
 
 SIGMA_Z = 0.03  # measurement noise [m]
 

@@ -1,7 +1,7 @@
 """Outlier detectors under injected mismatches (algorithms.md §12.3, simulated part).
 
 For each mismatch rate and seed, one frame of putative correspondences from
-``robotd.frontend.synthetic.simulate_pairs`` (OAK-D rig, stereo-consistent noise, half of the
+``robotd.research.synthetic_pairs.simulate_pairs`` (OAK-D rig, stereo-consistent noise, half of the
 mismatches to a landmark 0.25–1 m from the true one) goes through each detector:
 
 - similarity_mahalanobis: the thesis's detector (§5.1–§5.3), χ²₃,0.99 = 11.345;
@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from robotd.frontend.synthetic import simulate_pairs
 from robotd.outliers import OutlierParams, ransac_fundamental, ransac_similarity
+from robotd.research.synthetic_pairs import simulate_pairs
 
 RATES = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5)
 DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental")

@@ -103,8 +103,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from robotd.evaluate import Trajectory, evaluate_trajectories, plot_trajectory, read_trajectory
     from robotd.geometry import T_optical_to_robot
+    from robotd.research.evaluate import Trajectory, evaluate_trajectories, plot_trajectory, read_trajectory
 
     configure_logging(args.log_level or "WARNING")
     est = read_trajectory(args.traj)
@@ -116,7 +116,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result["frames"] = int(result["frames"])
     plot = args.plot or (str(Path(args.traj).with_suffix(".png")) if not args.no_plot else None)
     if plot:
-        from robotd.evaluate import associate
+        from robotd.research.evaluate import associate
 
         ie, ig = associate(est.t_s, gt.t_s)
         plot_trajectory(est.T[ie], gt.T[ig], None, plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
@@ -138,7 +138,7 @@ def _is_kitti_poses(path: str) -> bool:
 
 
 def cmd_experiments(args: argparse.Namespace) -> int:
-    from robotd.experiments import run_experiments
+    from robotd.research.experiments import run_experiments
 
     configure_logging(args.log_level or "INFO")
     run_experiments(Path(args.out), quick=args.quick, seeds=args.seeds)

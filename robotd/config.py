@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from robotd.choices import DETECTORS, FILTERS, OUTLIER_METHODS
 from robotd.errors import ConfigError
 
 
@@ -28,11 +29,6 @@ def _f(default: Any, doc: str = "", **meta: Any) -> Any:
     if isinstance(default, list | dict):
         return field(default_factory=lambda: type(default)(default), metadata={"doc": doc, **meta})
     return field(default=default, metadata={"doc": doc, **meta})
-
-
-DETECTORS = ("orb", "sift", "surf")
-OUTLIER_DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")
-FILTERS = ("ekf", "fastslam1", "fastslam2")
 
 
 @dataclass(frozen=True)
@@ -78,7 +74,7 @@ class FrontendConfig:
         choices=("predicted", "measured"),
     )
     debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
-    outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_DETECTORS)
+    outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_METHODS)
     consensus_confidence: float = _f(
         0.99, "χ² level of the Mahalanobis consensus (0.99: 11.345 in 3D)", min=0.5, max=0.99999
     )

@@ -179,9 +179,9 @@ class Daemon:
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         rng = np.random.default_rng(cfg.robot.seed)
         self.pipeline = Pipeline(cfg, rig, rng)
-        from robotd.slam.estimator import warmup_numba
+        from robotd.slam.factory import warmup
 
-        warm_s = warmup_numba()
+        warm_s = warmup()
         from robotd import outliers
         from robotd.frontend import detectors, stereo_match
 

@@ -36,12 +36,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from robotd._outlier_kernels import gn_fit, gn_weights, similarity_d2_kernel
+from robotd.choices import OUTLIER_METHODS
 from robotd.errors import ConfigError, InputError
 from robotd.geometry import umeyama, umeyama_batch
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")
 # Gauss–Newton stops when its step (|δt| in m, δθ in rad, δσ) falls below this: 0.1 µm is far
 # below any stereo noise, and the iteration converges about 1000× per step, so one more step
 # would change the fit by ≈ 1e-10 only
@@ -52,7 +52,7 @@ GN_STEP_TOL = 1e-7
 class OutlierParams:
     """Outlier-stage configuration (config key ``frontend.outliers``; defaults of algorithms.md §5.5).
 
-    method: one of ``METHODS``.
+    method: one of ``OUTLIER_METHODS``.
     confidence: χ² level 1−α of the Mahalanobis test (0.99 → 11.345 in 3-D, 9.210 in 2-D).
     p_success: p of the iteration budget; max_iterations: cap (similarity); f_max_iterations: cap (F).
     max_scale_dev: ε_s, reject hypotheses with |s−1| above it. min_sample_area_m2: degenerate-sample
@@ -88,8 +88,8 @@ class OutlierParams:
     lo_gn_iterations: int = 2
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ConfigError(f"frontend.outliers.method: expected one of {METHODS}, got {self.method!r}")
+        if self.method not in OUTLIER_METHODS:
+            raise ConfigError(f"frontend.outliers.method: expected one of {OUTLIER_METHODS}, got {self.method!r}")
         if self.score not in ("count", "msac"):
             raise ConfigError(f"frontend.outliers.score: expected 'count' or 'msac', got {self.score!r}")
         for key in ("confidence", "p_success"):

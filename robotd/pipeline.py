@@ -28,7 +28,10 @@ from robotd.frontend.stereo_match import StereoMatchParams
 from robotd.geometry import R_to_euler, euler_to_R, se3, se3_inverse
 from robotd.msgs import MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.outliers import OutlierParams, OutlierResult
-from robotd.slam.estimator import Estimator, SlamParams, covariance_at_prediction, make_estimator
+from robotd.slam.estimator import Estimator
+from robotd.slam.factory import make_estimator
+from robotd.slam.measurement import covariance_at_prediction
+from robotd.slam.params import SlamParams
 from robotd.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)

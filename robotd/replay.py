@@ -24,11 +24,11 @@ import numpy as np
 import drivers
 from robotd.config import Config
 from robotd.errors import RobotdError
-from robotd.evaluate import write_tum
 from robotd.geometry import R_to_quat, euler_to_R
 from robotd.msgs import StepResult
 from robotd.odometry import OdometryIntegrator
 from robotd.pipeline import Pipeline
+from robotd.research.evaluate import write_tum
 
 logger = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def replay(
 
 def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]]) -> dict[str, float]:
     """ATE/drift against the ground truth the source carried (evaluation only)."""
-    from robotd.evaluate import Trajectory, evaluate_trajectories
+    from robotd.research.evaluate import Trajectory, evaluate_trajectories
 
     t_gt = np.array([t for t, _ in truths], dtype=np.int64)
     G = np.stack([g for _, g in truths])

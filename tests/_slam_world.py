@@ -1,4 +1,4 @@
-"""A minimal inline landmark world for the SLAM core's scenario tests (not robotd.sim).
+"""A minimal inline landmark world for the SLAM core's scenario tests (not robotd.research.landmark_sim).
 
 Ground truth poses along a gentle arc, landmarks on a ring around the path, measurements of the
 landmarks within ``max_range`` in front of the robot, with optional Gaussian noise in the robot frame.

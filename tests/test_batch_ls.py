@@ -1,4 +1,4 @@
-"""Batch least-squares bound (robotd.slam.batch): Jacobian, noiseless recovery, beats dead reckoning."""
+"""Batch least-squares bound (robotd.research.batch): Jacobian, noiseless recovery, beats dead reckoning."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from robotd.errors import InputError
-from robotd.evaluate import ate, poses_to_T
 from robotd.geometry import numerical_jacobian
-from robotd.sim import SimConfig, dead_reckoning, simulate
-from robotd.slam.batch import build_problem, solve_batch, solve_sim
+from robotd.research.batch import build_problem, solve_batch, solve_sim
+from robotd.research.evaluate import ate, poses_to_T
+from robotd.research.landmark_sim import SimConfig, dead_reckoning, simulate
 
 QUIET = dict(
     odo_trans_frac=0.0, odo_heading_deg_per_m=0.0, odo_rot_frac=0.0, odo_trans_floor_m=1e-4, odo_rot_floor_deg=1e-3

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from robotd.cli import main
-from robotd.evaluate import read_tum
+from robotd.research.evaluate import read_tum
 
 
 def _json_out(capsys: pytest.CaptureFixture[str]) -> dict:

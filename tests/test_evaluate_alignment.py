@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.evaluate import ate
 from robotd.geometry import euler_to_R, se3
+from robotd.research.evaluate import ate
 
 
 def _traj(xyz: np.ndarray, rpy: np.ndarray) -> np.ndarray:

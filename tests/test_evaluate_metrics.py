@@ -1,4 +1,4 @@
-"""Evaluation metrics and trajectory files (robotd.evaluate, algorithms.md §11)."""
+"""Evaluation metrics and trajectory files (robotd.research.evaluate, algorithms.md §11)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from robotd.errors import DatasetError, InputError
-from robotd.evaluate import (
+from robotd.geometry import pose6_to_T, rot_z, se3, so3_exp
+from robotd.research.evaluate import (
     anees_band,
     associate,
     ate,
@@ -23,7 +24,6 @@ from robotd.evaluate import (
     rpe,
     write_tum,
 )
-from robotd.geometry import pose6_to_T, rot_z, se3, so3_exp
 
 TOL = 1e-9
 

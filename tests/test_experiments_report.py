@@ -1,4 +1,4 @@
-"""The experiment runner (robotd.experiments): the quick campaign writes a complete report."""
+"""The experiment runner (robotd.research.experiments): the quick campaign writes a complete report."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from robotd.experiments import make_scenario, run_experiments, run_filter
-from robotd.sim import SimConfig
+from robotd.research.experiments import make_scenario, run_experiments, run_filter
+from robotd.research.landmark_sim import SimConfig
 
 
 @pytest.mark.timeout(120)

@@ -20,6 +20,7 @@ ALLOWED_ROBOTD = (
     "robotd.msgs",
     "robotd.geometry",
     "robotd.errors",
+    "robotd.choices",
     "robotd.stereo",
     "robotd.frontend",
     "robotd.slam",

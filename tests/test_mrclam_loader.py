@@ -1,13 +1,13 @@
-"""MRCLAM loader (robotd.datasets.mrclam) and a short FastSLAM 2.0 run on its real odometry."""
+"""MRCLAM loader (robotd.research.datasets.mrclam) and a short FastSLAM 2.0 run on its real odometry."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from robotd.datasets.mrclam import MRCLAM1_SWAP_11_17, load_mrclam
 from robotd.errors import DatasetError
-from robotd.experiments import run_mrclam
+from robotd.research.datasets.mrclam import MRCLAM1_SWAP_11_17, load_mrclam
+from robotd.research.experiments import run_mrclam
 
 
 def test_loader_parses_and_maps_barcodes(shared_data):

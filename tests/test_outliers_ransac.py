@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from robotd.errors import ConfigError, InputError
-from robotd.frontend.synthetic import simulate_pairs
 from robotd.geometry import euler_to_R, numerical_jacobian, rot2, skew, umeyama
 from robotd.outliers import (
     OutlierParams,
@@ -25,6 +24,7 @@ from robotd.outliers import (
     similarity_d2,
     similarity_d2_numpy,
 )
+from robotd.research.synthetic_pairs import simulate_pairs
 
 CHI2_3_099 = 11.345
 

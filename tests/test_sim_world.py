@@ -1,4 +1,4 @@
-"""Landmark-world simulator (robotd.sim): determinism, stereo noise, odometry, mismatches."""
+"""Landmark-world simulator (robotd.research.landmark_sim): determinism, stereo noise, odometry, mismatches."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from robotd.errors import ConfigError
 from robotd.geometry import euler_to_R
-from robotd.sim import SimConfig, apply_increment, dead_reckoning, inject_mismatches, simulate
+from robotd.research.landmark_sim import SimConfig, apply_increment, dead_reckoning, inject_mismatches, simulate
 
 SHORT2 = SimConfig(dim=2, path_length_m=40.0, landmark_density_per_m2=1.2)
 SHORT3 = SimConfig(dim=3, path_length_m=40.0, landmark_density_per_m2=1.2)
@@ -107,7 +107,7 @@ def test_odometry_noise_matches_reported_covariance():
         assert st.motion is not None
         exact = apply_increment(run.poses_W[k - 1], np.zeros(3), np.zeros(3), 2)
         del exact
-        from robotd.sim import true_increment
+        from robotd.research.landmark_sim import true_increment
 
         dp, dr = true_increment(run.poses_W[k - 1], run.poses_W[k], 2)
         d = np.array([st.motion.dp_R_m[0] - dp[0], st.motion.dp_R_m[1] - dp[1], st.motion.drot_R_rad[2] - dr[2]])

@@ -8,7 +8,8 @@ import pytest
 from robotd.msgs import Observations
 from robotd.slam import models as md
 from robotd.slam.ekf import EkfSlam
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
+from robotd.slam.params import SlamParams
 from tests._slam_world import World
 
 

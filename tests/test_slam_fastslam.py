@@ -11,8 +11,9 @@ from robotd.errors import InputError, PersistenceError
 from robotd.msgs import MotionIncrement, Observations
 from robotd.slam import models as md
 from robotd.slam._reference import fastslam_step_reference
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam, fastslam_step
+from robotd.slam.params import SlamParams
 from robotd.slam.resampling import effective_sample_size, low_variance_indices, weighted_pose_mean
 from tests._slam_world import World
 
@@ -321,9 +322,9 @@ def test_numba_and_numpy_filters_agree(filt: str) -> None:
 
 
 def test_warmup_numba_loads_kernels() -> None:
-    from robotd.slam.estimator import warmup_numba
+    from robotd.slam.factory import warmup
 
-    took = warmup_numba()
+    took = warmup()
     assert took is not None and took >= 0.0
 
 

@@ -6,8 +6,8 @@ from dataclasses import replace
 
 import numpy as np
 
-import robotd.experiments as X
-from robotd.sim import SimConfig, inject_mismatches, simulate
+import robotd.research.experiments as X
+from robotd.research.landmark_sim import SimConfig, inject_mismatches, simulate
 
 CFG = SimConfig(dim=2, trajectory="loop", path_length_m=30.0, landmark_density_per_m2=0.5)
 

@@ -10,8 +10,9 @@ from robotd.msgs import MotionIncrement
 from robotd.slam import models as md
 from robotd.slam._reference import fastslam_step_reference
 from robotd.slam._store import LandmarkStore
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
+from robotd.slam.params import SlamParams
 
 nb = pytest.importorskip("numba")
 K = pytest.importorskip("robotd.slam._kernels")

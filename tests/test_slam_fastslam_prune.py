@@ -7,8 +7,9 @@ import pytest
 
 from robotd.msgs import Observations
 from robotd.slam import models as md
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
+from robotd.slam.params import SlamParams
 
 
 @pytest.mark.parametrize("dim", [2, 3])

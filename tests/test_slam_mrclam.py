@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from robotd.geometry import umeyama
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
+from robotd.slam.params import SlamParams
 
 DURATION_S = 300.0
 MAP_RMSE_BOUND_M = 0.4  # measured 0.16 m (EKF), 0.28 m (FastSLAM 2.0, 30 particles); σ_r 0.15 m, σ_β 0.05 rad

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.slam.estimator import SlamParams, make_estimator
+from robotd.slam.factory import make_estimator
+from robotd.slam.params import SlamParams
 from tests._slam_world import World
 
 

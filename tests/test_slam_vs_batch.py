@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from robotd.evaluate import anees_band
-from robotd.experiments import make_scenario, run_filter
-from robotd.sim import SimConfig
+from robotd.research.evaluate import anees_band
+from robotd.research.experiments import make_scenario, run_filter
+from robotd.research.landmark_sim import SimConfig
 
 # FastSLAM 2.0 against the bound is measured in docs/experiments/report.md (robotd experiments);
 # it does not yet meet issue 4's "within 1.5× with 50 particles" on every seed (see the issue note).

@@ -19,13 +19,12 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from robotd.choices import DETECTORS
 from robotd.errors import ConfigError, InputError
 from robotd.frontend import _detect_kernels as _dk
 from robotd.frontend.features import Features
 
 logger = logging.getLogger(__name__)
-
-DETECTOR_NAMES = ("orb", "sift", "surf")
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,8 +67,8 @@ class DetectorParams:
     surf_hessian_threshold: float | None = None
 
     def __post_init__(self) -> None:
-        if self.name not in DETECTOR_NAMES:
-            raise ConfigError(f"frontend.detector.name: expected one of {DETECTOR_NAMES}, got {self.name!r}")
+        if self.name not in DETECTORS:
+            raise ConfigError(f"frontend.detector.name: expected one of {DETECTORS}, got {self.name!r}")
         if self.max_features < 1:
             raise ConfigError(f"frontend.detector.max_features: expected >= 1, got {self.max_features}")
         if self.grid_rows < 1 or self.grid_cols < 1:

@@ -13,7 +13,6 @@ Landmark ``k`` of the book occupies ``y[dx + dm·k : dx + dm·(k+1)]``; deletion
 from __future__ import annotations
 
 import logging
-from abc import ABC, abstractmethod
 from typing import Any
 
 import numpy as np
@@ -22,21 +21,23 @@ import scipy.linalg.blas
 
 from robotd.errors import EstimatorError, InputError, PersistenceError
 from robotd.geometry import wrap_angle
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
+from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import sym
-from robotd.slam.estimator import (
-    SlamParams,
-    VisibleFn,
+from robotd.slam.common import (
+    FILTER_CODE,
+    UpdateEntryPoints,
     check_finite,
+    check_header,
     check_reset_pose,
     control_from_increment,
-    split_observations,
+    lm_to_3d,
+    pose_cov_6x6,
+    pose_to_xyz_rpy,
 )
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
-    RANGE_BEARING_2D,
     MeasurementModel,
     motion3d,
     odometry2d,
@@ -44,83 +45,9 @@ from robotd.slam.models import (
     velocity2d,
     velocity2d_noise,
 )
+from robotd.slam.params import SlamParams, VisibleFn
 
 logger = logging.getLogger(__name__)
-
-FILTER_CODE = {"ekf": 0, "fastslam1": 1, "fastslam2": 2}
-
-
-def pose_cov_6x6(P: np.ndarray, dim: int, floor: float) -> np.ndarray:
-    """Embed a (3, 3) planar pose covariance over (x, y, yaw) into (6, 6) over (x, y, z, r, p, yaw)."""
-    if dim == 3:
-        return P.copy()
-    C = np.diag([0.0, 0.0, floor, floor, floor, 0.0])
-    idx = [0, 1, 5]
-    C[np.ix_(idx, idx)] = P
-    return C
-
-
-def pose_to_xyz_rpy(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """(x, y, yaw) or 6-vector -> (xyz (3,), rpy (3,))."""
-    if dim == 3:
-        return x[:3].copy(), x[3:6].copy()
-    return np.array([x[0], x[1], 0.0]), np.array([0.0, 0.0, x[2]])
-
-
-def lm_to_3d(m: np.ndarray, C: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
-    """Planar landmarks (M, 2), (M, 2, 2) -> (M, 3), (M, 3, 3) with z = 0 and a floor variance on z."""
-    if m.shape[1] == 3:
-        return m, C
-    M = m.shape[0]
-    m3 = np.zeros((M, 3))
-    m3[:, :2] = m
-    C3 = np.zeros((M, 3, 3))
-    C3[:, :2, :2] = C
-    C3[:, 2, 2] = floor
-    return m3, C3
-
-
-class UpdateEntryPoints(ABC):
-    """The two public update entry points every filter shares; the filter implements ``_update``.
-
-    ``update`` fuses a frame of Cartesian point observations with the filter's own model;
-    ``update_range_bearing`` (2D only, §7.2) converts and validates, then fuses with that model.
-    """
-
-    dim: int
-    book: LandmarkBook
-    model: MeasurementModel
-    t_ns: int
-
-    @abstractmethod
-    def _update(
-        self, z: np.ndarray, Q: np.ndarray, ids: np.ndarray, is_new: np.ndarray, model: MeasurementModel
-    ) -> UpdateReport:
-        """Each filter's measurement step on (N, dz) measurements with (N, dz, dz) covariances."""
-
-    def update(self, obs: Observations) -> UpdateReport:
-        """Fuse one frame: identified landmarks update, new ones are added, then bookkeeping."""
-        z, Q, ids, is_new = split_observations(obs, self.dim)
-        self.book.check(ids, is_new)
-        rep = self._update(z, Q, ids, is_new, self.model)
-        self.t_ns = int(obs.t_ns)
-        return rep
-
-    def update_range_bearing(
-        self,
-        ids: np.ndarray,
-        r: np.ndarray,
-        beta: np.ndarray,
-        R_rb: np.ndarray,
-        is_new: np.ndarray | None = None,
-        t_ns: int | None = None,
-    ) -> UpdateReport:
-        """Range–bearing update (§7.2), 2D only. ``is_new`` defaults to "id not yet in the map"."""
-        z, Q, ids, is_new = _range_bearing_inputs(self.dim, self.book, ids, r, beta, R_rb, is_new)
-        rep = self._update(z, Q, ids, is_new, RANGE_BEARING_2D)
-        if t_ns is not None:
-            self.t_ns = int(t_ns)
-        return rep
 
 
 class EkfSlam(UpdateEntryPoints):
@@ -330,7 +257,7 @@ class EkfSlam(UpdateEntryPoints):
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        _check_header(state, "ekf", self.dim)
+        check_header(state, "ekf", self.dim)
         mu = np.asarray(state["mu"], float)
         Sig = np.asarray(state["Sigma"], float)
         book = LandmarkBook()
@@ -341,48 +268,3 @@ class EkfSlam(UpdateEntryPoints):
         if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(Sig))):
             raise PersistenceError("EKF state: non-finite values")
         self.mu, self.Sigma, self.book, self.t_ns = mu.copy(), Sig.copy(), book, int(state["t_ns"])
-
-
-def _check_header(state: dict[str, Any], name: str, dim: int) -> None:
-    try:
-        code, d = int(state["filter_code"]), int(state["dim"])
-        int(state["t_ns"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise PersistenceError(f"{name} state: missing or malformed header ({e})") from None
-    if code != FILTER_CODE[name] or d != dim:
-        raise PersistenceError(f"{name} state: expected filter_code={FILTER_CODE[name]}, dim={dim}; got {code}, {d}")
-
-
-def _range_bearing_inputs(
-    dim: int,
-    book: LandmarkBook,
-    ids: np.ndarray,
-    r: np.ndarray,
-    beta: np.ndarray,
-    R_rb: np.ndarray,
-    is_new: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Validate range–bearing inputs; returns z (N, 2), Q (N, 2, 2), ids, is_new."""
-    if dim != 2:
-        raise InputError(f"update_range_bearing: expected a 2D filter, got dim={dim}")
-    ids = np.asarray(ids).astype(np.int64).ravel()
-    r = np.asarray(r, float).ravel()
-    beta = np.asarray(beta, float).ravel()
-    n = ids.size
-    if r.shape != (n,) or beta.shape != (n,):
-        raise InputError(f"update_range_bearing: expected r, beta of shape ({n},), got {r.shape}, {beta.shape}")
-    Q = np.asarray(R_rb, float)
-    if Q.shape == (2, 2):
-        Q = np.broadcast_to(Q, (n, 2, 2)).copy()
-    if Q.shape != (n, 2, 2):
-        raise InputError(f"update_range_bearing: expected R_rb of shape (2, 2) or ({n}, 2, 2), got {Q.shape}")
-    check_finite("update_range_bearing", r, beta, Q)
-    if np.any(r <= 0):
-        raise InputError(f"update_range_bearing: expected ranges > 0, got min {float(r.min())}")
-    if np.unique(ids).size != n:
-        raise InputError("update_range_bearing: expected unique ids per call")
-    if is_new is None:
-        is_new = np.array([int(i) not in book.id_to_slot for i in ids], bool)
-    is_new = np.asarray(is_new, bool).ravel()
-    book.check(ids, is_new)
-    return np.stack([r, beta], -1), Q, ids, is_new

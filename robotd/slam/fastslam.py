@@ -29,8 +29,17 @@ from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
 from robotd.slam._store import LandmarkStore
-from robotd.slam.ekf import FILTER_CODE, UpdateEntryPoints, _check_header, lm_to_3d, pose_cov_6x6, pose_to_xyz_rpy
-from robotd.slam.estimator import SlamParams, VisibleFn, check_finite, check_reset_pose, control_from_increment
+from robotd.slam.common import (
+    FILTER_CODE,
+    UpdateEntryPoints,
+    check_finite,
+    check_header,
+    check_reset_pose,
+    control_from_increment,
+    lm_to_3d,
+    pose_cov_6x6,
+    pose_to_xyz_rpy,
+)
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
@@ -42,6 +51,7 @@ from robotd.slam.models import (
     velocity2d_noise,
     wrap_pose,
 )
+from robotd.slam.params import SlamParams, VisibleFn
 from robotd.slam.resampling import (
     effective_sample_size,
     low_variance_indices,
@@ -625,7 +635,7 @@ class FastSlam(UpdateEntryPoints):
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        _check_header(state, self.name, self.dim)
+        check_header(state, self.name, self.dim)
         self._post = None
         try:
             pose = np.asarray(state["pose"], float)

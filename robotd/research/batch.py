@@ -440,11 +440,11 @@ def jac_sparsity(
 def solve_sim(  # type: ignore[no-untyped-def]
     run, use_true_ids: bool = True, max_nfev: int = 50, solver: str = "lm", cov_at: str = "measured"
 ) -> BatchResult:
-    """Batch solution of a :class:`robotd.sim.SimRun` (true correspondences by default: the bound).
+    """Batch solution of a :class:`robotd.research.landmark_sim.SimRun` (true correspondences by default: the bound).
 
     ``cov_at="predicted"``: after the first solution, every measurement's covariance is
     re-evaluated at the point the solution predicts for it (as the filters' pipeline does for
-    re-observations, :func:`robotd.slam.estimator.covariance_at_prediction`) and the problem is
+    re-observations, :func:`robotd.slam.measurement.covariance_at_prediction`) and the problem is
     solved again from the first solution: the bound for filters that weight that way.
     """
     motions = [st.motion for st in run.steps[1:]]
@@ -455,7 +455,7 @@ def solve_sim(  # type: ignore[no-untyped-def]
         return res
     if cov_at != "predicted":
         raise InputError(f"batch: cov_at expected 'measured' or 'predicted', got {cov_at!r}")
-    from robotd.slam.estimator import covariance_at_prediction
+    from robotd.slam.measurement import covariance_at_prediction
 
     c = run.config
     lm = LandmarkMap(res.landmark_ids, res.landmarks_W, np.tile(np.eye(3), (len(res.landmark_ids), 1, 1)))

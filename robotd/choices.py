@@ -1,0 +1,11 @@
+"""The names of the selectable algorithms, defined once.
+
+The configuration schema (robotd.config) offers them as choices and the modules that implement
+them validate against them; this module imports nothing, so the config stays cheap to load.
+"""
+
+from __future__ import annotations
+
+DETECTORS = ("orb", "sift", "surf")  # robotd.frontend.detectors
+OUTLIER_METHODS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")  # robotd.outliers
+FILTERS = ("ekf", "fastslam1", "fastslam2")  # robotd.slam (EKF SLAM, FastSLAM 1.0, FastSLAM 2.0)
