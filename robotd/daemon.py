@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 import drivers
-from robotd.autopilot import ResetCounterPolicy, ResetEvent
+from robotd.autopilot import ResetCounterPolicy, ResetEvent, quality_from
 from robotd.budget import LatencyBudget, StageTimer
 from robotd.config import Config
 from robotd.errors import DriverError, PersistenceError, RobotdError
@@ -34,7 +34,7 @@ from robotd.geometry import se3_inverse
 from robotd.msgs import Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryIntegrator
 from robotd.persist import MapStore, default_state_dir
-from robotd.pipeline import Pipeline, pose_to_T
+from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
 from robotd.sdnotify import Notifier
 
@@ -179,17 +179,7 @@ class Daemon:
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         rng = np.random.default_rng(cfg.robot.seed)
         self.pipeline = Pipeline(cfg, rig, rng)
-        from robotd.slam.factory import warmup
-
-        warm_s = warmup()
-        from robotd import outliers
-        from robotd.frontend import detectors, stereo_match
-
-        t_warm = time.perf_counter()
-        detectors.warmup()
-        stereo_match.warmup()
-        outliers.warmup()
-        warm_s = (warm_s or 0.0) + time.perf_counter() - t_warm
+        warm_s = self.pipeline.warmup()
         if self.pipeline.frontend.params.parallel_detect:
             # the front end detects the left and right images on two threads of its own; OpenCV's
             # worker pool on top of them only adds threads and their spin-waits (≈ 1 ms CPU per
@@ -341,7 +331,6 @@ class Daemon:
             if last_t is not None:
                 inc = self.integrator.integrate(last_t, frame.t_ns)
             t0 = time.perf_counter()
-            n_reloc = pipeline.counters.relocalisations
             try:
                 result = pipeline.step(frame, inc)
             except RobotdError as exc:
@@ -372,8 +361,15 @@ class Daemon:
             if self._save_request.is_set():
                 self._save_request.clear()
                 self._save_q.put((frame.t_ns, pipeline.state_dict()))
-            event = ResetEvent.RELOCALISATION if pipeline.counters.relocalisations > n_reloc else None
-            self.pub_q.put(Published(result, frame.truth_T_world_robot, pipeline.quality(result), frame.seq, lm, event))
+            event = ResetEvent.RELOCALISATION if result.relocalised else None
+            quality = quality_from(
+                result.tracking,
+                result.counts.get("identified", 0),
+                result.pose.neff,
+                result.pose.n_particles,
+                min_inliers=self.cfg.frontend.min_inliers,
+            )
+            self.pub_q.put(Published(result, frame.truth_T_world_robot, quality, frame.seq, lm, event))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
@@ -394,7 +390,7 @@ class Daemon:
                 if self._first_truth_inv is None:
                     self._first_truth_inv = se3_inverse(item.truth)
                 T_true = self._first_truth_inv @ item.truth
-                self.stats.last_error_m = float(np.linalg.norm(pose_to_T(res.pose)[:3, 3] - T_true[:3, 3]))
+                self.stats.last_error_m = float(np.linalg.norm(res.pose.T_world_robot[:3, 3] - T_true[:3, 3]))
             with self._lock:
                 self._last_result = item
             seq += 1

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from robotd.errors import InputError
+from robotd.geometry import euler_to_R, se3
 
 FloatArray = np.ndarray  # alias used in annotations; shapes are given in comments
 
@@ -177,6 +178,11 @@ class PoseEstimate:
         _check_array("PoseEstimate.rpy_rad", self.rpy_rad, (3,))
         _check_array("PoseEstimate.cov", self.cov, (6, 6))
 
+    @property
+    def T_world_robot(self) -> np.ndarray:
+        """(4, 4) homogeneous pose: maps robot-frame points into the world frame."""
+        return se3(euler_to_R(self.rpy_rad), self.xyz_W_m)
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class LandmarkMap:
@@ -198,14 +204,24 @@ class LandmarkMap:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class UpdateReport:
-    """What one ``Estimator.update`` did."""
+    """What one ``Estimator.update`` did.
+
+    ``pruned_ids`` is how the rest of the system learns that landmarks left the map: the filter's
+    existence counter is the one owner of landmark existence, and the front end's descriptor
+    store forgets exactly these ids (robotd.pipeline).
+    """
 
     n_updated: int = 0  # measurements fused into existing landmarks
     n_new: int = 0  # landmarks initialised
     n_gated: int = 0  # measurements rejected by the filter-side χ² gate (EKF)
-    n_pruned: int = 0  # landmarks deleted by the existence counter
+    pruned_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) int64, deleted by the counter
     neff: float = float("nan")
     resampled: bool = False
+
+    @property
+    def n_pruned(self) -> int:
+        """Landmarks deleted by the existence counter in this update."""
+        return int(self.pruned_ids.shape[0])
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -218,3 +234,4 @@ class StepResult:
     timings_ms: dict[str, float] = field(default_factory=dict)  # stage name -> milliseconds
     counts: dict[str, int] = field(default_factory=dict)  # features, stereo_matches, map_matches, inliers...
     tracking: bool = True  # False when no correspondences were accepted for several frames
+    relocalised: bool = False  # the pose was reset against a loaded map in this step (a discontinuity)

@@ -24,7 +24,6 @@ import numpy as np
 import drivers
 from robotd.config import Config
 from robotd.errors import RobotdError
-from robotd.geometry import R_to_quat, euler_to_R
 from robotd.msgs import StepResult
 from robotd.odometry import OdometryIntegrator
 from robotd.pipeline import Pipeline
@@ -127,7 +126,7 @@ def replay(
     if not results:
         raise RobotdError(f"{source}: no frame was processed")
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
-    T = np.stack([_pose_T(r) for r in results])
+    T = np.stack([r.pose.T_world_robot for r in results])
     if out_traj:
         write_tum(out_traj, stamps / 1e9, T)
         logger.info("trajectory written to %s (%d poses)", out_traj, len(results))
@@ -176,14 +175,3 @@ def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np
 def _gt_odometry_url(source: str) -> str:
     sep = "&" if "?" in source else "?"
     return f"{source}{sep}gt_odometry=1"
-
-
-def _pose_T(r: StepResult) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = euler_to_R(r.pose.rpy_rad)
-    T[:3, 3] = r.pose.xyz_W_m
-    return T
-
-
-def quat_of(r: StepResult) -> np.ndarray:
-    return R_to_quat(euler_to_R(r.pose.rpy_rad))

@@ -73,7 +73,7 @@ def test_bad_values_name_the_key(data: dict, message: str) -> None:
 
 
 def test_parallel_detect_reaches_the_front_end() -> None:
-    from robotd.pipeline import frontend_params_from_config
+    from robotd.config_params import frontend_params_from_config
 
     assert frontend_params_from_config(config_from_dict({})).parallel_detect is True
     one = config_from_dict({"frontend": {"parallel_detect": False}})

@@ -1,18 +1,18 @@
-"""Landmark database and identification (algorithms.md §4.3)."""
+"""Landmark descriptors and identification (algorithms.md §4.3)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError, InputError
+from robotd.errors import ConfigError, InputError, PersistenceError
 from robotd.frontend.association import (
     IDENTIFIED,
     NEW,
     REJECTED,
     AssociationParams,
     Correspondences,
-    LandmarkDatabase,
+    LandmarkDescriptors,
 )
 from robotd.frontend.stereo_match import normalise_descriptors
 
@@ -22,7 +22,7 @@ def _unit(rng: np.random.Generator, n: int, d: int = 64) -> np.ndarray:
 
 
 def test_identify_new_then_identified(rng):
-    db = LandmarkDatabase(64, binary=False)
+    db = LandmarkDescriptors(64, binary=False)
     desc = _unit(rng, 30)
     c = db.identify(desc)
     assert np.all(c.status == NEW)
@@ -39,13 +39,12 @@ def test_identify_new_then_identified(rng):
     assert np.all(c2.status[30:] == NEW) and np.all(c2.ids[30:] == -1)
     db.commit(c2, np.r_[seen, fresh])
     np.testing.assert_array_equal(c2.ids[30:], np.arange(30, 40))  # global ids are never reused
-    # the stored descriptor is the latest accepted observation's; the counter went up
+    # the stored descriptor is the latest accepted observation's
     np.testing.assert_allclose(db.desc[db.rows(perm)], seen)
-    assert np.all(db.existence[:30] == 2) and np.all(db.existence[30:] == 1)
 
 
 def test_candidate_restriction_and_ambiguity(rng):
-    db = LandmarkDatabase(64, binary=False)
+    db = LandmarkDescriptors(64, binary=False)
     base = _unit(rng, 5)
     twin = normalise_descriptors(base[:1] + 0.01 * rng.normal(size=(1, 64)), False)
     desc = np.r_[base, twin]  # landmark 5 looks like landmark 0 (repeated texture)
@@ -65,7 +64,7 @@ def test_candidate_restriction_and_ambiguity(rng):
 
 
 def test_binary_descriptors_and_cross_check(rng):
-    db = LandmarkDatabase(32, binary=True)
+    db = LandmarkDescriptors(32, binary=True)
     desc = rng.integers(0, 256, (20, 32), dtype=np.uint8)
     db.commit(db.identify(desc), desc)
     # two measurements both nearest to landmark 3; the cross-check keeps the closer one only
@@ -76,23 +75,38 @@ def test_binary_descriptors_and_cross_check(rng):
     assert c.status[1] != IDENTIFIED
 
 
-def test_reject_commit_existence_and_prune(rng):
-    db = LandmarkDatabase(64, binary=False)
+def test_reject_commit_a_subset_of_new_and_forget(rng):
+    db = LandmarkDescriptors(64, binary=False)
     desc = _unit(rng, 6)
-    db.commit(db.identify(desc), desc)
     c = db.identify(desc)
-    c.reject(np.array([True, False, False, False, False, False]))
-    db.commit(c, desc)
-    assert c.ids[0] == -1 and db.n == 6  # rejected: neither updated nor initialised
-    assert db.existence[0] == 1 and db.existence[1] == 2
-    db.mark_missed(np.array([0, 0, 0]))
-    assert db.existence[0] == 0  # repeated ids in one call count once
-    gone = db.prune(1)
-    assert gone.tolist() == [0] and db.n == 5 and not db.contains(np.array([0]))[0]
+    db.commit(c, desc, new=np.array([4, 1]))  # only these become landmarks, in index order
+    assert c.ids.tolist() == [-1, 0, -1, -1, 1, -1] and db.n == 2 and db.next_id == 2
+    np.testing.assert_allclose(db.desc, desc[[1, 4]])
+    c = db.identify(desc[[1, 4]])
+    c.reject(np.array([True, False]))
+    db.commit(c, desc[[1, 4]])
+    assert c.ids.tolist() == [-1, 1] and db.n == 2  # rejected: neither updated nor initialised
+    db.forget(np.array([0, 99]))  # what the filter pruned; unknown ids are ignored
+    assert db.ids.tolist() == [1] and not db.contains(np.array([0]))[0]
+    back = LandmarkDescriptors.from_state_dict(db.state_dict())
+    np.testing.assert_array_equal(back.ids, db.ids)
+    np.testing.assert_array_equal(back.desc, db.desc)
+    assert back.next_id == db.next_id == 2
+
+
+def test_state_of_old_maps_with_an_existence_array_still_loads(rng):
+    desc = _unit(rng, 3)
+    old = {"dim": 64, "binary": False, "ids": np.arange(3), "desc": desc, "existence": np.ones(3), "next_id": 3}
+    db = LandmarkDescriptors.from_state_dict(old)
+    assert db.ids.tolist() == [0, 1, 2] and db.next_id == 3
+    with pytest.raises(PersistenceError, match="descriptors"):
+        LandmarkDescriptors.from_state_dict({**old, "desc": desc[:2]})
+    with pytest.raises(PersistenceError, match="incomplete"):
+        LandmarkDescriptors.from_state_dict({"dim": 64})
 
 
 def test_bad_inputs(rng):
-    db = LandmarkDatabase(64, binary=False)
+    db = LandmarkDescriptors(64, binary=False)
     with pytest.raises(InputError, match=r"\(N, 64\)"):
         db.identify(np.zeros((3, 32), np.float32))
     with pytest.raises(InputError, match="unknown landmark ids"):

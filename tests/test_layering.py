@@ -1,4 +1,11 @@
-"""The estimator core never imports I/O (design.md §1): walk the imports and enforce it."""
+"""The layers of design.md §1, enforced by walking the imports (docs/architecture.md).
+
+- core (geometry, stereo, msgs, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
+- pipeline (pipeline, relocalise, config_params): the core and the config, no I/O;
+- the daemon never imports the research package, not even indirectly;
+- no import cycles among the modules of robotd, drivers and calib;
+- each hardware library has one importer.
+"""
 
 from __future__ import annotations
 
@@ -6,27 +13,23 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("robotd", "drivers", "calib")
+
 CORE = [
+    "robotd/errors.py",
+    "robotd/choices.py",
     "robotd/geometry.py",
     "robotd/stereo.py",
     "robotd/msgs.py",
+    "robotd/timing.py",
+    "robotd/jit.py",
     "robotd/outliers.py",
     "robotd/_outlier_kernels.py",
     "robotd/frontend",
     "robotd/slam",
 ]
+PIPELINE = ["robotd/pipeline.py", "robotd/relocalise.py", "robotd/config_params.py"]
 ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
-ALLOWED_ROBOTD = (
-    "robotd.msgs",
-    "robotd.geometry",
-    "robotd.errors",
-    "robotd.choices",
-    "robotd.stereo",
-    "robotd.frontend",
-    "robotd.slam",
-    "robotd.outliers",
-    "robotd._outlier_kernels",
-)
 STDLIB_OK = {
     "__future__",
     "dataclasses",
@@ -44,43 +47,166 @@ STDLIB_OK = {
     "collections.abc",
     "concurrent",  # compute parallelism (both images detected at once), not I/O
 }
-# the I/O libraries that must stay in drivers/ and the daemon
+# the I/O libraries that must stay in drivers/, the outputs and the daemon
 FORBIDDEN = {"zenoh", "serial", "pymavlink", "depthai", "socket", "mcap", "threading", "subprocess", "matplotlib"}
 
 
-def _core_files() -> list[Path]:
+def _files(entries: list[str]) -> list[Path]:
     files: list[Path] = []
-    for c in CORE:
+    for c in entries:
         p = REPO / c
         files += sorted(p.rglob("*.py")) if p.is_dir() else ([p] if p.exists() else [])
     return files
 
 
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
 def _imports(path: Path) -> list[str]:
+    """Absolute names of everything ``path`` imports (``from a import b`` gives ``a`` and ``a.b``)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
+    pkg = _module_name(path) if path.name == "__init__.py" else _module_name(path).rpartition(".")[0]
     names: list[str] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names += [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.append(node.module)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.split(".")[: len(pkg.split(".")) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            names.append(mod)
+            names += [f"{mod}.{a.name}" for a in node.names]
     return names
 
 
-def test_core_imports_only_numeric_libraries() -> None:
-    files = _core_files()
-    assert files, "no core files found"
+def _graph() -> dict[str, set[str]]:
+    """Module -> the project modules it imports (resolved to the longest known module name)."""
+    files = [f for pkg in PACKAGES for f in sorted((REPO / pkg).rglob("*.py"))]
+    mods = {_module_name(f): f for f in files}
+    graph: dict[str, set[str]] = {}
+    for m, f in mods.items():
+        deps: set[str] = set()
+        for name in _imports(f):
+            parts = name.split(".")
+            for k in range(len(parts), 0, -1):
+                cand = ".".join(parts[:k])
+                if cand in mods:
+                    if cand != m:
+                        deps.add(cand)
+                    break
+        graph[m] = deps
+    return graph
+
+
+def _check_layer(files: list[Path], allowed_project: tuple[str, ...]) -> list[str]:
     bad: list[str] = []
     for f in files:
         for name in _imports(f):
             top = name.split(".")[0]
+            rel = f.relative_to(REPO)
             if top in FORBIDDEN:
-                bad.append(f"{f.relative_to(REPO)} imports {name}")
-            elif top == "robotd" and not name.startswith(ALLOWED_ROBOTD):
-                bad.append(f"{f.relative_to(REPO)} imports {name}")
-            elif top not in ALLOWED_THIRD_PARTY and top != "robotd" and top not in STDLIB_OK:
-                bad.append(f"{f.relative_to(REPO)} imports {name}")
-    assert not bad, "core modules import I/O or unexpected libraries:\n" + "\n".join(bad)
+                bad.append(f"{rel} imports {name}")
+            elif top in PACKAGES:
+                # a bare package name is the ``from robotd import x`` half; ``robotd.x`` is checked
+                if name not in PACKAGES and not name.startswith(allowed_project):
+                    bad.append(f"{rel} imports {name}")
+            elif top not in ALLOWED_THIRD_PARTY and top not in STDLIB_OK:
+                bad.append(f"{rel} imports {name}")
+    return bad
+
+
+CORE_MODULES = tuple(c.removesuffix(".py").replace("/", ".") for c in CORE)
+
+
+def test_core_imports_only_numeric_libraries() -> None:
+    files = _files(CORE)
+    assert len(files) > 20, "core files not found"
+    bad = _check_layer(files, CORE_MODULES)
+    assert not bad, "core modules import I/O or unexpected modules:\n" + "\n".join(bad)
+
+
+def test_pipeline_imports_the_core_and_the_config_only() -> None:
+    files = _files(PIPELINE)
+    assert len(files) == len(PIPELINE)
+    pipeline_modules = tuple(p.removesuffix(".py").replace("/", ".") for p in PIPELINE)
+    bad = _check_layer(files, (*CORE_MODULES, *pipeline_modules, "robotd.config"))
+    assert not bad, "the pipeline imports I/O or modules outside the core:\n" + "\n".join(bad)
+
+
+def test_the_daemon_never_imports_research_code() -> None:
+    graph = _graph()
+    seen: set[str] = set()
+    todo = [m for m in graph if m == "robotd.daemon" or m.startswith(("robotd.daemon.", "robotd.outputs"))]
+    assert todo, "daemon modules not found"
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        todo += graph.get(m, ())
+    research = sorted(m for m in seen if m.startswith("robotd.research"))
+    assert not research, f"the daemon imports research code: {research}"
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan), iteratively."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def test_no_import_cycles() -> None:
+    cycles = _cycles(_graph())
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
 
 
 def test_each_hardware_library_has_one_importer() -> None:

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import drivers
-import robotd.pipeline as pl
+from robotd import relocalise
 from robotd.config import load_config
 from robotd.geometry import se3_inverse
-from robotd.pipeline import Pipeline, pose_to_T
+from robotd.pipeline import Pipeline
 
 
 def _frames(seed: int, n: int) -> tuple[list, object]:
@@ -37,7 +37,7 @@ def _pipeline(rig) -> Pipeline:
 def mapped():
     frames, rig = _frames(1, 120)
     a = _pipeline(rig)
-    poses = [pose_to_T(a.step(f, None).pose) for f in frames]
+    poses = [a.step(f, None).pose.T_world_robot for f in frames]
     return frames, rig, poses, a.state_dict()
 
 
@@ -45,17 +45,17 @@ def test_relocalises_after_a_map_load(mapped):
     frames, rig, poses, state = mapped
     b = _pipeline(rig)
     b.load_state_dict(state)
-    stale = pose_to_T(b.estimator.estimate())
+    stale = b.estimator.estimate().T_world_robot
     assert np.linalg.norm(stale[:3, 3] - poses[60][:3, 3]) > 1.0  # the saved pose is far from frame 60's
     r = b.step(frames[60], None)
     assert b.counters.relocalisations == 1 and r.tracking
-    D = se3_inverse(poses[60]) @ pose_to_T(r.pose)
+    D = se3_inverse(poses[60]) @ r.pose.T_world_robot
     assert np.linalg.norm(D[:3, 3]) < 0.10, D[:3, 3]
     assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 2.0
     # and it keeps tracking from there
     for k in range(61, 75):
         r = b.step(frames[k], None)
-    D = se3_inverse(poses[74]) @ pose_to_T(r.pose)
+    D = se3_inverse(poses[74]) @ r.pose.T_world_robot
     assert r.tracking and np.linalg.norm(D[:3, 3]) < 0.15, D[:3, 3]
     assert b.counters.relocalisations == 1
 
@@ -63,7 +63,7 @@ def test_relocalises_after_a_map_load(mapped):
 def test_foreign_map_does_not_relocalise_and_is_left_untouched(mapped, monkeypatch, caplog):
     _, rig, _, state = mapped
     other, _ = _frames(2, 8)  # another world
-    monkeypatch.setattr(pl, "RELOC_MAX_FRAMES", 4)
+    monkeypatch.setattr(relocalise, "MAX_FRAMES", 4)
     b = _pipeline(rig)
     b.load_state_dict(state)
     ids0 = b.estimator.landmark_ids().copy()
@@ -71,7 +71,7 @@ def test_foreign_map_does_not_relocalise_and_is_left_untouched(mapped, monkeypat
         r = b.step(other[k], None)
         assert not r.tracking
         np.testing.assert_array_equal(b.estimator.landmark_ids(), ids0)  # no update while trying
-        db = b.frontend.database
+        db = b.frontend.descriptors
         assert db is not None and np.all(np.isin(db.ids, ids0))  # nor descriptors of new landmarks
     assert b.counters.relocalisations == 0 and b.counters.relocalisation_failures == 1
     assert "relocalisation against the loaded map failed" in caplog.text

@@ -70,15 +70,15 @@ def test_reset_pose_refuses_bad_input_and_changes_nothing(name: str) -> None:
 
 def test_pose_from_a_similarity_that_is_not_finite_is_none() -> None:
     from robotd.outliers import OutlierResult
-    from robotd.pipeline import _pose_from_similarity
+    from robotd.relocalise import pose_from_similarity
 
     def res(s, R, t):
         return OutlierResult(
             "similarity_mahalanobis", np.ones(3, bool), True, 3, 3, 1, 0, 0, 0.0, 1.0, np.zeros(3), s, R, t
         )
 
-    assert _pose_from_similarity(res(1.0, np.eye(3), np.array([np.nan, 0, 0]))) is None
-    assert _pose_from_similarity(res(0.0, np.eye(3), np.zeros(3))) is None
-    assert _pose_from_similarity(res(None, None, None)) is None
-    x = _pose_from_similarity(res(1.0, np.eye(3), np.array([-1.0, 2.0, 0.0])))  # world → robot shift
+    assert pose_from_similarity(res(1.0, np.eye(3), np.array([np.nan, 0, 0]))) is None
+    assert pose_from_similarity(res(0.0, np.eye(3), np.zeros(3))) is None
+    assert pose_from_similarity(res(None, None, None)) is None
+    x = pose_from_similarity(res(1.0, np.eye(3), np.array([-1.0, 2.0, 0.0])))  # world → robot shift
     np.testing.assert_allclose(x, [1.0, -2.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)

@@ -1,13 +1,15 @@
 """Landmark identification: match a frame's measurements to map landmarks by descriptor (algorithms.md §4.3).
 
-The :class:`LandmarkDatabase` holds what is global to the map and shared by every FastSLAM
-particle: landmark ids, one descriptor per landmark (the left descriptor of its most recent
-accepted observation) and an existence counter. Positions and covariances are the filter's
-business; the caller passes them when it wants the outlier stage to check the matches.
+The :class:`LandmarkDescriptors` store holds what is global to the map and shared by every
+FastSLAM particle: landmark ids and one descriptor per landmark (the left descriptor of its most
+recent accepted observation). It allocates the ids of new landmarks. Whether a landmark exists is
+the filter's business alone (its existence counter, robotd.slam._book): the filter reports the ids
+it deleted in ``UpdateReport.pruned_ids`` and this store forgets them; positions and covariances
+are the filter's too, the caller passes them when it wants the outlier stage to check the matches.
 
 Outcome per measurement (``Correspondences.status``): IDENTIFIED (matched, passed the outlier
-stage: update landmark ``ids[i]``), NEW (no descriptor match: initialise a landmark, which gets a
-fresh global id), REJECTED (matched but failed the outlier stage, or ambiguous: neither update
+stage: update landmark ``ids[i]``), NEW (no descriptor match: a landmark may be initialised, which gets a
+fresh global id when it is committed), REJECTED (matched but failed the outlier stage, or ambiguous: neither update
 nor initialise in this frame, which avoids duplicate landmarks).
 """
 
@@ -15,10 +17,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from robotd.errors import ConfigError, InputError
+from robotd.errors import ConfigError, InputError, PersistenceError
 from robotd.frontend.stereo_match import distance_matrix, ratio_and_cross_check
 
 logger = logging.getLogger(__name__)
@@ -59,9 +62,9 @@ class Correspondences:
     """The correspondence vector c_t of one frame (algorithms.md §4.3).
 
     status: (N,) int8 IDENTIFIED / NEW / REJECTED per measurement; ids: (N,) int64 global landmark
-    id (the matched landmark for IDENTIFIED and REJECTED-after-match, the new id for NEW once
-    :meth:`LandmarkDatabase.commit` ran, −1 otherwise); dist: (N,) descriptor distance to the
-    matched landmark (inf when none).
+    id (the matched landmark for IDENTIFIED and REJECTED-after-match, the new id for a NEW
+    measurement once :meth:`LandmarkDescriptors.commit` initialised it, −1 otherwise); dist: (N,)
+    descriptor distance to the matched landmark (inf when none).
     """
 
     status: np.ndarray
@@ -83,11 +86,11 @@ class Correspondences:
         self.status[mask] = REJECTED
 
 
-class LandmarkDatabase:
-    """Global landmark ids, descriptors and existence counters (shared by all particles).
+class LandmarkDescriptors:
+    """Global landmark ids and their descriptors (shared by all particles).
 
     Descriptors are stored normalised (:func:`robotd.frontend.stereo_match.normalise_descriptors`).
-    Ids are never reused; rows are kept in creation order.
+    Ids are never reused; rows are kept in creation order, so ``ids`` is sorted.
     """
 
     def __init__(self, dim: int, binary: bool, first_id: int = 0) -> None:
@@ -95,7 +98,6 @@ class LandmarkDatabase:
         self.binary = bool(binary)
         self.ids = np.zeros(0, np.int64)  # (M,)
         self.desc = np.zeros((0, self.dim), np.uint8 if binary else np.float32)  # (M, D)
-        self.existence = np.zeros(0, np.int32)  # (M,) +1 per identification, −1 per predicted miss
         self.next_id = int(first_id)
 
     @property
@@ -109,11 +111,11 @@ class LandmarkDatabase:
         r = np.minimum(r, max(self.n - 1, 0))
         if ids.size and (self.n == 0 or np.any(self.ids[r] != ids)):
             missing = ids if self.n == 0 else ids[self.ids[r] != ids]
-            raise InputError(f"LandmarkDatabase: unknown landmark ids {missing[:10].tolist()}")
+            raise InputError(f"LandmarkDescriptors: unknown landmark ids {missing[:10].tolist()}")
         return r
 
     def contains(self, ids: np.ndarray) -> np.ndarray:
-        """(K,) True where the id is in the database."""
+        """(K,) True where the id is in the store."""
         ids = np.asarray(ids, dtype=np.int64)
         if self.n == 0:
             return np.zeros(ids.shape, bool)
@@ -124,36 +126,50 @@ class LandmarkDatabase:
         """Append landmarks with descriptors (K, D); returns their new global ids (K,)."""
         desc = np.asarray(desc)
         if desc.ndim != 2 or desc.shape[1] != self.dim:
-            raise InputError(f"LandmarkDatabase.add: expected descriptors (K, {self.dim}), got {desc.shape}")
+            raise InputError(f"LandmarkDescriptors.add: expected descriptors (K, {self.dim}), got {desc.shape}")
         k = desc.shape[0]
         new_ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
         self.next_id += k
         self.ids = np.r_[self.ids, new_ids]
         self.desc = np.concatenate([self.desc, desc.astype(self.desc.dtype)])
-        self.existence = np.r_[self.existence, np.ones(k, np.int32)]
         return new_ids
 
     def update(self, ids: np.ndarray, desc: np.ndarray) -> None:
-        """Replace the descriptors of identified landmarks (latest accepted observation) and count them."""
-        r = self.rows(ids)
-        self.desc[r] = desc
-        self.existence[r] += 1
+        """Replace the descriptors of identified landmarks (latest accepted observation)."""
+        self.desc[self.rows(ids)] = desc
 
-    def mark_missed(self, ids: np.ndarray) -> None:
-        """Decrement the existence counter of landmarks predicted visible but not identified."""
+    def forget(self, ids: np.ndarray) -> None:
+        """Delete landmarks the filter deleted (``UpdateReport.pruned_ids``); unknown ids are ignored."""
         if len(ids):
-            self.existence[self.rows(ids)] -= 1
+            keep = ~np.isin(self.ids, np.asarray(ids, dtype=np.int64))
+            self.ids, self.desc = self.ids[keep], self.desc[keep]
 
-    def remove(self, ids: np.ndarray) -> None:
-        """Delete landmarks (e.g. the filter pruned them)."""
-        keep = ~np.isin(self.ids, np.asarray(ids, dtype=np.int64))
-        self.ids, self.desc, self.existence = self.ids[keep], self.desc[keep], self.existence[keep]
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume: numpy arrays and scalars only (robotd.persist)."""
+        return {
+            "dim": self.dim,
+            "binary": self.binary,
+            "ids": self.ids.copy(),
+            "desc": self.desc.copy(),
+            "next_id": self.next_id,
+        }
 
-    def prune(self, min_existence: int) -> np.ndarray:
-        """Remove and return the ids whose existence counter fell below ``min_existence``."""
-        gone = self.ids[self.existence < min_existence]
-        self.remove(gone)
-        return gone
+    @classmethod
+    def from_state_dict(cls, st: dict[str, Any]) -> LandmarkDescriptors:
+        """Restore from :meth:`state_dict` (maps saved before the filter became the one owner of
+        landmark existence also carry an ``existence`` array: it is ignored)."""
+        try:
+            store = cls(int(st["dim"]), bool(st["binary"]), first_id=int(st["next_id"]))
+            store.ids = np.asarray(st["ids"], np.int64)
+            store.desc = np.asarray(st["desc"], store.desc.dtype)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise PersistenceError(f"saved landmark descriptors are incomplete: {exc}") from exc
+        if store.ids.ndim != 1 or store.desc.shape != (store.ids.shape[0], store.dim):
+            raise PersistenceError(
+                f"saved landmark descriptors: expected ids (M,) and descriptors (M, {store.dim}), "
+                f"got {store.ids.shape} and {store.desc.shape}"
+            )
+        return store
 
     def identify(
         self,
@@ -172,7 +188,7 @@ class LandmarkDatabase:
         desc = np.asarray(desc)
         n = desc.shape[0]
         if n and (desc.ndim != 2 or desc.shape[1] != self.dim):
-            raise InputError(f"LandmarkDatabase.identify: expected descriptors (N, {self.dim}), got {desc.shape}")
+            raise InputError(f"LandmarkDescriptors.identify: expected descriptors (N, {self.dim}), got {desc.shape}")
         status = np.full(n, NEW, np.int8)
         ids = np.full(n, -1, np.int64)
         dist = np.full(n, np.inf, np.float32)
@@ -182,7 +198,7 @@ class LandmarkDatabase:
             cand = np.asarray(candidate_ids, dtype=np.int64)
             known = self.contains(cand)
             if not np.all(known):
-                logger.debug("identify: %d candidate ids not in the database ignored", int(np.sum(~known)))
+                logger.debug("identify: %d candidate ids not in the store ignored", int(np.sum(~known)))
             rows = self.rows(cand[known])
         stats = {"candidates": int(rows.size), "matched": 0, "ambiguous": 0, "new": n}
         if n == 0 or rows.size == 0:
@@ -225,15 +241,15 @@ class LandmarkDatabase:
         )
         return Correspondences(status, ids, dist, stats)
 
-    def commit(self, corr: Correspondences, desc: np.ndarray) -> None:
-        """Apply a frame's decisions: IDENTIFIED landmarks take the new descriptor and count +1;
-        NEW measurements get fresh ids (written into ``corr.ids``); REJECTED are left alone.
+    def commit(self, corr: Correspondences, desc: np.ndarray, new: np.ndarray | None = None) -> None:
+        """Apply a frame's decisions: IDENTIFIED landmarks take the new descriptor; the NEW
+        measurements at indices ``new`` (all NEW ones when None) get fresh ids, written into
+        ``corr.ids`` in ascending index order; REJECTED and the NEW ones not initialised keep id −1.
         """
         ident = corr.status == IDENTIFIED
         if np.any(ident):
             self.update(corr.ids[ident], desc[ident])
-        new = corr.status == NEW
-        if np.any(new):
-            corr.ids[new] = self.add(desc[new])
-        rej = corr.status == REJECTED
-        corr.ids[rej] = -1
+        idx = np.flatnonzero(corr.status == NEW) if new is None else np.sort(np.asarray(new, np.int64))
+        if idx.size:
+            corr.ids[idx] = self.add(desc[idx])
+        corr.ids[corr.status == REJECTED] = -1

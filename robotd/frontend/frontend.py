@@ -1,12 +1,21 @@
 """The front end: a rectified stereo pair -> identified landmark measurements (algorithms.md §2–§5).
 
-``Frontend.process`` runs detect → stereo match + triangulate → identify against the map →
-outlier stage → commit (new ids, descriptor updates), and, beside it, a frame-to-frame motion
-estimate from the previous frame's measurements (a visual-odometry motion prior).
+Its stages are methods that the pipeline calls one by one, in data-flow order:
 
-Pure with respect to I/O: no threads, files or sockets; ``time.perf_counter`` only for the stage
-timings; randomness from the injected generator. State between frames: the landmark database
-(global ids and descriptors) and the previous frame's measurements.
+- :meth:`Frontend.detect`: features in both images;
+- :meth:`Frontend.match_stereo`: stereo matches, triangulated with their covariance (§2–§3);
+- :meth:`Frontend.identify`: putative matches to the map's landmarks by descriptor (§4.3);
+- :meth:`Frontend.screen`: the outlier stage on those matches (§5; failures become REJECTED);
+- :meth:`Frontend.visual_motion`: the frame-to-frame motion from the previous frame's
+  measurements (the visual-odometry motion prior, when the vehicle gives none);
+- :meth:`Frontend.commit`: identified landmarks take the new descriptors, the new landmarks the
+  filter will initialise get their global ids, and the frame becomes "the previous frame".
+
+:meth:`Frontend.process` runs all of them for a caller without a filter (benchmarks, tests).
+
+Pure with respect to I/O: no threads, files or sockets (a worker thread detects the second image
+at the same time); randomness from the injected generator. State between frames: the landmark
+descriptors (global ids) and the previous frame's measurements.
 
 Frames: measurements are in the robot frame R (FRD, baseline centre) of the current frame; map
 landmarks are in the world frame W. The similarity fitted by the outlier stage maps W into R
@@ -17,7 +26,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,9 +37,10 @@ from robotd.frontend.association import (
     REJECTED,
     AssociationParams,
     Correspondences,
-    LandmarkDatabase,
+    LandmarkDescriptors,
 )
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
+from robotd.frontend.features import Features
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
@@ -49,6 +58,7 @@ from robotd.outliers import (
     ransac_similarity,
 )
 from robotd.stereo import RectifiedStereo, project
+from robotd.timing import StageClock
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +86,63 @@ class FrontendParams:
     motion_gn_iterations: int = 5
     fov_margin_px: float = 0.0
     parallel_detect: bool = True
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FeaturePair:
+    """The detect stage's output: features of the left and right image."""
+
+    left: Features
+    right: Features
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Identification:
+    """The identify stage's output: putative correspondences of the frame's measurements to the
+    reference landmarks (the map, or without one the previous frame's measurements).
+
+    corr: status and id per measurement (the screen stage marks failures REJECTED, the commit
+      stage writes the ids of new landmarks). ref_ids (K,), ref_xyz (K, 3) [m], ref_cov
+      (K, 3, 3) [m²]: the reference set (world frame for the map, else the previous robot frame).
+    candidates: ids searched (the map landmarks predicted in view, or all of the reference set).
+    visible_predicted: True when ``candidates`` came from a pose prior.
+    """
+
+    corr: Correspondences
+    ref_ids: np.ndarray
+    ref_xyz: np.ndarray
+    ref_cov: np.ndarray
+    ref_is_map: bool
+    candidates: np.ndarray
+    visible_predicted: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Screening:
+    """The outlier stage's output: its result on the identified candidates (None when there were
+    none) and, when it accepted map matches, the similarity (4, 4) [sR t; 0 1] mapping world
+    points into the robot frame (≈ T_robot_world)."""
+
+    result: OutlierResult | None
+    similarity: np.ndarray | None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VisualMotion:
+    """The frame-to-frame motion stage's output.
+
+    T_prev_curr: (4, 4) rigid motion T_{R(t−1) R(t)}, or None; increment: the same as a
+    MotionIncrement (dp_R_m = translation in R(t−1), drot_R_rad = rotation vector, cov 6×6 over
+    (dp, drot) from the Gauss–Newton information), or None; counts: motion_matches and
+    motion_inliers (empty when the stage did not run).
+    """
+
+    T_prev_curr: np.ndarray | None
+    increment: MotionIncrement | None
+    counts: dict[str, int]
+
+
+NO_SCREENING = Screening(None, None)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -169,58 +236,33 @@ class Frontend:
         rig: RectifiedStereo,
         params: FrontendParams | None = None,
         rng: np.random.Generator | None = None,
-        database: LandmarkDatabase | None = None,
+        descriptors: LandmarkDescriptors | None = None,
     ) -> None:
         self.rig = rig
         self.params = params or FrontendParams()
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.detector: Detector = make_detector(self.params.detector)
-        self.database = database
+        self.descriptors = descriptors
         self._prev: _PrevFrame | None = None
 
     def reset(self) -> None:
-        """Forget the previous frame (after a gap or a relocalisation); keeps the database."""
+        """Forget the previous frame (after a gap or a relocalisation); keeps the descriptors."""
         self._prev = None
 
-    def process(
-        self,
-        left: np.ndarray,
-        right: np.ndarray,
-        t_ns: int,
-        map_landmarks_W: MapLandmarks | LandmarkMap | None = None,
-        T_world_robot_prior: np.ndarray | None = None,
-    ) -> FrontendResult:
-        """Turn one rectified pair into Observations (module doc).
-
-        ``left``/``right``: (H, W) uint8 rectified images of the rig's size. ``map_landmarks_W``:
-        the filter's map (ids (M,), xyz_W (M, 3) [m], cov_W (M, 3, 3) [m²]); None: identify
-        against the previous frame's landmarks instead (frame-to-frame, §5.1). ``T_world_robot_prior``:
-        (4, 4) predicted pose; restricts identification to landmarks predicted in view.
-        """
-        p = self.params
-        timings: dict[str, float] = {}
-        t_start = time.perf_counter()
+    # ---------------------------------------------------------------------------- the stages
+    def detect(self, left: np.ndarray, right: np.ndarray) -> FeaturePair:
+        """Features of a rectified pair: ``left``/``right`` (H, W) uint8 images of the rig's size."""
         left = check_image(left, "left")
         right = check_image(right, "right")
         if left.shape != right.shape:
             raise InputError(
-                f"Frontend.process: expected left and right of one size, got {left.shape} and {right.shape}"
+                f"Frontend.detect: expected left and right of one size, got {left.shape} and {right.shape}"
             )
         if left.shape != (self.rig.height, self.rig.width):
             raise InputError(
-                f"Frontend.process: expected images of the rig's size {(self.rig.height, self.rig.width)}, "
+                f"Frontend.detect: expected images of the rig's size {(self.rig.height, self.rig.width)}, "
                 f"got {left.shape}"
             )
-        mp = _check_map(map_landmarks_W) if map_landmarks_W is not None else None
-        if T_world_robot_prior is not None:
-            T_world_robot_prior = np.asarray(T_world_robot_prior, dtype=float)
-            if T_world_robot_prior.shape != (4, 4) or not np.all(np.isfinite(T_world_robot_prior)):
-                raise InputError(
-                    f"Frontend.process: expected a finite (4, 4) T_world_robot_prior, got {T_world_robot_prior.shape}"
-                )
-
-        # --- detect
-        t0 = time.perf_counter()
         if self.params.parallel_detect:
             # OpenCV and the SURF kernels release the GIL: both images at once on two cores
             fut = _pool().submit(self.detector.detect, right)
@@ -229,96 +271,54 @@ class Frontend:
         else:
             fl = self.detector.detect(left)
             fr = self.detector.detect(right)
-        timings["detect"] = (time.perf_counter() - t0) * 1e3
-        if self.database is None:
+        if self.descriptors is None:
             dim = fl.desc.shape[1] if fl.n else (32 if self.detector.binary else fl.desc.shape[1])
-            self.database = LandmarkDatabase(dim, self.detector.binary)
-        db = self.database
+            self.descriptors = LandmarkDescriptors(dim, self.detector.binary)
+        return FeaturePair(fl, fr)
 
-        # --- stereo
-        t0 = time.perf_counter()
-        meas = match_stereo(fl, fr, self.rig, p.stereo, left, right)
-        timings["stereo"] = (time.perf_counter() - t0) * 1e3
+    def match_stereo(self, feats: FeaturePair, left: np.ndarray, right: np.ndarray) -> StereoMatches:
+        """Stereo matches of the pair, triangulated in the robot frame with their covariance."""
+        return match_stereo(feats.left, feats.right, self.rig, self.params.stereo, left, right)
 
-        # --- identify against the reference set (the map, or the previous frame's landmarks)
-        t0 = time.perf_counter()
-        ref_ids, ref_xyz, ref_cov, ref_is_map = self._reference(mp)
-        cand = ref_ids
-        n_visible_pred = -1
-        if mp is not None and T_world_robot_prior is not None and ref_ids.size:
-            vis = predicted_visible(self.rig, ref_xyz, T_world_robot_prior, p.stereo, p.fov_margin_px)
-            cand = ref_ids[vis]
-            n_visible_pred = int(vis.sum())
-        corr = db.identify(meas.desc, cand, p.association)
-        timings["identify"] = (time.perf_counter() - t0) * 1e3
-
-        # --- outlier stage on the putative matches
-        t0 = time.perf_counter()
-        res, similarity = self._outliers(meas, corr, ref_ids, ref_xyz, ref_cov, ref_is_map)
-        timings["outliers"] = (time.perf_counter() - t0) * 1e3
-
-        if n_visible_pred >= 0:
-            identified = corr.ids[corr.status == IDENTIFIED]
-            db.mark_missed(np.setdiff1d(cand, identified, assume_unique=True))  # ids are unique
-        db.commit(corr, meas.desc)
-
-        # --- frame-to-frame motion (visual-odometry prior)
-        t0 = time.perf_counter()
-        T_pc, motion, m_counts = self._motion(meas, t_ns) if p.motion else (None, None, {})
-        timings["motion"] = (time.perf_counter() - t0) * 1e3
-
-        keep = corr.status != REJECTED
-        obs = Observations(
-            int(t_ns),
-            meas.xyz_R[keep],
-            meas.cov_R[keep],
-            corr.ids[keep].copy(),
-            (corr.status[keep] == NEW),
-        )
-        self._prev = _PrevFrame(int(t_ns), meas, corr.ids.copy())
-        timings["total"] = (time.perf_counter() - t_start) * 1e3
-        counts = {
-            "features_left": fl.n,
-            "features_right": fr.n,
-            "stereo_matches": meas.n,
-            "map_candidates": int(cand.size),
-            "map_matches": int(corr.matched.sum()) if res is None else res.n_input,
-            "inliers": int(np.sum(corr.status == IDENTIFIED)),
-            "rejected": int(np.sum(corr.status == REJECTED)),
-            "new": int(np.sum(corr.status == NEW)),
-            "ransac_iterations": 0 if res is None else res.iterations,
-            **m_counts,
-        }
-        logger.debug("frontend t=%d: %s; ms %s", t_ns, counts, {k: round(v, 2) for k, v in timings.items()})
-        return FrontendResult(obs, timings, counts, similarity, res, T_pc, motion, meas, corr)
-
-    # ----------------------------------------------------------------------------------------
-
-    def _reference(self, mp: MapLandmarks | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-        """Landmarks with known positions to identify against: the map, else the previous frame's."""
-        if mp is not None:
-            return mp[0], mp[1], mp[2], True
-        if self._prev is None:
-            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), False
-        pv = self._prev
-        ok = pv.ids >= 0
-        return pv.ids[ok], pv.meas.xyz_R[ok], pv.meas.cov_R[ok], False
-
-    def _outliers(
+    def identify(
         self,
         meas: StereoMatches,
-        corr: Correspondences,
-        ref_ids: np.ndarray,
-        ref_xyz: np.ndarray,
-        ref_cov: np.ndarray,
-        ref_is_map: bool,
-    ) -> tuple[OutlierResult | None, np.ndarray | None]:
-        """Run the outlier stage on the IDENTIFIED candidates; failures become REJECTED."""
+        map_landmarks_W: MapLandmarks | LandmarkMap | None = None,
+        T_world_robot_prior: np.ndarray | None = None,
+    ) -> Identification:
+        """Putative matches of the measurements to the reference landmarks by descriptor.
+
+        ``map_landmarks_W``: the filter's map (ids (M,), xyz_W (M, 3) [m], cov_W (M, 3, 3) [m²]);
+        None: identify against the previous frame's landmarks instead (frame-to-frame, §5.1).
+        ``T_world_robot_prior``: (4, 4) predicted pose; restricts identification to landmarks
+        predicted in view.
+        """
+        mp = _check_map(map_landmarks_W) if map_landmarks_W is not None else None
+        if T_world_robot_prior is not None:
+            T_world_robot_prior = np.asarray(T_world_robot_prior, dtype=float)
+            if T_world_robot_prior.shape != (4, 4) or not np.all(np.isfinite(T_world_robot_prior)):
+                raise InputError(
+                    f"Frontend.identify: expected a finite (4, 4) T_world_robot_prior, got {T_world_robot_prior.shape}"
+                )
+        assert self.descriptors is not None, "Frontend.identify before Frontend.detect"
+        ref_ids, ref_xyz, ref_cov, ref_is_map = self._reference(mp)
+        cand = ref_ids
+        predicted = mp is not None and T_world_robot_prior is not None and ref_ids.size > 0
+        if predicted:
+            assert T_world_robot_prior is not None
+            p = self.params
+            cand = ref_ids[predicted_visible(self.rig, ref_xyz, T_world_robot_prior, p.stereo, p.fov_margin_px)]
+        corr = self.descriptors.identify(meas.desc, cand, self.params.association)
+        return Identification(corr, ref_ids, ref_xyz, ref_cov, ref_is_map, cand, predicted)
+
+    def screen(self, meas: StereoMatches, ident: Identification) -> Screening:
+        """The outlier stage on the IDENTIFIED candidates; the failures become REJECTED."""
+        corr = ident.corr
         cand = np.flatnonzero(corr.status == IDENTIFIED)
         if cand.size == 0:
-            return None, None
-        order = np.argsort(ref_ids)
-        rows = order[np.searchsorted(ref_ids[order], corr.ids[cand])]
+            return NO_SCREENING
+        order = np.argsort(ident.ref_ids)
+        rows = order[np.searchsorted(ident.ref_ids[order], corr.ids[cand])]
         op = self.params.outliers
         if op.method == "fundamental":
             # needs both views: only landmarks also measured in the previous frame can be tested
@@ -336,20 +336,21 @@ class Frontend:
             inl = np.zeros(cand.size, bool)
             inl[testable] = res.inliers
         else:
-            res = detect_outliers(
-                op, self.rng, a=ref_xyz[rows], b=meas.xyz_R[cand], A=ref_cov[rows], B=meas.cov_R[cand]
-            )
+            A, B = ident.ref_cov[rows], meas.cov_R[cand]
+            res = detect_outliers(op, self.rng, a=ident.ref_xyz[rows], b=meas.xyz_R[cand], A=A, B=B)
             inl = res.inliers
         corr.status[cand[~inl]] = REJECTED
-        sim = res.T_b_a() if (res.accepted and ref_is_map) else None
-        return res, sim
+        return Screening(res, res.T_b_a() if (res.accepted and ident.ref_is_map) else None)
 
-    def _motion(self, meas: StereoMatches, t_ns: int) -> tuple[np.ndarray | None, MotionIncrement | None, dict]:
-        """Frame-to-frame motion from direct descriptor matches to the previous frame's measurements."""
+    def visual_motion(self, meas: StereoMatches, t_ns: int, wanted: bool = True) -> VisualMotion:
+        """Frame-to-frame motion from direct descriptor matches to the previous frame's measurements
+        (skipped when not ``wanted``: the vehicle gave odometry)."""
+        if not wanted:
+            return VisualMotion(None, None, {})
         counts = {"motion_matches": 0, "motion_inliers": 0}
         pv = self._prev
         if pv is None or pv.meas.n == 0 or meas.n == 0 or t_ns < pv.t_ns:
-            return None, None, counts
+            return VisualMotion(None, None, counts)
         p = self.params
         binary = meas.binary
         D = distance_matrix(meas.desc, pv.meas.desc, binary)  # (N_curr, N_prev)
@@ -368,7 +369,7 @@ class Frontend:
             meas.xyz_R[ic], pv.meas.xyz_R[ip], meas.cov_R[ic], pv.meas.cov_R[ip], p.motion_outliers, self.rng
         )
         if not res.accepted or res.R is None or res.t is None:
-            return None, None, counts
+            return VisualMotion(None, None, counts)
         inl = res.inliers
         counts["motion_inliers"] = int(inl.sum())
         # rigid (stereo fixes the scale), Mahalanobis-weighted re-fit on the inliers
@@ -383,6 +384,89 @@ class Frontend:
             with_scale=False,
             iterations=p.motion_gn_iterations,
         )
-        T_pc = se3(R, t)
-        motion = MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr)
-        return T_pc, motion, counts
+        return VisualMotion(se3(R, t), MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr), counts)
+
+    def commit(self, meas: StereoMatches, ident: Identification, t_ns: int, new: np.ndarray | None = None) -> None:
+        """The frame's decisions: identified landmarks take the new descriptors, the NEW
+        measurements at indices ``new`` (all of them when None) become landmarks with fresh global
+        ids, and this frame becomes the previous frame."""
+        assert self.descriptors is not None, "Frontend.commit before Frontend.detect"
+        self.descriptors.commit(ident.corr, meas.desc, new)
+        self._prev = _PrevFrame(int(t_ns), meas, ident.corr.ids.copy())
+
+    # ---------------------------------------------------------------------------- outputs
+    @staticmethod
+    def observations(
+        meas: StereoMatches, ident: Identification, t_ns: int, idx: np.ndarray | None = None
+    ) -> Observations:
+        """Observations of the committed measurements at ``idx`` (all identified and initialised ones
+        when None): identified ones update their landmark, new ones initialise theirs."""
+        corr = ident.corr
+        if idx is None:
+            idx = np.flatnonzero((corr.status != REJECTED) & (corr.ids >= 0))
+        return Observations(int(t_ns), meas.xyz_R[idx], meas.cov_R[idx], corr.ids[idx].copy(), corr.status[idx] == NEW)
+
+    @staticmethod
+    def counts(
+        feats: FeaturePair, meas: StereoMatches, ident: Identification, screen: Screening, motion: VisualMotion
+    ) -> dict[str, int]:
+        """Diagnostics of one frame (StepResult.counts; docs/topics.md)."""
+        st = ident.corr.status
+        res = screen.result
+        return {
+            "features_left": feats.left.n,
+            "features_right": feats.right.n,
+            "stereo_matches": meas.n,
+            "map_candidates": int(ident.candidates.size),
+            "map_matches": 0 if res is None else res.n_input,
+            "inliers": int(np.sum(st == IDENTIFIED)),
+            "rejected": int(np.sum(st == REJECTED)),
+            "new": int(np.sum(st == NEW)),
+            "ransac_iterations": 0 if res is None else res.iterations,
+            **motion.counts,
+        }
+
+    def process(
+        self,
+        left: np.ndarray,
+        right: np.ndarray,
+        t_ns: int,
+        map_landmarks_W: MapLandmarks | LandmarkMap | None = None,
+        T_world_robot_prior: np.ndarray | None = None,
+    ) -> FrontendResult:
+        """Every stage on one rectified pair, for callers without a filter (benchmarks, tests): all
+        new measurements become landmarks. Arguments as for :meth:`detect` and :meth:`identify`."""
+        clock = StageClock()
+        feats = clock.run("detect", self.detect, left, right)
+        meas = clock.run("stereo", self.match_stereo, feats, left, right)
+        ident = clock.run("identify", self.identify, meas, map_landmarks_W, T_world_robot_prior)
+        screen = clock.run("outliers", self.screen, meas, ident)
+        motion = clock.run("motion", self.visual_motion, meas, t_ns, self.params.motion)
+        self.commit(meas, ident, t_ns)
+        timings = clock.finish()
+        counts = self.counts(feats, meas, ident, screen, motion)
+        logger.debug("frontend t=%d: %s; ms %s", t_ns, counts, {k: round(v, 2) for k, v in timings.items()})
+        obs = self.observations(meas, ident, t_ns)
+        return FrontendResult(
+            obs,
+            timings,
+            counts,
+            screen.similarity,
+            screen.result,
+            motion.T_prev_curr,
+            motion.increment,
+            meas,
+            ident.corr,
+        )
+
+    # ----------------------------------------------------------------------------------------
+
+    def _reference(self, mp: MapLandmarks | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """Landmarks with known positions to identify against: the map, else the previous frame's."""
+        if mp is not None:
+            return mp[0], mp[1], mp[2], True
+        if self._prev is None:
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), False
+        pv = self._prev
+        ok = pv.ids >= 0
+        return pv.ids[ok], pv.meas.xyz_R[ok], pv.meas.cov_R[ok], False

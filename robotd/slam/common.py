@@ -16,6 +16,9 @@ from robotd.slam._book import LandmarkBook
 from robotd.slam.models import RANGE_BEARING_2D, MeasurementModel, motion3d_noise, odometry2d_noise
 from robotd.slam.params import SlamParams
 
+NO_IDS = np.zeros(0, np.int64)  # an empty id list (read-only: shared)
+NO_IDS.flags.writeable = False
+
 
 def check_finite(name: str, *arrays: Any) -> None:
     """Raise InputError when any input value is NaN/inf (before the filter state is touched)."""

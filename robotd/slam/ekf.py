@@ -26,6 +26,7 @@ from robotd.slam._book import LandmarkBook
 from robotd.slam._linalg import sym
 from robotd.slam.common import (
     FILTER_CODE,
+    NO_IDS,
     UpdateEntryPoints,
     check_finite,
     check_header,
@@ -143,8 +144,8 @@ class EkfSlam(UpdateEntryPoints):
         born = np.zeros(0, np.int64)
         if new_idx.size:
             born = self._augment(z[new_idx], Q[new_idx], ids[new_idx], model)
-        n_pruned = self._prune(np.asarray(observed_slots, np.int64), born)
-        return UpdateReport(n_updated=n_upd, n_new=int(new_idx.size), n_gated=n_gated, n_pruned=n_pruned)
+        pruned = self._prune(np.asarray(observed_slots, np.int64), born)
+        return UpdateReport(n_updated=n_upd, n_new=int(new_idx.size), n_gated=n_gated, pruned_ids=pruned)
 
     def _joseph(self, K: np.ndarray, PHt: np.ndarray, Psi: np.ndarray) -> None:
         """Σ ← (I-KH)Σ(I-KH)^T + KQK^T (Joseph form, §8) as one in-place rank-3·dz update, then symmetrise.
@@ -187,24 +188,26 @@ class EkfSlam(UpdateEntryPoints):
         slots = self.book.allocate(ids, reuse=False)
         return slots
 
-    def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
-        """Existence counter (§8 bookkeeping); deletion removes the landmark's rows and columns."""
+    def _prune(self, observed: np.ndarray, born: np.ndarray) -> np.ndarray:
+        """Existence counter (§8 bookkeeping); deletion removes the landmark's rows and columns.
+        Returns the ids of the deleted landmarks (K,) int64."""
         if not self.params.prune_enabled or self.book.n == 0:
-            return 0
+            return NO_IDS
         M = self.book.n_slots
         m = self.mu[self.dx :].reshape(M, self.dm)
         zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(np.repeat(self.mu[None, : self.dx], M, 0), m)
         expected = np.flatnonzero(np.asarray(self.visible(zc), bool))
         dead = self.book.existence_update(observed, expected, born)
         if dead.size == 0:
-            return 0
+            return NO_IDS
+        dead_ids = self.book.slot_id[dead].copy()
         self.book.release(dead)
         keep_slots = self.book.compact()
         keep = np.r_[np.arange(self.dx), (self.dx + self.dm * keep_slots[:, None] + np.arange(self.dm)).ravel()]
         self.mu = self.mu[keep]
         self.Sigma = self.Sigma[np.ix_(keep, keep)]
         logger.debug("EKF pruned %d landmarks", dead.size)
-        return int(dead.size)
+        return dead_ids
 
     # ------------------------------------------------------------------------------------ output
 

@@ -31,6 +31,7 @@ from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
 from robotd.slam._store import LandmarkStore
 from robotd.slam.common import (
     FILTER_CODE,
+    NO_IDS,
     UpdateEntryPoints,
     check_finite,
     check_header,
@@ -469,12 +470,12 @@ class FastSlam(UpdateEntryPoints):
         else:
             self.log_w = ln
 
-        n_pruned = self._prune(slots_seen, slots_new)
+        pruned = self._prune(slots_seen, slots_new)
         return UpdateReport(
             n_updated=int(slots_old.size),
             n_new=int(slots_new.size),
             n_gated=n_gated,
-            n_pruned=n_pruned,
+            pruned_ids=pruned,
             neff=self.neff,
             resampled=resampled,
         )
@@ -519,17 +520,20 @@ class FastSlam(UpdateEntryPoints):
         self.best = int(hits[0]) if hits.size else 0
         self.log_w = np.full(idx.size, -np.log(idx.size))
 
-    def _prune(self, observed: np.ndarray, born: np.ndarray) -> int:
-        """Existence counters (§8 bookkeeping), visibility judged in the best particle."""
+    def _prune(self, observed: np.ndarray, born: np.ndarray) -> np.ndarray:
+        """Existence counters (§8 bookkeeping), visibility judged in the best particle. Returns the
+        ids of the deleted landmarks (K,) int64."""
         if not self.params.prune_enabled or self.book.n == 0:
-            return 0
+            return NO_IDS
         active = self.book.active_slots()
         expected = active[np.asarray(self.visible(self._best_view(active)), bool)]
         dead = self.book.existence_update(observed, expected, born)
-        if dead.size:
-            self.book.release(dead)
-            logger.debug("FastSLAM pruned %d landmarks", dead.size)
-        return int(dead.size)
+        if dead.size == 0:
+            return NO_IDS
+        dead_ids = self.book.slot_id[dead].copy()
+        self.book.release(dead)
+        logger.debug("FastSLAM pruned %d landmarks", dead.size)
+        return dead_ids
 
     def _best_view(self, slots: np.ndarray) -> np.ndarray:
         """(N, dim) robot-frame positions z = R^T (m - p) of ``slots`` in the best particle (§7.1/§7.2).

@@ -1,0 +1,68 @@
+"""The configuration (robotd.config) translated into the core's parameter objects.
+
+The core modules take their own frozen parameter dataclasses (FrontendParams, SlamParams) and never
+see the config tree; this is the one place that maps config keys onto them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from robotd.config import Config
+from robotd.frontend.detectors import DetectorParams
+from robotd.frontend.frontend import FrontendParams
+from robotd.frontend.stereo_match import StereoMatchParams
+from robotd.outliers import OutlierParams
+from robotd.slam.params import SlamParams
+from robotd.stereo import RectifiedStereo
+
+
+def frontend_params_from_config(cfg: Config, max_features: int | None = None) -> FrontendParams:
+    """``frontend.*`` keys; ``max_features`` overrides ``frontend.max_features`` (the latency budget)."""
+    f = cfg.frontend
+    det = DetectorParams(
+        name=f.detector,
+        max_features=max_features or f.max_features,
+        bucketing=f.bucketing,
+        grid_rows=f.grid_rows,
+        grid_cols=f.grid_cols,
+    )
+    stereo = StereoMatchParams(
+        row_tol_px=f.row_tolerance_px,
+        d_min_px=f.disparity_min_px,
+        depth_min_m=f.depth_min_m,
+        sigma_x_px=f.sigma_x_px,
+        sigma_y_px=f.sigma_y_px,
+        cov_inflation=f.cov_inflation,
+        debias_depth=f.debias_depth,
+    )
+    outl = OutlierParams(
+        method=f.outliers,
+        confidence=f.consensus_confidence,
+        max_iterations=f.ransac_max_iterations,
+        min_inliers=f.min_inliers,
+    )
+    return FrontendParams(detector=det, stereo=stereo, outliers=outl, parallel_detect=f.parallel_detect)
+
+
+def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:
+    """``slam.*`` keys (and the particle floor of ``budget.min_particles``); with a ``rig``, the
+    pruning field of view and range follow the rig and the disparity limits (§2.2)."""
+    n_min = max(1, min(cfg.budget.min_particles, cfg.slam.n_particles))
+    kw: dict[str, Any] = {
+        "filter": cfg.slam.filter,
+        "dim": cfg.slam.dim,
+        "n_particles": cfg.slam.n_particles,
+        "n_particles_min": n_min,
+        "resample_neff_ratio": cfg.slam.resample_neff_ratio,
+        "fs2_weights": cfg.slam.fs2_weights,
+        "numba_threads": cfg.slam.numba_threads,
+    }
+    if rig is not None:
+        kw["fov_h_rad"] = float(2 * np.arctan2(rig.width / 2.0, rig.f_px))
+        kw["fov_v_rad"] = float(2 * np.arctan2(rig.height / 2.0, rig.f_px))
+        kw["min_range_m"] = cfg.frontend.depth_min_m
+        kw["max_range_m"] = max(cfg.frontend.depth_min_m * 1.01, rig.fb / cfg.frontend.disparity_min_px)
+    return SlamParams(**kw)

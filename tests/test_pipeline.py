@@ -1,0 +1,81 @@
+"""Pipeline.step: the stages in data-flow order, and one owner of landmark existence.
+
+The filter's existence counter decides which landmarks exist; the front end's descriptor store
+follows it through ``UpdateReport.pruned_ids`` and only ever holds ids the filter was given. On
+the simulated rover, with caps that drop new measurements and pruning that deletes landmarks,
+the two id sets must be equal after every step, for every filter.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import drivers
+from robotd.config import load_config
+from robotd.errors import InputError
+from robotd.pipeline import Pipeline
+
+
+@pytest.fixture(scope="module")
+def sim_frames():
+    with drivers.open_camera("sim://?realtime=0&fps=30&seed=2") as cam:
+        it = cam.frames()
+        frames = [next(it) for _ in range(45)]
+        rig = cam.rectified_model()
+    return frames, rig
+
+
+def _pipeline(rig, **slam) -> Pipeline:
+    cfg = load_config(None, {"slam": {"max_new_per_frame": 15, "max_updates_per_frame": 20, **slam}})
+    return Pipeline(cfg, rig, np.random.default_rng(5))
+
+
+@pytest.mark.parametrize("filt", ["fastslam2", "fastslam1", "ekf"])
+def test_descriptor_store_follows_the_filter_exactly(sim_frames, filt):
+    frames, rig = sim_frames
+    p = _pipeline(rig, filter=filt, n_particles=20)
+    dropped_new = pruned = 0
+    for f in frames:
+        r = p.step(f, None)
+        assert p.frontend.descriptors is not None
+        np.testing.assert_array_equal(np.sort(p.frontend.descriptors.ids), np.sort(p.estimator.landmark_ids()))
+        dropped_new += r.counts["new"] > r.report.n_new
+        pruned += r.report.n_pruned
+    # the scenario exercised both ways the id sets could have drifted apart
+    assert dropped_new > 0 and pruned > 0, (dropped_new, pruned)
+
+
+def test_step_times_every_stage_in_data_flow_order(sim_frames):
+    frames, rig = sim_frames
+    p = _pipeline(rig)
+    p.step(frames[0], None)
+    r = p.step(frames[1], None)
+    assert list(r.timings_ms) == [
+        "detect",
+        "stereo",
+        "identify",
+        "outliers",
+        "motion",
+        "select",
+        "predict",
+        "update",
+        "total",
+    ]
+    assert all(v >= 0.0 for v in r.timings_ms.values())
+    assert r.timings_ms["total"] >= sum(v for k, v in r.timings_ms.items() if k != "total")
+
+
+def test_a_failed_update_leaves_no_orphan_descriptors(sim_frames, monkeypatch):
+    frames, rig = sim_frames
+    p = _pipeline(rig)
+    p.step(frames[0], None)
+    before = p.frontend.descriptors.ids.copy()
+
+    def refuse(obs):
+        raise InputError("refused for the test")
+
+    monkeypatch.setattr(p.estimator, "update", refuse)
+    with pytest.raises(InputError, match="refused"):
+        p.step(frames[1], None)
+    np.testing.assert_array_equal(p.frontend.descriptors.ids, before)
