@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw
+from drivers.base import Driver
 from robotd.errors import DatasetError, DriverError
 from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
 from robotd.msgs import Odometry, PoseEstimate, StereoFrame
@@ -185,7 +186,7 @@ class FrameEntry:
     truth_T_world_robot: np.ndarray | None = None  # (4, 4)
 
 
-class _ImageDatasetCamera(abc.ABC):
+class _ImageDatasetCamera(Driver):
     """Common replay logic of the folder datasets: select, load, rectify, pace, count."""
 
     url: str
@@ -200,12 +201,6 @@ class _ImageDatasetCamera(abc.ABC):
         self._stats["selected"] = len(self.entries)
 
     # StereoCamera protocol ------------------------------------------------------------------
-    def __enter__(self) -> _ImageDatasetCamera:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def close(self) -> None:
         self._closed = True
 
@@ -572,7 +567,7 @@ def odometry_from_truth(
     return out
 
 
-class DatasetVehicle:
+class DatasetVehicle(Driver):
     """A :class:`drivers.VehicleLink` for replay: visual only by default, or a list of samples.
 
     Visual only (``samples=[]``) means **no odometry at all**: ``odometry()`` returns at once and
@@ -585,12 +580,6 @@ class DatasetVehicle:
         self.realtime = realtime
         self._closed = False
         self._stats: dict[str, Any] = {"odometry": 0, "poses_sent": 0, "mode": "replay" if samples else "visual-only"}
-
-    def __enter__(self) -> DatasetVehicle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         pacer = _Pacer(self.realtime, 1.0)
@@ -667,7 +656,7 @@ def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
 # MCAP recordings (robotd.record)
 
 
-class McapCamera:
+class McapCamera(Driver):
     """Replay a ``robotd record`` session: the recorded frames, same order and stamps, every time.
 
     Options: start/stop/stride (over the recorded frames), realtime/speed. ``recorded_odometry()``
@@ -693,12 +682,6 @@ class McapCamera:
         self.meta = self.reader.meta
         self._closed = False
         self._stats: dict[str, Any] = {"frames": 0, "drops": 0, "gaps": 0, "read_errors": 0}
-
-    def __enter__(self) -> McapCamera:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def close(self) -> None:
         self._closed = True

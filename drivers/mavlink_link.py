@@ -37,7 +37,6 @@ import stat
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -47,6 +46,7 @@ os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import: OD
 import numpy as np
 from pymavlink import mavutil
 
+from drivers.base import ControlSample, QueuedVehicleLink
 from drivers.serial_protocol import diff_drive
 from robotd.autopilot import (
     CovarianceFloors,
@@ -58,7 +58,6 @@ from robotd.autopilot import (
 from robotd.errors import DriverError, RobotdError
 from robotd.geometry import euler_to_R
 from robotd.msgs import Odometry, PoseEstimate
-from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger(__name__)
 
@@ -232,29 +231,16 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-@dataclass(frozen=True, slots=True)
-class ControlSample:
-    """Latest commanded steering/throttle, normalised from PWM ((pwm − 1500)/500), host clock."""
-
-    t_ns: int
-    throttle: float
-    steering: float
-    source: str  # "SERVO_OUTPUT_RAW" or "RC_CHANNELS"
-
-
-class MavlinkVehicle:
+class MavlinkVehicle(QueuedVehicleLink):
     """VehicleLink to an ArduPilot/PX4 autopilot. Use as a context manager."""
 
     def __init__(self, url: str, **options: Any) -> None:
-        self.url = url
         self.device, self.opts = parse_mavlink_url(url, **options)
         self._key = read_signing_key(self.opts.signing_key) if self.opts.signing_key else None
         self.floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
         self._conn: Any = None
-        self._stop = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.Lock()  # guards the shared state below
-        self._queue: DropOldestQueue[Odometry] = DropOldestQueue(self.opts.queue_size)
         self._rx: threading.Thread | None = None
         self._tx: threading.Thread | None = None
         self._pending_pose: tuple[PoseEstimate, int, int] | None = None
@@ -273,7 +259,6 @@ class MavlinkVehicle:
         self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
         self._last_wheel_mono = -math.inf
-        self._controls: ControlSample | None = None
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
         self.c: dict[str, int] = dict.fromkeys(
@@ -303,15 +288,9 @@ class MavlinkVehicle:
             0,
         )
         self.rx_types: dict[str, int] = {}
+        super().__init__(url, self.opts.queue_size, self.c)
 
     # -- lifecycle -----------------------------------------------------------------------------
-    def __enter__(self) -> MavlinkVehicle:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def open(self) -> None:
         sysid = self.opts.sysid or 1
         kw: dict[str, Any] = {"source_system": sysid, "source_component": self.opts.compid, "dialect": DIALECT}
@@ -332,8 +311,7 @@ class MavlinkVehicle:
         self._rx.start()
         self._tx.start()
 
-    def close(self) -> None:
-        self._stop.set()
+    def _release(self) -> None:
         self._wake.set()
         for t in (self._tx, self._rx):
             if t is not None:
@@ -345,7 +323,6 @@ class MavlinkVehicle:
             except OSError:
                 pass
             self._conn = None
-        self._queue.close()  # wakes a consumer waiting in odometry()
 
     # -- public API ----------------------------------------------------------------------------
     def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
@@ -370,23 +347,6 @@ class MavlinkVehicle:
     @property
     def autopilot_sysid(self) -> int | None:
         return self._ap_sysid
-
-    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
-        """Yield odometry samples (FRD body velocity + body rates, host clock) as they arrive.
-
-        Returns only when :meth:`close` is called: a quiet or reconnecting link keeps the
-        iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
-        """
-        while not self._stop.is_set():
-            item = self._queue.get(timeout_s)
-            if item is not None:
-                yield item
-
-    def drain(self) -> list[Odometry]:
-        return self._queue.drain()
-
-    def latest_controls(self) -> ControlSample | None:
-        return self._controls
 
     def autopilot_to_host_ns(self, t_ap_ns: int) -> int | None:
         """Autopilot boot-clock time [ns] on the host monotonic clock, once TIMESYNC has a sample."""
@@ -590,11 +550,6 @@ class MavlinkVehicle:
 
     def _on_gps_global_origin(self, msg: Any, t_ns: int) -> None:
         self.origin_confirmed = True
-
-    def _emit(self, odo: Odometry) -> None:
-        if not self._queue.put(odo):
-            self.c["drops"] += 1
-        self.c["odometry"] += 1
 
     def _outbox_put(self, kind: str, arg: Any) -> None:
         with self._lock:

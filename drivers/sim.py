@@ -55,6 +55,7 @@ import cv2
 import numpy as np
 
 from drivers._render import ViewRenderer
+from drivers.base import Driver
 from drivers.simworld import WORLDS, World, build_world
 from robotd.errors import DriverError
 from robotd.geometry import R_ROBOT_OPTICAL, se3
@@ -297,7 +298,7 @@ class SimRig:
 # Camera
 
 
-class SimCamera:
+class SimCamera(Driver):
     """``sim://`` stereo camera (StereoCamera protocol). Open with ``with`` or :func:`open_sim_camera`."""
 
     def __init__(self, url: str, params: SimParams, t0_ns: int | None = None) -> None:
@@ -314,13 +315,9 @@ class SimCamera:
         self._render_ms: deque[float] = deque(maxlen=1000)
 
     # lifecycle
-    def __enter__(self) -> SimCamera:
-        self.open()
-        return self
-
     def __exit__(self, *exc: object) -> None:
-        self.close()
-        self._release()
+        super().__exit__(*exc)
+        self._release()  # leaving the with block also lets the shared world go; close() alone does not
 
     def open(self) -> None:
         """Build (or join) the shared world and clock; idempotent."""
@@ -445,7 +442,7 @@ class SimCamera:
 # Vehicle
 
 
-class SimVehicle:
+class SimVehicle(Driver):
     """``sim://`` vehicle link (VehicleLink protocol): noisy wheel/gyro odometry of the rover.
 
     Sample j (at ``t0 + j/odom_hz``) reports the truth velocity (FRD) plus noise: forward
@@ -471,12 +468,8 @@ class SimVehicle:
         self._block_id = -1
         self._block = np.zeros((self._BLOCK, 6))
 
-    def __enter__(self) -> SimVehicle:
-        self.open()
-        return self
-
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        super().__exit__(*exc)
         with self._lock:
             if self._session is not None:
                 _release(self.params, self._session)
@@ -571,7 +564,7 @@ class SimVehicle:
         }
 
 
-class NullVehicle:
+class NullVehicle(Driver):
     """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`;
     poses sent are counted and dropped. The pipeline then predicts without odometry."""
 
@@ -579,12 +572,6 @@ class NullVehicle:
         self.url = url
         self._closed = threading.Event()
         self._poses = 0
-
-    def __enter__(self) -> NullVehicle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         self._closed.wait()
