@@ -76,6 +76,31 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "EKF_STATUS_REPORT": 2.0,
 }
 
+# every counter of stats(), in its order
+COUNTERS = (
+    "rx_messages",
+    "bad_data",
+    "heartbeats_sent",
+    "odometry_sent",
+    "vision_position_sent",
+    "poses_superseded",
+    "poses_stale",
+    "poses_withheld",
+    "timesync_requests",
+    "timesync_replies",
+    "timesync_samples",
+    "origins_sent",
+    "rate_requests",
+    "autopilot_reboots",
+    "link_losses",
+    "odometry",
+    "drops",
+    "stamped_by_arrival",
+    "wheel_wraps",
+    "tx_errors",
+    "bad_values",
+)
+
 HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
 
 
@@ -231,6 +256,42 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+class _AutopilotClock:
+    """Our TIMESYNC requests, the offset filter over their replies, and autopilot stamps mapped
+    onto the host monotonic clock. Counts in the link's counter dict."""
+
+    def __init__(self, counters: dict[str, int]) -> None:
+        self.filter = TimesyncFilter()
+        self._pending: dict[int, int] = {}  # our ts1 -> send time (ns)
+        self._c = counters
+
+    def request(self, mav: Any) -> None:
+        """Send one request on ``mav`` (pymavlink's MAVLink object; transmit thread)."""
+        ts1 = time.monotonic_ns()
+        # keep a few outstanding requests only; a lost reply must not grow the table
+        if len(self._pending) > 16:
+            self._pending.pop(next(iter(self._pending)))
+        self._pending[ts1] = ts1
+        mav.timesync_send(0, ts1)
+        self._c["timesync_requests"] += 1
+
+    def on_reply(self, ts1: int, tc1: int, t_arrival_ns: int) -> None:
+        """A reply to one of our requests (receive thread); unknown ``ts1`` values are ignored."""
+        t0 = self._pending.pop(ts1, None)
+        if t0 is not None and self.filter.add(t0, t_arrival_ns, tc1):
+            self._c["timesync_samples"] += 1
+
+    def to_host(self, t_ap_ns: int, t_arrival_ns: int) -> int:
+        """Autopilot boot-clock stamp [ns] -> host monotonic [ns], never after its arrival."""
+        t = self.filter.autopilot_to_host(t_ap_ns)
+        # no offset yet, or an absurd mapping (stale offset): fall back to the arrival time
+        if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
+            self._c["stamped_by_arrival"] += 1
+            return t_arrival_ns
+        # within the offset's error (half a round trip) a stamp may land after its arrival: clamp
+        return min(t, t_arrival_ns)
+
+
 class MavlinkVehicle(QueuedVehicleLink):
     """VehicleLink to an ArduPilot/PX4 autopilot. Use as a context manager."""
 
@@ -245,8 +306,6 @@ class MavlinkVehicle(QueuedVehicleLink):
         self._tx: threading.Thread | None = None
         self._pending_pose: tuple[PoseEstimate, int, int] | None = None
         self._outbox: deque[tuple[str, Any]] = deque()
-        self._timesync = TimesyncFilter()
-        self._ts_pending: dict[int, int] = {}  # our ts1 -> send time (ns)
         self._velocity = VelocityFromPoses()
         self._last_pose_t_ns: int | None = None
         self._last_quality = 0
@@ -261,32 +320,8 @@ class MavlinkVehicle(QueuedVehicleLink):
         self._last_wheel_mono = -math.inf
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
-        self.c: dict[str, int] = dict.fromkeys(
-            (
-                "rx_messages",
-                "bad_data",
-                "heartbeats_sent",
-                "odometry_sent",
-                "vision_position_sent",
-                "poses_superseded",
-                "poses_stale",
-                "poses_withheld",
-                "timesync_requests",
-                "timesync_replies",
-                "timesync_samples",
-                "origins_sent",
-                "rate_requests",
-                "autopilot_reboots",
-                "link_losses",
-                "odometry",
-                "drops",
-                "stamped_by_arrival",
-                "wheel_wraps",
-                "tx_errors",
-                "bad_values",
-            ),
-            0,
-        )
+        self.c: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._clock = _AutopilotClock(self.c)
         self.rx_types: dict[str, int] = {}
         super().__init__(url, self.opts.queue_size, self.c)
 
@@ -350,7 +385,7 @@ class MavlinkVehicle(QueuedVehicleLink):
 
     def autopilot_to_host_ns(self, t_ap_ns: int) -> int | None:
         """Autopilot boot-clock time [ns] on the host monotonic clock, once TIMESYNC has a sample."""
-        return self._timesync.autopilot_to_host(t_ap_ns)
+        return self._clock.filter.autopilot_to_host(t_ap_ns)
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -358,8 +393,8 @@ class MavlinkVehicle(QueuedVehicleLink):
             "link_up": self._link_up,
             "state": "ok" if self._link_up else "degraded",
             "autopilot_sysid": self._ap_sysid,
-            "timesync_offset_ns": self._timesync.offset_ns,
-            "timesync_rtt_ns": self._timesync.rtt_ns,
+            "timesync_offset_ns": self._clock.filter.offset_ns,
+            "timesync_rtt_ns": self._clock.filter.rtt_ns,
             "origin_confirmed": self.origin_confirmed,
             "ekf_flags": self.ekf_flags,
             "queued": len(self._queue),
@@ -431,7 +466,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         if last is not None and boot + 1000 < last:
             self.c["autopilot_reboots"] += 1
             logger.warning("%s: autopilot rebooted (time_boot_ms %d -> %d)", self.url, last, boot)
-            self._timesync.reset()
+            self._clock.filter.reset()
             with self._lock:
                 self._wheels = None
             self.origin_confirmed = False
@@ -442,23 +477,12 @@ class MavlinkVehicle(QueuedVehicleLink):
             # a request (PX4 needs 500 answered round trips before it uses our time_usec)
             self._outbox_put("timesync_reply", int(msg.ts1))
             return
-        t0 = self._ts_pending.pop(int(msg.ts1), None)
-        if t0 is not None and self._timesync.add(t0, t_ns, int(msg.tc1)):
-            self.c["timesync_samples"] += 1
-
-    def _ap_time_to_host(self, t_ap_ns: int, t_arrival_ns: int) -> int:
-        t = self._timesync.autopilot_to_host(t_ap_ns)
-        # no offset yet, or an absurd mapping (stale offset): fall back to the arrival time
-        if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
-            self.c["stamped_by_arrival"] += 1
-            return t_arrival_ns
-        # within the offset's error (half a round trip) a stamp may land after its arrival: clamp
-        return min(t, t_arrival_ns)
+        self._clock.on_reply(int(msg.ts1), int(msg.tc1), t_ns)
 
     def _on_attitude(self, msg: Any, t_ns: int) -> None:
         if not self._is_autopilot(msg):
             return
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
         if np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates)):
@@ -493,7 +517,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         else:
             v, w_wheels = 0.5 * (ds_l + ds_r) / dt, math.nan
         # mean speed over the interval: stamp it at the midpoint
-        t = self._ap_time_to_host((t_us * 1000) - int(dt * 5e8), t_ns)
+        t = self._clock.to_host((t_us * 1000) - int(dt * 5e8), t_ns)
         att = self._fresh_attitude(t)
         if o.yaw_rate_source == "attitude" and att is not None:
             rates = att[1]
@@ -517,7 +541,7 @@ class MavlinkVehicle(QueuedVehicleLink):
     def _on_local_position_ned(self, msg: Any, t_ns: int) -> None:
         if not self._is_autopilot(msg) or time.monotonic() - self._last_wheel_mono < 1.0:
             return  # wheel odometry flows: it is the better velocity source
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         att = self._fresh_attitude(t)
         if att is None:
             return  # cannot rotate NED into the body frame without an attitude
@@ -529,7 +553,7 @@ class MavlinkVehicle(QueuedVehicleLink):
 
     def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
         o = self.opts
-        t = self._ap_time_to_host(int(msg.time_usec) * 1000, t_ns)
+        t = self._clock.to_host(int(msg.time_usec) * 1000, t_ns)
         thr = getattr(msg, f"servo{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"servo{o.steering_channel}_raw", 0)
         if thr and ste:
@@ -539,7 +563,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         if self._controls is not None and self._controls.source == "SERVO_OUTPUT_RAW":
             return  # commanded outputs beat pilot sticks
         o = self.opts
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         thr = getattr(msg, f"chan{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"chan{o.steering_channel}_raw", 0)
         if thr and ste and thr != 0xFFFF and ste != 0xFFFF:
@@ -568,7 +592,7 @@ class MavlinkVehicle(QueuedVehicleLink):
                     self._send_heartbeat()
                     next_hb = max(next_hb + 1.0 / self.opts.heartbeat_hz, now)
                 if self.opts.timesync_hz > 0 and now >= next_ts:
-                    self._send_timesync_request()
+                    self._clock.request(self._conn.mav)
                     next_ts = max(next_ts + 1.0 / self.opts.timesync_hz, now)
                 while True:
                     with self._lock:
@@ -616,15 +640,6 @@ class MavlinkVehicle(QueuedVehicleLink):
             m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._system_status()
         )
         self.c["heartbeats_sent"] += 1
-
-    def _send_timesync_request(self) -> None:
-        ts1 = time.monotonic_ns()
-        # keep a few outstanding requests only; a lost reply must not grow the table
-        if len(self._ts_pending) > 16:
-            self._ts_pending.pop(next(iter(self._ts_pending)))
-        self._ts_pending[ts1] = ts1
-        self._conn.mav.timesync_send(0, ts1)
-        self.c["timesync_requests"] += 1
 
     def _do(self, item: tuple[str, Any]) -> None:
         kind, arg = item
