@@ -41,6 +41,7 @@ from urllib.parse import parse_qsl
 import cv2
 import numpy as np
 
+from drivers import AutopilotLink
 from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw
 from drivers.base import Driver
 from robotd.errors import DatasetError, DriverError
@@ -571,7 +572,8 @@ class DatasetVehicle(Driver):
     """A :class:`drivers.VehicleLink` for replay: visual only by default, or a list of samples.
 
     Visual only (``samples=[]``) means **no odometry at all**: ``odometry()`` returns at once and
-    the pipeline predicts with its constant-velocity model. ``send_pose`` only counts calls.
+    the pipeline predicts with its constant-velocity model. It takes no pose (``autopilot`` is
+    None); ``stats()["poses_sent"]`` stays 0 for the health output's shape.
     """
 
     def __init__(self, url: str, samples: list[Odometry] | None = None, realtime: bool = False) -> None:
@@ -590,8 +592,9 @@ class DatasetVehicle(Driver):
             self._stats["odometry"] += 1
             yield s
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        self._stats["poses_sent"] += 1
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        return None
 
     def close(self) -> None:
         self._closed = True

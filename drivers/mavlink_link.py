@@ -6,13 +6,14 @@ URLs::
     mavlink+udp://127.0.0.1:14551?mode=in    robotd listens (loopback only unless allow_remote=1)
     mavlink+serial:///dev/ttyACM0?baud=921600
 
-Out: the SLAM pose as ``ODOMETRY`` (frames LOCAL_FRD 20 / BODY_FRD 12, quaternion, floored
-pose covariance, NaN velocity covariance, reset_counter, estimator VIO, quality), or
-``VISION_POSITION_ESTIMATE`` with ``message=vision_position_estimate`` (MAVLink-1 links, old
-firmware). Data-driven: one message per ``send_pose``, a newer pose supersedes an unsent one and
-nothing is ever re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER /
-MAV_AUTOPILOT_INVALID from component 197 with ``system_status`` from the health. TIMESYNC
-requests are answered; our own requests estimate the autopilot clock offset.
+Out: the SLAM pose, through the link's ``autopilot`` role (drivers/mavlink_pose.py), as
+``ODOMETRY`` (frames LOCAL_FRD 20 / BODY_FRD 12, quaternion, floored pose covariance, NaN
+velocity covariance, reset_counter, estimator VIO, quality), or ``VISION_POSITION_ESTIMATE``
+with ``message=vision_position_estimate`` (MAVLink-1 links, old firmware). Data-driven: one
+message per ``autopilot.send_pose``, a newer pose supersedes an unsent one and nothing is ever
+re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_INVALID from
+component 197 with ``system_status`` from the health. TIMESYNC requests are answered; our own
+requests estimate the autopilot clock offset.
 ``SET_GPS_GLOBAL_ORIGIN`` (when ``origin`` is configured) and the message-rate requests go out
 once the autopilot heartbeat is seen and again after an autopilot reboot (SYSTEM_TIME.time_boot_ms
 drops). Link loss: no autopilot heartbeat for ``link_timeout_s`` (3 s).
@@ -24,7 +25,7 @@ rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data 
 the host clock with the TIMESYNC offset (arrival time until the first round trip).
 
 Threads (interfaces.md §1.9): one receive thread (``recv_match`` with a 0.1 s timeout), one
-transmit thread that owns every ``*_send``.
+transmit thread that owns every ``*_send`` (the pose role's included: it only parks the pose).
 """
 
 from __future__ import annotations
@@ -47,17 +48,12 @@ import numpy as np
 from pymavlink import mavutil
 
 from drivers.base import ControlSample, QueuedVehicleLink
+from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.serial_protocol import diff_drive
-from robotd.autopilot import (
-    CovarianceFloors,
-    TimesyncFilter,
-    VelocityFromPoses,
-    odometry_fields,
-    vision_position_fields,
-)
+from robotd.autopilot import CovarianceFloors, TimesyncFilter
 from robotd.errors import DriverError, RobotdError
 from robotd.geometry import euler_to_R
-from robotd.msgs import Odometry, PoseEstimate
+from robotd.msgs import Odometry
 
 logger = logging.getLogger(__name__)
 
@@ -76,16 +72,12 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "EKF_STATUS_REPORT": 2.0,
 }
 
-# every counter of stats(), in its order
+# every counter of stats(), in its order; the pose role counts its own in this dict too
 COUNTERS = (
     "rx_messages",
     "bad_data",
     "heartbeats_sent",
-    "odometry_sent",
-    "vision_position_sent",
-    "poses_superseded",
-    "poses_stale",
-    "poses_withheld",
+    *POSE_COUNTERS,
     "timesync_requests",
     "timesync_replies",
     "timesync_samples",
@@ -100,8 +92,6 @@ COUNTERS = (
     "tx_errors",
     "bad_values",
 )
-
-HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
 
 
 def _mav() -> Any:
@@ -298,18 +288,12 @@ class MavlinkVehicle(QueuedVehicleLink):
     def __init__(self, url: str, **options: Any) -> None:
         self.device, self.opts = parse_mavlink_url(url, **options)
         self._key = read_signing_key(self.opts.signing_key) if self.opts.signing_key else None
-        self.floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
         self._conn: Any = None
         self._wake = threading.Event()
         self._lock = threading.Lock()  # guards the shared state below
         self._rx: threading.Thread | None = None
         self._tx: threading.Thread | None = None
-        self._pending_pose: tuple[PoseEstimate, int, int] | None = None
         self._outbox: deque[tuple[str, Any]] = deque()
-        self._velocity = VelocityFromPoses()
-        self._last_pose_t_ns: int | None = None
-        self._last_quality = 0
-        self._health: str | None = None  # None: derive from quality
         self._ap_sysid: int | None = None
         self._ap_compid = 1
         self._last_ap_hb_mono: float | None = None
@@ -324,6 +308,9 @@ class MavlinkVehicle(QueuedVehicleLink):
         self._clock = _AutopilotClock(self.c)
         self.rx_types: dict[str, int] = {}
         super().__init__(url, self.opts.queue_size, self.c)
+        floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
+        # the pose-out role: shares this link's connection, transmit thread and counters
+        self._autopilot = MavlinkAutopilot(url, self.opts.message, floors, self.c, self._wake)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def open(self) -> None:
@@ -360,20 +347,10 @@ class MavlinkVehicle(QueuedVehicleLink):
             self._conn = None
 
     # -- public API ----------------------------------------------------------------------------
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Queue the pose for the transmit thread; a newer pose replaces an unsent one."""
-        with self._lock:
-            if self._pending_pose is not None:
-                self.c["poses_superseded"] += 1
-            self._pending_pose = (pose, int(quality), int(reset_counter))
-        self._wake.set()
-
-    def set_health(self, state: str | None) -> None:
-        """ "tracking" -> MAV_STATE_ACTIVE, "degraded" -> CRITICAL, "failed" -> FLIGHT_TERMINATION,
-        "starting" -> STANDBY; None derives it from the last quality (−1 -> CRITICAL)."""
-        if state is not None and state not in HEALTH_STATES:
-            raise DriverError(f"{self.url!r}: health {state!r}, expected one of {HEALTH_STATES}")
-        self._health = state
+    @property
+    def autopilot(self) -> MavlinkAutopilot:
+        """The pose sink (``send_pose``, ``set_health``) on this link's connection."""
+        return self._autopilot
 
     @property
     def link_up(self) -> bool:
@@ -600,10 +577,7 @@ class MavlinkVehicle(QueuedVehicleLink):
                     if item is None:
                         break
                     self._do(item)
-                with self._lock:
-                    pending, self._pending_pose = self._pending_pose, None
-                if pending is not None:
-                    self._send_pose_now(*pending)
+                self._autopilot.send_pending(self._conn.mav)
             except (OSError, ValueError) as exc:
                 self.c["tx_errors"] += 1
                 logger.warning("%s: send failed: %s", self.url, exc)
@@ -619,25 +593,10 @@ class MavlinkVehicle(QueuedVehicleLink):
             self.c["link_losses"] += 1
             logger.warning("%s: autopilot link lost (no heartbeat for %.1f s)", self.url, self.opts.link_timeout_s)
 
-    def _system_status(self) -> int:
-        m = _mav()
-        h = self._health
-        if h is None:
-            if self._last_pose_t_ns is None:
-                h = "starting"
-            else:
-                h = "tracking" if self._last_quality >= 0 else "degraded"
-        return {
-            "starting": m.MAV_STATE_STANDBY,
-            "tracking": m.MAV_STATE_ACTIVE,
-            "degraded": m.MAV_STATE_CRITICAL,
-            "failed": m.MAV_STATE_FLIGHT_TERMINATION,
-        }[h]
-
     def _send_heartbeat(self) -> None:
         m = _mav()
         self._conn.mav.heartbeat_send(
-            m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._system_status()
+            m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._autopilot.system_status()
         )
         self.c["heartbeats_sent"] += 1
 
@@ -680,26 +639,6 @@ class MavlinkVehicle(QueuedVehicleLink):
                 0,
             )
             self.c["rate_requests"] += 1
-
-    def _send_pose_now(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
-            self.c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
-            return
-        self._last_pose_t_ns = pose.t_ns
-        self._last_quality = quality
-        vel = self._velocity.update(pose, reset_counter)
-        if self.opts.message == "odometry":
-            f = odometry_fields(pose, quality, reset_counter, vel_R_mps=vel, floors=self.floors)
-            self._conn.mav.odometry_send(*f.as_args())
-            self.c["odometry_sent"] += 1
-        else:
-            if quality < 0:
-                # VISION_POSITION_ESTIMATE has no quality field: a lost track stops the stream
-                self.c["poses_withheld"] += 1
-                return
-            v = vision_position_fields(pose, reset_counter, self.floors)
-            self._conn.mav.vision_position_estimate_send(*v.as_args())
-            self.c["vision_position_sent"] += 1
 
 
 def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:

@@ -26,6 +26,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 import serial
 
+from drivers import AutopilotLink
 from drivers.base import ControlSample, QueuedVehicleLink
 from drivers.serial_protocol import (
     MAX_ENCODED,
@@ -316,6 +317,13 @@ class SerialVehicle(QueuedVehicleLink):
         return True
 
     # -- VehicleLink (odometry, drain, latest_controls: QueuedVehicleLink) ----------------------
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        """None: the daemon does not send the SLAM pose to the MCU. :meth:`send_pose` (HOST_POSE)
+        is the MCU protocol's pose message for callers that want it; an autopilot gets the pose
+        over its own MAVLink link (``mavlink.enabled``)."""
+        return None
+
     def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
         """Forward the SLAM pose to the MCU (HOST_POSE); dropped and counted while disconnected."""
         msg = HostPose(

@@ -54,6 +54,7 @@ from urllib.parse import parse_qsl, urlsplit
 import cv2
 import numpy as np
 
+from drivers import HEALTH_STATES, AutopilotLink
 from drivers._render import ViewRenderer
 from drivers.base import Driver
 from drivers.simworld import WORLDS, World, build_world
@@ -463,8 +464,7 @@ class SimVehicle(Driver):
         self._next_j = 0
         self._sent = 0
         self._dropped = 0
-        self._poses = 0
-        self._last_pose_err_m = float("nan")
+        self._autopilot = SimAutopilot(url, self.truth_T_world_robot)
         self._block_id = -1
         self._block = np.zeros((self._BLOCK, 6))
 
@@ -547,45 +547,77 @@ class SimVehicle(Driver):
             self._sent += 1
             yield msg
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Accept the SLAM pose like an autopilot would; keep its position error for stats()."""
-        self._poses += 1
-        truth = self.truth_T_world_robot(pose.t_ns)
-        self._last_pose_err_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))
+    @property
+    def autopilot(self) -> SimAutopilot:
+        """The simulated autopilot: takes the SLAM pose and scores it against this rover's truth."""
+        return self._autopilot
 
     def stats(self) -> dict[str, Any]:
         return {
             "samples": self._sent,
             "dropped": self._dropped,
-            "poses_received": self._poses,
-            "last_pose_error_m": self._last_pose_err_m,
+            "poses_received": self._autopilot.poses_received,
+            "last_pose_error_m": self._autopilot.last_pose_error_m,
             "errors": 0,
             "reconnects": 0,
         }
 
 
+class SimAutopilot:
+    """``sim://``'s pose sink (:class:`drivers.AutopilotLink`): accepts the SLAM pose like an
+    autopilot would and keeps its position error against the truth [m] for stats().
+
+    ``truth`` maps a host time [ns] to the rover's true T_world_robot (4, 4).
+    """
+
+    def __init__(self, url: str, truth: Callable[[int], np.ndarray]) -> None:
+        self.url = url
+        self._truth = truth
+        self.poses_received = 0
+        self.last_pose_error_m = float("nan")
+        self.health: str | None = None
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        self.poses_received += 1
+        truth = self._truth(pose.t_ns)
+        self.last_pose_error_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))
+
+    def set_health(self, state: str | None) -> None:
+        if state is not None and state not in HEALTH_STATES:
+            raise DriverError(f"{self.url!r}: health {state!r}, expected one of {HEALTH_STATES}")
+        self.health = state
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "poses_received": self.poses_received,
+            "last_pose_error_m": self.last_pose_error_m,
+            "health": self.health,
+        }
+
+
 class NullVehicle(Driver):
-    """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`;
-    poses sent are counted and dropped. The pipeline then predicts without odometry."""
+    """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`; the
+    pipeline then predicts without odometry. It takes no pose (``autopilot`` is None)."""
 
     def __init__(self, url: str) -> None:
         self.url = url
         self._closed = threading.Event()
-        self._poses = 0
+
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        return None
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         self._closed.wait()
         return
         yield  # pragma: no cover - makes this a generator
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        self._poses += 1
-
     def close(self) -> None:
         self._closed.set()
 
     def stats(self) -> dict[str, Any]:
-        return {"samples": 0, "poses_received": self._poses, "errors": 0, "reconnects": 0}
+        # "poses_received" stays for the health output's shape: always 0, no pose comes here
+        return {"samples": 0, "poses_received": 0, "errors": 0, "reconnects": 0}
 
 
 # --------------------------------------------------------------------------------------------
