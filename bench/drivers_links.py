@@ -83,7 +83,7 @@ def bench_mavlink(seconds: float, stream_hz: float) -> dict[str, Any]:
             cov = np.eye(6) * 0.01
             t0 = time.perf_counter()
             while time.perf_counter() - t0 < seconds:
-                link.send_pose(
+                link.autopilot.send_pose(
                     PoseEstimate(time.monotonic_ns(), np.array([n_poses * 1e-3, 0, 0]), np.zeros(3), cov), 80, 0
                 )
                 n_poses += 1

@@ -8,13 +8,20 @@ pymavlink); modules are imported lazily so a missing optional library only break
 
 Contract shared by every driver:
 
-- A driver is a context manager; ``__enter__`` opens the device (or raises
-  :class:`robotd.errors.DriverError` with the URL and the reason), ``__exit__`` releases it.
+- A driver is a context manager (:class:`drivers.base.Driver`); ``__enter__`` opens the device
+  (or raises :class:`robotd.errors.DriverError` with the URL and the reason), ``__exit__``
+  releases it. ``close()`` may come from another thread and ends a running iterator.
 - ``StereoCamera.frames(timeout_s)`` yields :class:`robotd.msgs.StereoFrame` (rectified when the
   driver can rectify) and returns when the source ends (replay) or ``close()`` is called. A
   hardware camera that unplugs keeps retrying inside the driver and reports it in ``stats()``.
-- ``VehicleLink.odometry(timeout_s)`` yields :class:`robotd.msgs.Odometry` samples the same way;
-  ``send_pose(pose, quality, reset_counter)`` forwards the SLAM pose where the link supports it.
+- ``VehicleLink.odometry(timeout_s)`` yields :class:`robotd.msgs.Odometry` samples the same way.
+  Links fed by a receive thread (serial, MAVLink) share :class:`drivers.base.QueuedVehicleLink`:
+  a drop-oldest queue, ``drain()`` and ``latest_controls()``.
+- Sending the SLAM pose is a role, not a link method: ``VehicleLink.autopilot`` is the link's
+  :class:`AutopilotLink` (``send_pose``, ``set_health``) when the link is also the pose sink
+  (``mavlink+…://``; ``sim://`` scores the pose against its truth), else None (``serial://``,
+  ``none://``, replay). A daemon that sends the pose to an autopilot other than its odometry
+  source opens a MAVLink link for it and uses that link's ``autopilot``.
 - ``stats()`` returns counters (frames, drops, gaps, errors, reconnects) for the health output.
 """
 
@@ -31,6 +38,9 @@ if TYPE_CHECKING:
     from robotd.msgs import Odometry, PoseEstimate, StereoFrame
     from robotd.stereo import RectifiedStereo
 
+# what AutopilotLink.set_health accepts (besides None)
+HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
+
 
 @runtime_checkable
 class StereoCamera(Protocol):
@@ -45,15 +55,35 @@ class StereoCamera(Protocol):
 
 
 @runtime_checkable
+class AutopilotLink(Protocol):
+    """Where the SLAM pose goes (an autopilot's external navigation input). Any thread may call it."""
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        """Forward one pose; ``quality`` −1 (lost) or 1..100, ``reset_counter`` bumps on a jump."""
+        ...
+
+    def set_health(self, state: str | None) -> None:
+        """The pipeline's state, one of "starting", "tracking", "degraded", "failed"; None derives
+        it from the last quality. Anything else raises DriverError."""
+        ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+@runtime_checkable
 class VehicleLink(Protocol):
     url: str
 
     def __enter__(self) -> VehicleLink: ...
     def __exit__(self, *exc: object) -> None: ...
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]: ...
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None: ...
     def close(self) -> None: ...
     def stats(self) -> dict[str, Any]: ...
+
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        """The link's pose-sink role, or None when the link takes no pose."""
+        ...
 
 
 # scheme -> (module, factory attribute). The factory takes (url, **options).

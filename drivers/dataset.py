@@ -41,7 +41,9 @@ from urllib.parse import parse_qsl
 import cv2
 import numpy as np
 
+from drivers import AutopilotLink
 from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw
+from drivers.base import Driver
 from robotd.errors import DatasetError, DriverError
 from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
 from robotd.msgs import Odometry, PoseEstimate, StereoFrame
@@ -185,7 +187,7 @@ class FrameEntry:
     truth_T_world_robot: np.ndarray | None = None  # (4, 4)
 
 
-class _ImageDatasetCamera(abc.ABC):
+class _ImageDatasetCamera(Driver):
     """Common replay logic of the folder datasets: select, load, rectify, pace, count."""
 
     url: str
@@ -200,12 +202,6 @@ class _ImageDatasetCamera(abc.ABC):
         self._stats["selected"] = len(self.entries)
 
     # StereoCamera protocol ------------------------------------------------------------------
-    def __enter__(self) -> _ImageDatasetCamera:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def close(self) -> None:
         self._closed = True
 
@@ -572,11 +568,12 @@ def odometry_from_truth(
     return out
 
 
-class DatasetVehicle:
+class DatasetVehicle(Driver):
     """A :class:`drivers.VehicleLink` for replay: visual only by default, or a list of samples.
 
     Visual only (``samples=[]``) means **no odometry at all**: ``odometry()`` returns at once and
-    the pipeline predicts with its constant-velocity model. ``send_pose`` only counts calls.
+    the pipeline predicts with its constant-velocity model. It takes no pose (``autopilot`` is
+    None); ``stats()["poses_sent"]`` stays 0 for the health output's shape.
     """
 
     def __init__(self, url: str, samples: list[Odometry] | None = None, realtime: bool = False) -> None:
@@ -585,12 +582,6 @@ class DatasetVehicle:
         self.realtime = realtime
         self._closed = False
         self._stats: dict[str, Any] = {"odometry": 0, "poses_sent": 0, "mode": "replay" if samples else "visual-only"}
-
-    def __enter__(self) -> DatasetVehicle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         pacer = _Pacer(self.realtime, 1.0)
@@ -601,8 +592,9 @@ class DatasetVehicle:
             self._stats["odometry"] += 1
             yield s
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        self._stats["poses_sent"] += 1
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        return None
 
     def close(self) -> None:
         self._closed = True
@@ -667,7 +659,7 @@ def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
 # MCAP recordings (robotd.record)
 
 
-class McapCamera:
+class McapCamera(Driver):
     """Replay a ``robotd record`` session: the recorded frames, same order and stamps, every time.
 
     Options: start/stop/stride (over the recorded frames), realtime/speed. ``recorded_odometry()``
@@ -693,12 +685,6 @@ class McapCamera:
         self.meta = self.reader.meta
         self._closed = False
         self._stats: dict[str, Any] = {"frames": 0, "drops": 0, "gaps": 0, "read_errors": 0}
-
-    def __enter__(self) -> McapCamera:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def close(self) -> None:
         self._closed = True

@@ -6,13 +6,14 @@ URLs::
     mavlink+udp://127.0.0.1:14551?mode=in    robotd listens (loopback only unless allow_remote=1)
     mavlink+serial:///dev/ttyACM0?baud=921600
 
-Out: the SLAM pose as ``ODOMETRY`` (frames LOCAL_FRD 20 / BODY_FRD 12, quaternion, floored
-pose covariance, NaN velocity covariance, reset_counter, estimator VIO, quality), or
-``VISION_POSITION_ESTIMATE`` with ``message=vision_position_estimate`` (MAVLink-1 links, old
-firmware). Data-driven: one message per ``send_pose``, a newer pose supersedes an unsent one and
-nothing is ever re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER /
-MAV_AUTOPILOT_INVALID from component 197 with ``system_status`` from the health. TIMESYNC
-requests are answered; our own requests estimate the autopilot clock offset.
+Out: the SLAM pose, through the link's ``autopilot`` role (drivers/mavlink_pose.py), as
+``ODOMETRY`` (frames LOCAL_FRD 20 / BODY_FRD 12, quaternion, floored pose covariance, NaN
+velocity covariance, reset_counter, estimator VIO, quality), or ``VISION_POSITION_ESTIMATE``
+with ``message=vision_position_estimate`` (MAVLink-1 links, old firmware). Data-driven: one
+message per ``autopilot.send_pose``, a newer pose supersedes an unsent one and nothing is ever
+re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_INVALID from
+component 197 with ``system_status`` from the health. TIMESYNC requests are answered; our own
+requests estimate the autopilot clock offset.
 ``SET_GPS_GLOBAL_ORIGIN`` (when ``origin`` is configured) and the message-rate requests go out
 once the autopilot heartbeat is seen and again after an autopilot reboot (SYSTEM_TIME.time_boot_ms
 drops). Link loss: no autopilot heartbeat for ``link_timeout_s`` (3 s).
@@ -24,7 +25,7 @@ rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data 
 the host clock with the TIMESYNC offset (arrival time until the first round trip).
 
 Threads (interfaces.md §1.9): one receive thread (``recv_match`` with a 0.1 s timeout), one
-transmit thread that owns every ``*_send``.
+transmit thread that owns every ``*_send`` (the pose role's included: it only parks the pose).
 """
 
 from __future__ import annotations
@@ -37,7 +38,6 @@ import stat
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -47,18 +47,13 @@ os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import: OD
 import numpy as np
 from pymavlink import mavutil
 
+from drivers.base import ControlSample, QueuedVehicleLink
+from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.serial_protocol import diff_drive
-from robotd.autopilot import (
-    CovarianceFloors,
-    TimesyncFilter,
-    VelocityFromPoses,
-    odometry_fields,
-    vision_position_fields,
-)
+from robotd.autopilot import CovarianceFloors, TimesyncFilter
 from robotd.errors import DriverError, RobotdError
 from robotd.geometry import euler_to_R
-from robotd.msgs import Odometry, PoseEstimate
-from robotd.queues import DropOldestQueue
+from robotd.msgs import Odometry
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +72,26 @@ DEFAULT_RATES_HZ: dict[str, float] = {
     "EKF_STATUS_REPORT": 2.0,
 }
 
-HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
+# every counter of stats(), in its order; the pose role counts its own in this dict too
+COUNTERS = (
+    "rx_messages",
+    "bad_data",
+    "heartbeats_sent",
+    *POSE_COUNTERS,
+    "timesync_requests",
+    "timesync_replies",
+    "timesync_samples",
+    "origins_sent",
+    "rate_requests",
+    "autopilot_reboots",
+    "link_losses",
+    "odometry",
+    "drops",
+    "stamped_by_arrival",
+    "wheel_wraps",
+    "tx_errors",
+    "bad_values",
+)
 
 
 def _mav() -> Any:
@@ -232,39 +246,54 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-@dataclass(frozen=True, slots=True)
-class ControlSample:
-    """Latest commanded steering/throttle, normalised from PWM ((pwm − 1500)/500), host clock."""
+class _AutopilotClock:
+    """Our TIMESYNC requests, the offset filter over their replies, and autopilot stamps mapped
+    onto the host monotonic clock. Counts in the link's counter dict."""
 
-    t_ns: int
-    throttle: float
-    steering: float
-    source: str  # "SERVO_OUTPUT_RAW" or "RC_CHANNELS"
+    def __init__(self, counters: dict[str, int]) -> None:
+        self.filter = TimesyncFilter()
+        self._pending: dict[int, int] = {}  # our ts1 -> send time (ns)
+        self._c = counters
+
+    def request(self, mav: Any) -> None:
+        """Send one request on ``mav`` (pymavlink's MAVLink object; transmit thread)."""
+        ts1 = time.monotonic_ns()
+        # keep a few outstanding requests only; a lost reply must not grow the table
+        if len(self._pending) > 16:
+            self._pending.pop(next(iter(self._pending)))
+        self._pending[ts1] = ts1
+        mav.timesync_send(0, ts1)
+        self._c["timesync_requests"] += 1
+
+    def on_reply(self, ts1: int, tc1: int, t_arrival_ns: int) -> None:
+        """A reply to one of our requests (receive thread); unknown ``ts1`` values are ignored."""
+        t0 = self._pending.pop(ts1, None)
+        if t0 is not None and self.filter.add(t0, t_arrival_ns, tc1):
+            self._c["timesync_samples"] += 1
+
+    def to_host(self, t_ap_ns: int, t_arrival_ns: int) -> int:
+        """Autopilot boot-clock stamp [ns] -> host monotonic [ns], never after its arrival."""
+        t = self.filter.autopilot_to_host(t_ap_ns)
+        # no offset yet, or an absurd mapping (stale offset): fall back to the arrival time
+        if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
+            self._c["stamped_by_arrival"] += 1
+            return t_arrival_ns
+        # within the offset's error (half a round trip) a stamp may land after its arrival: clamp
+        return min(t, t_arrival_ns)
 
 
-class MavlinkVehicle:
+class MavlinkVehicle(QueuedVehicleLink):
     """VehicleLink to an ArduPilot/PX4 autopilot. Use as a context manager."""
 
     def __init__(self, url: str, **options: Any) -> None:
-        self.url = url
         self.device, self.opts = parse_mavlink_url(url, **options)
         self._key = read_signing_key(self.opts.signing_key) if self.opts.signing_key else None
-        self.floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
         self._conn: Any = None
-        self._stop = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.Lock()  # guards the shared state below
-        self._queue: DropOldestQueue[Odometry] = DropOldestQueue(self.opts.queue_size)
         self._rx: threading.Thread | None = None
         self._tx: threading.Thread | None = None
-        self._pending_pose: tuple[PoseEstimate, int, int] | None = None
         self._outbox: deque[tuple[str, Any]] = deque()
-        self._timesync = TimesyncFilter()
-        self._ts_pending: dict[int, int] = {}  # our ts1 -> send time (ns)
-        self._velocity = VelocityFromPoses()
-        self._last_pose_t_ns: int | None = None
-        self._last_quality = 0
-        self._health: str | None = None  # None: derive from quality
         self._ap_sysid: int | None = None
         self._ap_compid = 1
         self._last_ap_hb_mono: float | None = None
@@ -273,45 +302,17 @@ class MavlinkVehicle:
         self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
         self._last_wheel_mono = -math.inf
-        self._controls: ControlSample | None = None
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
-        self.c: dict[str, int] = dict.fromkeys(
-            (
-                "rx_messages",
-                "bad_data",
-                "heartbeats_sent",
-                "odometry_sent",
-                "vision_position_sent",
-                "poses_superseded",
-                "poses_stale",
-                "poses_withheld",
-                "timesync_requests",
-                "timesync_replies",
-                "timesync_samples",
-                "origins_sent",
-                "rate_requests",
-                "autopilot_reboots",
-                "link_losses",
-                "odometry",
-                "drops",
-                "stamped_by_arrival",
-                "wheel_wraps",
-                "tx_errors",
-                "bad_values",
-            ),
-            0,
-        )
+        self.c: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._clock = _AutopilotClock(self.c)
         self.rx_types: dict[str, int] = {}
+        super().__init__(url, self.opts.queue_size, self.c)
+        floors = CovarianceFloors(self.opts.floor_pos_m2, self.opts.floor_ang_rad2)
+        # the pose-out role: shares this link's connection, transmit thread and counters
+        self._autopilot = MavlinkAutopilot(url, self.opts.message, floors, self.c, self._wake)
 
     # -- lifecycle -----------------------------------------------------------------------------
-    def __enter__(self) -> MavlinkVehicle:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def open(self) -> None:
         sysid = self.opts.sysid or 1
         kw: dict[str, Any] = {"source_system": sysid, "source_component": self.opts.compid, "dialect": DIALECT}
@@ -332,8 +333,7 @@ class MavlinkVehicle:
         self._rx.start()
         self._tx.start()
 
-    def close(self) -> None:
-        self._stop.set()
+    def _release(self) -> None:
         self._wake.set()
         for t in (self._tx, self._rx):
             if t is not None:
@@ -345,23 +345,12 @@ class MavlinkVehicle:
             except OSError:
                 pass
             self._conn = None
-        self._queue.close()  # wakes a consumer waiting in odometry()
 
     # -- public API ----------------------------------------------------------------------------
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Queue the pose for the transmit thread; a newer pose replaces an unsent one."""
-        with self._lock:
-            if self._pending_pose is not None:
-                self.c["poses_superseded"] += 1
-            self._pending_pose = (pose, int(quality), int(reset_counter))
-        self._wake.set()
-
-    def set_health(self, state: str | None) -> None:
-        """ "tracking" -> MAV_STATE_ACTIVE, "degraded" -> CRITICAL, "failed" -> FLIGHT_TERMINATION,
-        "starting" -> STANDBY; None derives it from the last quality (−1 -> CRITICAL)."""
-        if state is not None and state not in HEALTH_STATES:
-            raise DriverError(f"{self.url!r}: health {state!r}, expected one of {HEALTH_STATES}")
-        self._health = state
+    @property
+    def autopilot(self) -> MavlinkAutopilot:
+        """The pose sink (``send_pose``, ``set_health``) on this link's connection."""
+        return self._autopilot
 
     @property
     def link_up(self) -> bool:
@@ -371,26 +360,9 @@ class MavlinkVehicle:
     def autopilot_sysid(self) -> int | None:
         return self._ap_sysid
 
-    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
-        """Yield odometry samples (FRD body velocity + body rates, host clock) as they arrive.
-
-        Returns only when :meth:`close` is called: a quiet or reconnecting link keeps the
-        iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
-        """
-        while not self._stop.is_set():
-            item = self._queue.get(timeout_s)
-            if item is not None:
-                yield item
-
-    def drain(self) -> list[Odometry]:
-        return self._queue.drain()
-
-    def latest_controls(self) -> ControlSample | None:
-        return self._controls
-
     def autopilot_to_host_ns(self, t_ap_ns: int) -> int | None:
         """Autopilot boot-clock time [ns] on the host monotonic clock, once TIMESYNC has a sample."""
-        return self._timesync.autopilot_to_host(t_ap_ns)
+        return self._clock.filter.autopilot_to_host(t_ap_ns)
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -398,8 +370,8 @@ class MavlinkVehicle:
             "link_up": self._link_up,
             "state": "ok" if self._link_up else "degraded",
             "autopilot_sysid": self._ap_sysid,
-            "timesync_offset_ns": self._timesync.offset_ns,
-            "timesync_rtt_ns": self._timesync.rtt_ns,
+            "timesync_offset_ns": self._clock.filter.offset_ns,
+            "timesync_rtt_ns": self._clock.filter.rtt_ns,
             "origin_confirmed": self.origin_confirmed,
             "ekf_flags": self.ekf_flags,
             "queued": len(self._queue),
@@ -471,7 +443,7 @@ class MavlinkVehicle:
         if last is not None and boot + 1000 < last:
             self.c["autopilot_reboots"] += 1
             logger.warning("%s: autopilot rebooted (time_boot_ms %d -> %d)", self.url, last, boot)
-            self._timesync.reset()
+            self._clock.filter.reset()
             with self._lock:
                 self._wheels = None
             self.origin_confirmed = False
@@ -482,23 +454,12 @@ class MavlinkVehicle:
             # a request (PX4 needs 500 answered round trips before it uses our time_usec)
             self._outbox_put("timesync_reply", int(msg.ts1))
             return
-        t0 = self._ts_pending.pop(int(msg.ts1), None)
-        if t0 is not None and self._timesync.add(t0, t_ns, int(msg.tc1)):
-            self.c["timesync_samples"] += 1
-
-    def _ap_time_to_host(self, t_ap_ns: int, t_arrival_ns: int) -> int:
-        t = self._timesync.autopilot_to_host(t_ap_ns)
-        # no offset yet, or an absurd mapping (stale offset): fall back to the arrival time
-        if t is None or not (t_arrival_ns - 2_000_000_000 < t <= t_arrival_ns + 50_000_000):
-            self.c["stamped_by_arrival"] += 1
-            return t_arrival_ns
-        # within the offset's error (half a round trip) a stamp may land after its arrival: clamp
-        return min(t, t_arrival_ns)
+        self._clock.on_reply(int(msg.ts1), int(msg.tc1), t_ns)
 
     def _on_attitude(self, msg: Any, t_ns: int) -> None:
         if not self._is_autopilot(msg):
             return
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
         if np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates)):
@@ -533,7 +494,7 @@ class MavlinkVehicle:
         else:
             v, w_wheels = 0.5 * (ds_l + ds_r) / dt, math.nan
         # mean speed over the interval: stamp it at the midpoint
-        t = self._ap_time_to_host((t_us * 1000) - int(dt * 5e8), t_ns)
+        t = self._clock.to_host((t_us * 1000) - int(dt * 5e8), t_ns)
         att = self._fresh_attitude(t)
         if o.yaw_rate_source == "attitude" and att is not None:
             rates = att[1]
@@ -557,7 +518,7 @@ class MavlinkVehicle:
     def _on_local_position_ned(self, msg: Any, t_ns: int) -> None:
         if not self._is_autopilot(msg) or time.monotonic() - self._last_wheel_mono < 1.0:
             return  # wheel odometry flows: it is the better velocity source
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         att = self._fresh_attitude(t)
         if att is None:
             return  # cannot rotate NED into the body frame without an attitude
@@ -569,7 +530,7 @@ class MavlinkVehicle:
 
     def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
         o = self.opts
-        t = self._ap_time_to_host(int(msg.time_usec) * 1000, t_ns)
+        t = self._clock.to_host(int(msg.time_usec) * 1000, t_ns)
         thr = getattr(msg, f"servo{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"servo{o.steering_channel}_raw", 0)
         if thr and ste:
@@ -579,7 +540,7 @@ class MavlinkVehicle:
         if self._controls is not None and self._controls.source == "SERVO_OUTPUT_RAW":
             return  # commanded outputs beat pilot sticks
         o = self.opts
-        t = self._ap_time_to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
+        t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         thr = getattr(msg, f"chan{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"chan{o.steering_channel}_raw", 0)
         if thr and ste and thr != 0xFFFF and ste != 0xFFFF:
@@ -590,11 +551,6 @@ class MavlinkVehicle:
 
     def _on_gps_global_origin(self, msg: Any, t_ns: int) -> None:
         self.origin_confirmed = True
-
-    def _emit(self, odo: Odometry) -> None:
-        if not self._queue.put(odo):
-            self.c["drops"] += 1
-        self.c["odometry"] += 1
 
     def _outbox_put(self, kind: str, arg: Any) -> None:
         with self._lock:
@@ -613,7 +569,7 @@ class MavlinkVehicle:
                     self._send_heartbeat()
                     next_hb = max(next_hb + 1.0 / self.opts.heartbeat_hz, now)
                 if self.opts.timesync_hz > 0 and now >= next_ts:
-                    self._send_timesync_request()
+                    self._clock.request(self._conn.mav)
                     next_ts = max(next_ts + 1.0 / self.opts.timesync_hz, now)
                 while True:
                     with self._lock:
@@ -621,10 +577,7 @@ class MavlinkVehicle:
                     if item is None:
                         break
                     self._do(item)
-                with self._lock:
-                    pending, self._pending_pose = self._pending_pose, None
-                if pending is not None:
-                    self._send_pose_now(*pending)
+                self._autopilot.send_pending(self._conn.mav)
             except (OSError, ValueError) as exc:
                 self.c["tx_errors"] += 1
                 logger.warning("%s: send failed: %s", self.url, exc)
@@ -640,36 +593,12 @@ class MavlinkVehicle:
             self.c["link_losses"] += 1
             logger.warning("%s: autopilot link lost (no heartbeat for %.1f s)", self.url, self.opts.link_timeout_s)
 
-    def _system_status(self) -> int:
-        m = _mav()
-        h = self._health
-        if h is None:
-            if self._last_pose_t_ns is None:
-                h = "starting"
-            else:
-                h = "tracking" if self._last_quality >= 0 else "degraded"
-        return {
-            "starting": m.MAV_STATE_STANDBY,
-            "tracking": m.MAV_STATE_ACTIVE,
-            "degraded": m.MAV_STATE_CRITICAL,
-            "failed": m.MAV_STATE_FLIGHT_TERMINATION,
-        }[h]
-
     def _send_heartbeat(self) -> None:
         m = _mav()
         self._conn.mav.heartbeat_send(
-            m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._system_status()
+            m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, self._autopilot.system_status()
         )
         self.c["heartbeats_sent"] += 1
-
-    def _send_timesync_request(self) -> None:
-        ts1 = time.monotonic_ns()
-        # keep a few outstanding requests only; a lost reply must not grow the table
-        if len(self._ts_pending) > 16:
-            self._ts_pending.pop(next(iter(self._ts_pending)))
-        self._ts_pending[ts1] = ts1
-        self._conn.mav.timesync_send(0, ts1)
-        self.c["timesync_requests"] += 1
 
     def _do(self, item: tuple[str, Any]) -> None:
         kind, arg = item
@@ -710,26 +639,6 @@ class MavlinkVehicle:
                 0,
             )
             self.c["rate_requests"] += 1
-
-    def _send_pose_now(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
-            self.c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
-            return
-        self._last_pose_t_ns = pose.t_ns
-        self._last_quality = quality
-        vel = self._velocity.update(pose, reset_counter)
-        if self.opts.message == "odometry":
-            f = odometry_fields(pose, quality, reset_counter, vel_R_mps=vel, floors=self.floors)
-            self._conn.mav.odometry_send(*f.as_args())
-            self.c["odometry_sent"] += 1
-        else:
-            if quality < 0:
-                # VISION_POSITION_ESTIMATE has no quality field: a lost track stops the stream
-                self.c["poses_withheld"] += 1
-                return
-            v = vision_position_fields(pose, reset_counter, self.floors)
-            self._conn.mav.vision_position_estimate_send(*v.as_args())
-            self.c["vision_position_sent"] += 1
 
 
 def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:

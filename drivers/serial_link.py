@@ -19,7 +19,6 @@ import contextlib
 import logging
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -27,6 +26,8 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 import serial
 
+from drivers import AutopilotLink
+from drivers.base import ControlSample, QueuedVehicleLink
 from drivers.serial_protocol import (
     MAX_ENCODED,
     PROTOCOL_VERSION,
@@ -49,18 +50,8 @@ from drivers.serial_protocol import (
 )
 from robotd.errors import DriverError, RobotdError
 from robotd.msgs import Odometry, PoseEstimate
-from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, slots=True)
-class ControlSample:
-    """Latest commanded throttle/steering ([-1, 1]) on the host clock."""
-
-    t_ns: int
-    throttle: float
-    steering: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,28 +112,15 @@ def parse_serial_url(url: str, **options: Any) -> tuple[str, SerialOptions]:
     return path, opts
 
 
-class SerialVehicle:
+class SerialVehicle(QueuedVehicleLink):
     """VehicleLink over the MCU protocol. Use as a context manager."""
 
     def __init__(self, url: str, **options: Any) -> None:
-        self.url = url
         self.path, self.opts = parse_serial_url(url, **options)
         try:
             self.geometry = WheelGeometry(self.opts.wheel_radius_m, self.opts.ticks_per_rev, self.opts.track_width_m)
         except Exception as exc:
             raise DriverError(f"{url!r}: {exc}") from exc
-        self._port: serial.Serial | None = None
-        self._port_lock = threading.Lock()  # owns every write and every port swap
-        self._queue: DropOldestQueue[Odometry] = DropOldestQueue(self.opts.queue_size)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._decoder = FrameDecoder()
-        self._clock = ClockMapper(window_ns=int(self.opts.clock_window_s * 1e9))
-        self._tx_seq = 0
-        self._last_seq: int | None = None
-        self._last_uptime_ms: int | None = None
-        self._prev_ticks: tuple[int, int, int] | None = None  # (unwrapped t_mcu_us, ticks_l, ticks_r)
-        self._controls: ControlSample | None = None
         self._counters: dict[str, int] = dict.fromkeys(
             (
                 "seq_gaps",
@@ -161,18 +139,21 @@ class SerialVehicle:
             ),
             0,
         )
+        super().__init__(url, self.opts.queue_size, self._counters)
+        self._port: serial.Serial | None = None
+        self._port_lock = threading.Lock()  # owns every write and every port swap
+        self._thread: threading.Thread | None = None
+        self._decoder = FrameDecoder()
+        self._clock = ClockMapper(window_ns=int(self.opts.clock_window_s * 1e9))
+        self._tx_seq = 0
+        self._last_seq: int | None = None
+        self._last_uptime_ms: int | None = None
+        self._prev_ticks: tuple[int, int, int] | None = None  # (unwrapped t_mcu_us, ticks_l, ticks_r)
         self.state = "closed"
         self.mcu_status: int | None = None
         self.fw_version: tuple[int, int, int] | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
-    def __enter__(self) -> SerialVehicle:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def open(self) -> None:
         """Open the port (DriverError with the URL on failure) and start the reader thread."""
         try:
@@ -184,14 +165,12 @@ class SerialVehicle:
         self._thread = threading.Thread(target=self._reader, name="serial-reader", daemon=True)
         self._thread.start()
 
-    def close(self) -> None:
-        self._stop.set()
+    def _release(self) -> None:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
         self._close_port()
         self.state = "closed"
-        self._queue.close()  # wakes a consumer waiting in odometry()
 
     def _open_port(self) -> None:
         port = serial.Serial(
@@ -272,7 +251,7 @@ class SerialVehicle:
         if isinstance(msg, WheelOdometry):
             self._on_wheels(msg, fr.t_mcu_us, t_ns)
         elif isinstance(msg, ControlInputs):
-            self._controls = ControlSample(t_ns, float(msg.throttle), float(msg.steering))
+            self._controls = ControlSample(t_ns, float(msg.throttle), float(msg.steering), "CONTROL_INPUTS")
         elif isinstance(msg, Heartbeat):
             if self._last_uptime_ms is not None and msg.uptime_ms + 1000 < self._last_uptime_ms:
                 self._on_mcu_reset(f"uptime fell from {self._last_uptime_ms} ms to {msg.uptime_ms} ms")
@@ -318,10 +297,7 @@ class SerialVehicle:
             v, w = diff_drive(float(msg.vel_l_mps), float(msg.vel_r_mps), W)
         else:
             return
-        odo = Odometry(int(t_ns), np.array([v, 0.0, 0.0]), np.array([0.0, 0.0, w]), source="serial")
-        if not self._queue.put(odo):
-            self._counters["drops"] += 1
-        self._counters["odometry"] += 1
+        self._emit(Odometry(int(t_ns), np.array([v, 0.0, 0.0]), np.array([0.0, 0.0, w]), source="serial"))
 
     # -- writer --------------------------------------------------------------------------------
     def _write(self, msg: HostPose | VersionRequest) -> bool:
@@ -340,25 +316,13 @@ class SerialVehicle:
                 return False
         return True
 
-    # -- VehicleLink ---------------------------------------------------------------------------
-    def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
-        """Yield odometry samples (FRD body velocity + body rates, host clock) as they arrive.
-
-        Returns only when :meth:`close` is called: a quiet or reconnecting link keeps the
-        iterator waiting (checking for close every ``timeout_s``), like a hardware camera.
-        """
-        while not self._stop.is_set():
-            item = self._queue.get(timeout_s)
-            if item is not None:
-                yield item
-
-    def drain(self) -> list[Odometry]:
-        """Everything queued so far, oldest first, without waiting."""
-        return self._queue.drain()
-
-    def latest_controls(self) -> ControlSample | None:
-        """The last throttle/steering the MCU reported, or None."""
-        return self._controls
+    # -- VehicleLink (odometry, drain, latest_controls: QueuedVehicleLink) ----------------------
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        """None: the daemon does not send the SLAM pose to the MCU. :meth:`send_pose` (HOST_POSE)
+        is the MCU protocol's pose message for callers that want it; an autopilot gets the pose
+        over its own MAVLink link (``mavlink.enabled``)."""
+        return None
 
     def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
         """Forward the SLAM pose to the MCU (HOST_POSE); dropped and counted while disconnected."""

@@ -54,7 +54,9 @@ from urllib.parse import parse_qsl, urlsplit
 import cv2
 import numpy as np
 
+from drivers import HEALTH_STATES, AutopilotLink
 from drivers._render import ViewRenderer
+from drivers.base import Driver
 from drivers.simworld import WORLDS, World, build_world
 from robotd.errors import DriverError
 from robotd.geometry import R_ROBOT_OPTICAL, se3
@@ -297,7 +299,7 @@ class SimRig:
 # Camera
 
 
-class SimCamera:
+class SimCamera(Driver):
     """``sim://`` stereo camera (StereoCamera protocol). Open with ``with`` or :func:`open_sim_camera`."""
 
     def __init__(self, url: str, params: SimParams, t0_ns: int | None = None) -> None:
@@ -314,13 +316,9 @@ class SimCamera:
         self._render_ms: deque[float] = deque(maxlen=1000)
 
     # lifecycle
-    def __enter__(self) -> SimCamera:
-        self.open()
-        return self
-
     def __exit__(self, *exc: object) -> None:
-        self.close()
-        self._release()
+        super().__exit__(*exc)
+        self._release()  # leaving the with block also lets the shared world go; close() alone does not
 
     def open(self) -> None:
         """Build (or join) the shared world and clock; idempotent."""
@@ -445,7 +443,7 @@ class SimCamera:
 # Vehicle
 
 
-class SimVehicle:
+class SimVehicle(Driver):
     """``sim://`` vehicle link (VehicleLink protocol): noisy wheel/gyro odometry of the rover.
 
     Sample j (at ``t0 + j/odom_hz``) reports the truth velocity (FRD) plus noise: forward
@@ -466,17 +464,12 @@ class SimVehicle:
         self._next_j = 0
         self._sent = 0
         self._dropped = 0
-        self._poses = 0
-        self._last_pose_err_m = float("nan")
+        self._autopilot = SimAutopilot(url, self.truth_T_world_robot)
         self._block_id = -1
         self._block = np.zeros((self._BLOCK, 6))
 
-    def __enter__(self) -> SimVehicle:
-        self.open()
-        return self
-
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        super().__exit__(*exc)
         with self._lock:
             if self._session is not None:
                 _release(self.params, self._session)
@@ -554,51 +547,77 @@ class SimVehicle:
             self._sent += 1
             yield msg
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Accept the SLAM pose like an autopilot would; keep its position error for stats()."""
-        self._poses += 1
-        truth = self.truth_T_world_robot(pose.t_ns)
-        self._last_pose_err_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))
+    @property
+    def autopilot(self) -> SimAutopilot:
+        """The simulated autopilot: takes the SLAM pose and scores it against this rover's truth."""
+        return self._autopilot
 
     def stats(self) -> dict[str, Any]:
         return {
             "samples": self._sent,
             "dropped": self._dropped,
-            "poses_received": self._poses,
-            "last_pose_error_m": self._last_pose_err_m,
+            "poses_received": self._autopilot.poses_received,
+            "last_pose_error_m": self._autopilot.last_pose_error_m,
             "errors": 0,
             "reconnects": 0,
         }
 
 
-class NullVehicle:
-    """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`;
-    poses sent are counted and dropped. The pipeline then predicts without odometry."""
+class SimAutopilot:
+    """``sim://``'s pose sink (:class:`drivers.AutopilotLink`): accepts the SLAM pose like an
+    autopilot would and keeps its position error against the truth [m] for stats().
+
+    ``truth`` maps a host time [ns] to the rover's true T_world_robot (4, 4).
+    """
+
+    def __init__(self, url: str, truth: Callable[[int], np.ndarray]) -> None:
+        self.url = url
+        self._truth = truth
+        self.poses_received = 0
+        self.last_pose_error_m = float("nan")
+        self.health: str | None = None
+
+    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+        self.poses_received += 1
+        truth = self._truth(pose.t_ns)
+        self.last_pose_error_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))
+
+    def set_health(self, state: str | None) -> None:
+        if state is not None and state not in HEALTH_STATES:
+            raise DriverError(f"{self.url!r}: health {state!r}, expected one of {HEALTH_STATES}")
+        self.health = state
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "poses_received": self.poses_received,
+            "last_pose_error_m": self.last_pose_error_m,
+            "health": self.health,
+        }
+
+
+class NullVehicle(Driver):
+    """``none://``: no vehicle. ``odometry()`` yields nothing and returns on :meth:`close`; the
+    pipeline then predicts without odometry. It takes no pose (``autopilot`` is None)."""
 
     def __init__(self, url: str) -> None:
         self.url = url
         self._closed = threading.Event()
-        self._poses = 0
 
-    def __enter__(self) -> NullVehicle:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    @property
+    def autopilot(self) -> AutopilotLink | None:
+        return None
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         self._closed.wait()
         return
         yield  # pragma: no cover - makes this a generator
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        self._poses += 1
-
     def close(self) -> None:
         self._closed.set()
 
     def stats(self) -> dict[str, Any]:
-        return {"samples": 0, "poses_received": self._poses, "errors": 0, "reconnects": 0}
+        # "poses_received" stays for the health output's shape: always 0, no pose comes here
+        return {"samples": 0, "poses_received": 0, "errors": 0, "reconnects": 0}
 
 
 # --------------------------------------------------------------------------------------------

@@ -112,7 +112,8 @@ class Daemon:
         self.timer = StageTimer()
         self.camera: Any = None
         self.vehicle: Any = None
-        self.autopilot: Any = None  # the link the pose goes to (MAVLink), if any
+        self.autopilot: drivers.AutopilotLink | None = None  # where the pose goes (MAVLink, sim), if anywhere
+        self.autopilot_link: drivers.VehicleLink | None = None  # a MAVLink link opened only for the pose
         self.reset_policy = ResetCounterPolicy()
         self._pending_event: str | None = None
         self.pipeline: Pipeline | None = None
@@ -168,13 +169,12 @@ class Daemon:
         )
         if cfg.mavlink.enabled and not cfg.vehicle.url.startswith("mavlink"):
             # odometry from one link (e.g. the MCU over serial), the pose to the autopilot on another
-            self.autopilot = self._open_with_retry(
+            self.autopilot_link = self._open_with_retry(
                 stack, "autopilot", drivers.open_vehicle, cfg.mavlink.url, **self._link_options(cfg.mavlink.url)
             )
-        elif cfg.vehicle.url.startswith("mavlink"):
-            self.autopilot = self.vehicle
+            self.autopilot = self.autopilot_link.autopilot
         else:
-            self.autopilot = self.vehicle if cfg.vehicle.url.startswith("sim") else None
+            self.autopilot = self.vehicle.autopilot
         rig = self.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         rng = np.random.default_rng(cfg.robot.seed)
@@ -404,8 +404,7 @@ class Daemon:
                     self.publisher.update_map(res.t_ns, item.landmarks)
             if self.autopilot is not None:
                 try:
-                    if hasattr(self.autopilot, "set_health"):
-                        self.autopilot.set_health(self._health_state(item))
+                    self.autopilot.set_health(self._health_state(item))
                     self.autopilot.send_pose(res.pose, item.quality, self.stats.reset_counter)
                 except RobotdError as exc:
                     logger.warning("autopilot pose not sent: %s", exc)
@@ -584,7 +583,7 @@ class Daemon:
         logger.info("shutting down (%s)", self.stop_reason or "stop")
         self.notifier.stopping(f"stopping: {self.stop_reason}")
         self.stop_event.set()
-        for dev in (self.camera, self.vehicle, self.autopilot):
+        for dev in (self.camera, self.vehicle, self.autopilot_link):
             if dev is not None:
                 with contextlib.suppress(Exception):
                     dev.close()

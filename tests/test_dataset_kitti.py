@@ -85,6 +85,7 @@ def test_truth_conversion_keeps_the_baseline_centre(rng: np.random.Generator) ->
 def test_kitti_gt_odometry_is_marked_and_visual_only_is_empty(tmp_path: Path) -> None:
     root = make_kitti(tmp_path / "seq", n=4)
     assert list(open_kitti_vehicle(f"kitti://{root}").odometry()) == []
+    assert open_kitti_vehicle(f"kitti://{root}").autopilot is None  # replay takes no pose
     odo = list(open_kitti_vehicle(f"kitti://{root}?gt_odometry=1&sigma_vel_mps=0&sigma_rate_radps=0").odometry())
     assert len(odo) == 3 and all(o.source == "gt-synthetic" for o in odo)
     for o in odo:  # 1 m per 0.1 s forward

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import open_vehicle
+from drivers import AutopilotLink, VehicleLink, mavlink_pose, open_vehicle
 from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_url
 from drivers.mavlink_mock import MockAutopilot
 from robotd import autopilot
@@ -44,7 +44,7 @@ def stream_poses(link: MavlinkVehicle, duration_s: float, hz: float = 30.0, qual
     n = 0
     while time.monotonic() < t_end:
         t = time.monotonic_ns()
-        link.send_pose(pose_at(t, x=n / hz), quality, 0)
+        link.autopilot.send_pose(pose_at(t, x=n / hz), quality, 0)
         n += 1
         time.sleep(1.0 / hz)
     return n
@@ -55,11 +55,17 @@ def test_enum_values_match_pymavlink() -> None:
     assert autopilot.MAV_FRAME_LOCAL_FRD == m.MAV_FRAME_LOCAL_FRD == 20
     assert autopilot.MAV_FRAME_BODY_FRD == m.MAV_FRAME_BODY_FRD == 12
     assert autopilot.MAV_ESTIMATOR_TYPE_VIO == m.MAV_ESTIMATOR_TYPE_VIO
+    # drivers.mavlink_pose hard-codes the heartbeat states for the same reason
+    assert mavlink_pose.MAV_STATE_STANDBY == m.MAV_STATE_STANDBY
+    assert mavlink_pose.MAV_STATE_ACTIVE == m.MAV_STATE_ACTIVE
+    assert mavlink_pose.MAV_STATE_CRITICAL == m.MAV_STATE_CRITICAL
+    assert mavlink_pose.MAV_STATE_FLIGHT_TERMINATION == m.MAV_STATE_FLIGHT_TERMINATION
 
 
 def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
     with MockAutopilot(sysid=7, speed_mps=0.5, yaw_rate_radps=0.2, track_width_m=0.4) as ap:
         with open_vehicle(ap.url, track_width_m=0.4, origin="-33.93,18.86,120.5") as link:
+            assert isinstance(link, VehicleLink) and isinstance(link.autopilot, AutopilotLink)
             assert wait_for(lambda: link.link_up, 3.0)
             hb_before = ap.messages("HEARTBEAT")
             link.drain()
@@ -142,13 +148,15 @@ def test_data_driven_never_resends_and_drops_stale() -> None:
         with open_vehicle(ap.url) as link:
             assert wait_for(lambda: link.link_up, 3.0)
             t = time.monotonic_ns()
-            link.send_pose(pose_at(t), 50, 0)
+            link.autopilot.send_pose(pose_at(t), 50, 0)
             time.sleep(1.2)  # no new pose: nothing is repeated
-            link.send_pose(pose_at(t - 1000), 50, 0)  # older than the last one sent
+            link.autopilot.send_pose(pose_at(t - 1000), 50, 0)  # older than the last one sent
             time.sleep(0.2)
             st = link.stats()
+            st_pose = link.autopilot.stats()
     assert len(ap.messages("ODOMETRY")) == 1
     assert st["poses_stale"] == 1
+    assert st_pose["poses_stale"] == 1 and st_pose["odometry_sent"] == 1 and st_pose["health"] == "tracking"
 
 
 def test_reboot_resends_origin_and_rates() -> None:
@@ -182,15 +190,15 @@ def test_link_loss_after_3_s_and_recovery() -> None:
 def test_quality_and_health_drive_heartbeat_state() -> None:
     with MockAutopilot() as ap:
         with open_vehicle(ap.url, heartbeat_hz=10.0) as link:
-            link.send_pose(pose_at(time.monotonic_ns()), -1, 0)
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), -1, 0)
             assert wait_for(lambda: ap.messages("HEARTBEAT")[-1:] != [] and _last_state(ap) == m.MAV_STATE_CRITICAL)
             assert ap.messages("ODOMETRY")[-1].msg.quality == -1  # announced, not hidden
-            link.set_health("failed")
+            link.autopilot.set_health("failed")
             assert wait_for(lambda: _last_state(ap) == m.MAV_STATE_FLIGHT_TERMINATION)
-            link.set_health("tracking")
+            link.autopilot.set_health("tracking")
             assert wait_for(lambda: _last_state(ap) == m.MAV_STATE_ACTIVE)
             with pytest.raises(DriverError, match="health 'lost'"):
-                link.set_health("lost")
+                link.autopilot.set_health("lost")
 
 
 def _last_state(ap: MockAutopilot) -> int | None:
@@ -202,9 +210,9 @@ def test_vision_position_estimate_fallback() -> None:
     with MockAutopilot() as ap:
         with open_vehicle(ap.url, message="vision_position_estimate") as link:
             t = time.monotonic_ns()
-            link.send_pose(pose_at(t, 1.0, 2.0, -0.5, yaw=0.3), 70, 4)
+            link.autopilot.send_pose(pose_at(t, 1.0, 2.0, -0.5, yaw=0.3), 70, 4)
             assert wait_for(lambda: len(ap.messages("VISION_POSITION_ESTIMATE")) == 1)
-            link.send_pose(pose_at(t + 10**8, 1.1, 2.0, -0.5, yaw=0.3), -1, 4)  # lost: stream stops
+            link.autopilot.send_pose(pose_at(t + 10**8, 1.1, 2.0, -0.5, yaw=0.3), -1, 4)  # lost: stream stops
             time.sleep(0.3)
             st = link.stats()
     vpe = ap.messages("VISION_POSITION_ESTIMATE")
@@ -254,13 +262,13 @@ def test_signing_accepted_and_rejected(tmp_path: Path) -> None:
     # same key on both sides: accepted, and robotd's messages are signed
     with MockAutopilot(signing_key=key) as ap:
         with open_vehicle(ap.url, signing_key=_key_file(tmp_path, key)) as link:
-            link.send_pose(pose_at(time.monotonic_ns()), 50, 0)
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), 50, 0)
             assert wait_for(lambda: link.link_up and len(ap.messages("ODOMETRY")) == 1, 3.0)
     assert ap.messages("ODOMETRY")[0].msg._signed
     # wrong key on the autopilot side: both sides drop each other's packets
     with MockAutopilot(signing_key=bytes(32)) as ap:
         with open_vehicle(ap.url, signing_key=_key_file(tmp_path, key)) as link:
-            link.send_pose(pose_at(time.monotonic_ns()), 50, 0)
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), 50, 0)
             assert wait_for(lambda: ap.bad_data > 0, 3.0)
             assert not ap.messages("ODOMETRY")
     # unsigned autopilot, signed robotd: robotd rejects the unsigned traffic

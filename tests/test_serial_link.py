@@ -169,6 +169,7 @@ def test_send_pose_reaches_the_mcu() -> None:
     pose = PoseEstimate(1, np.array([1.0, -2.0, 0.5]), np.array([0.0, 0.0, 0.25]), np.eye(6) * 0.01)
     with mcu(rate_hz=50) as (sim, path, _):
         with open_vehicle(f"serial://{path}?{QUERY}") as link:
+            assert link.autopilot is None  # HOST_POSE is the MCU protocol's; the daemon sends it no pose
             link.send_pose(pose, 80, 3)
             assert wait_for(lambda: len(sim.stats.poses) == 1)
     p = sim.stats.poses[0]

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers import StereoCamera, VehicleLink, open_camera, open_vehicle
+from drivers import AutopilotLink, StereoCamera, VehicleLink, open_camera, open_vehicle
 from drivers.sim import SimVehicle, open_sim_camera, open_sim_vehicle, parse_sim_url
 from robotd.errors import DriverError
 from robotd.geometry import T_to_pose6, se3, se3_inverse, so3_exp
@@ -197,6 +197,7 @@ def test_close_from_another_thread_stops_iteration_promptly(kind: str):
     else:
         dev = open_vehicle("none://")
         dev.__enter__()
+        assert dev.autopilot is None  # none:// takes no pose
         it = dev.odometry()
     got: list[object] = []
     done = threading.Event()
@@ -223,9 +224,14 @@ def test_send_pose_reports_the_error_against_truth():
     with open_sim_vehicle("sim://?realtime=0&seed=4") as veh:
         t_ns = veh.sample_t_ns(100)
         xyz = veh.truth_T_world_robot(t_ns)[:3, 3] + np.array([0.3, 0.4, 0.0])
-        veh.send_pose(PoseEstimate(t_ns, xyz, np.zeros(3), np.eye(6)), quality=80, reset_counter=0)
+        assert isinstance(veh.autopilot, AutopilotLink)
+        veh.autopilot.send_pose(PoseEstimate(t_ns, xyz, np.zeros(3), np.eye(6)), quality=80, reset_counter=0)
         assert veh.stats()["last_pose_error_m"] == pytest.approx(0.5)
         assert veh.stats()["poses_received"] == 1
+        assert veh.autopilot.stats()["poses_received"] == 1
+        veh.autopilot.set_health("tracking")
+        with pytest.raises(DriverError, match="health 'lost'"):
+            veh.autopilot.set_health("lost")
 
 
 def test_render_benchmark_prints_exactly_one_json_object(capsys: pytest.CaptureFixture[str]):

@@ -37,6 +37,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers._rectify import Rectifier, StereoCalibration
+from drivers.base import Driver
 from robotd.errors import CalibrationError, DriverError
 from robotd.msgs import StereoFrame
 from robotd.stereo import RectifiedStereo
@@ -365,7 +366,7 @@ def _is_link_error(exc: BaseException) -> bool:
     return isinstance(exc, link_types) or "X_LINK" in str(exc) or "Communication exception" in str(exc)
 
 
-class OakCamera:
+class OakCamera(Driver):
     """The ``oak://`` StereoCamera. ``session_factory`` replaces the device (tests, benchmarks)."""
 
     def __init__(self, url: str, session_factory: SessionFactory | None = None, **options: Any) -> None:
@@ -385,13 +386,6 @@ class OakCamera:
                                        "timeouts": 0, "degraded": False, "last_error": ""}  # fmt: skip
 
     # lifecycle --------------------------------------------------------------------------------
-    def __enter__(self) -> OakCamera:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def open(self) -> None:
         try:
             self._start()
