@@ -12,6 +12,7 @@ CORE = [
     "robotd/msgs.py",
     "robotd/outliers.py",
     "robotd/_outlier_kernels.py",
+    "robotd/jit.py",
     "robotd/frontend",
     "robotd/slam",
 ]
@@ -25,6 +26,7 @@ ALLOWED_ROBOTD = (
     "robotd.slam",
     "robotd.outliers",
     "robotd._outlier_kernels",
+    "robotd.jit",
 )
 STDLIB_OK = {
     "__future__",

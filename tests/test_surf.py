@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from robotd import jit as J
 from robotd.errors import ConfigError, InputError
 from robotd.frontend import _surf_kernels as K
 from robotd.frontend import surf as S
@@ -426,20 +427,31 @@ def test_init_sample_two_finds_the_blob_too() -> None:
 
 
 def test_jit_falls_back_without_a_disk_cache(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
-    """With no writable cache location numba refuses cache=True; the kernel must still compile."""
-    real_njit = K.numba.njit
+    """With no writable cache location numba refuses cache=True; the kernel must still compile, with
+    the same options otherwise (robotd.jit, the decorator of every kernel module)."""
+    real_njit = J.numba.njit
+    calls: list[dict] = []
 
     def njit(*args, **kwargs):
+        calls.append(kwargs)
         if kwargs.get("cache"):
             raise RuntimeError("cannot cache function 'f': no locator available for file '/ro/x.py'")
         return real_njit(*args, **kwargs)
 
-    monkeypatch.setattr(K.numba, "njit", njit)
+    monkeypatch.setattr(J.numba, "njit", njit)
 
     def add_one(x: int) -> int:
         return x + 1
 
-    with caplog.at_level(logging.WARNING, logger=K.__name__):
-        fn = K._jit(add_one)
+    with caplog.at_level(logging.WARNING, logger=J.__name__):
+        fn = J.jit(add_one)
+        fast = J.jit(fastmath={"contract"}, inline="always")(add_one)
     assert fn(41) == 42
+    assert fast(1) == 2
     assert "numba disk cache unavailable" in caplog.text
+    assert calls == [
+        {"cache": True, "nogil": True},
+        {"cache": False, "nogil": True},
+        {"cache": True, "nogil": True, "fastmath": {"contract"}, "inline": "always"},
+        {"cache": False, "nogil": True, "fastmath": {"contract"}, "inline": "always"},
+    ]

@@ -47,7 +47,7 @@ The heavy loops (response maps, orientation, descriptor) are numba kernels in ``
 :func:`hessian_layer_reference` and :func:`describe_reference` are plain numpy/Python versions of
 the same mathematics that the tests compare the kernels against. Haar samples that fall partly
 outside the image see zeros there (the box sums are clipped). The kernels are compiled on first
-use and cached on disk (``_surf_kernels`` explains ``NUMBA_CACHE_DIR`` for read-only installs);
+use and cached on disk (:mod:`robotd.jit` explains ``NUMBA_CACHE_DIR`` for read-only installs);
 they release the GIL, so two images can be processed in two threads.
 """
 
