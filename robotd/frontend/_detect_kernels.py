@@ -1,4 +1,4 @@
-"""numba kernel of the detectors' grid bucketing; the numpy reference is ``detectors.bucket_select_numpy``.
+"""numba kernel of the detectors' grid bucketing; numpy twin: tests/support/reference_frontend.py.
 
 The caller sorts (two stable numpy sorts, ≈ 0.08 ms on 4000 ORB candidates); the per-cell quota
 and the refill are one pass here instead of the numpy version's further sorts and gathers

@@ -1,4 +1,4 @@
-"""numba kernels of the stereo matcher's per-pair loops; the readable numpy versions are in ``stereo_match.py``.
+"""numba kernels of the stereo matcher's per-pair loops; readable numpy twins: tests/support/reference_frontend.py.
 
 Each kernel computes exactly what its numpy reference computes (``tests/test_frontend_kernels.py``
 checks equality on random and rendered inputs), in one pass and without the numpy version's
