@@ -8,10 +8,10 @@ import pytest
 from robotd.errors import EstimatorError
 from robotd.msgs import MotionIncrement
 from robotd.slam import models as md
-from robotd.slam._reference import fastslam_step_reference
 from robotd.slam._store import LandmarkStore
 from robotd.slam.estimator import SlamParams, make_estimator
 from robotd.slam.fastslam import FastSlam
+from support.reference_fastslam import fastslam_step_reference
 
 nb = pytest.importorskip("numba")
 K = pytest.importorskip("robotd.slam._kernels")

@@ -2,7 +2,8 @@
 
 ``fastslam_step_numba`` has the signature and the effects of
 :func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
-and agrees with it and with :mod:`robotd.slam._reference` to 1e-9 given the same ``eps``. Each
+and agrees with it and with its readable twin ``fastslam_step_reference``
+(tests/support/reference_fastslam.py) to 1e-9 given the same ``eps``. Each
 particle is one iteration of a ``prange`` loop (one contiguous range of particles per thread,
 sharing its scratch arrays), so there are no per-call numpy dispatch costs.
 
