@@ -1,4 +1,4 @@
-"""numba kernels of the outlier stage (algorithms.md §5.2–§5.3); numpy references in ``outliers`` (``*_numpy``).
+"""numba kernels of the outlier stage (algorithms.md §5.2–§5.3); numpy twins: tests/support/reference_outliers.py.
 
 - :func:`similarity_d2_kernel`: the Mahalanobis consensus of a batch of hypotheses × all pairs.
   numpy builds (K, N, 3, 3) covariance stacks and several (K, N, 3) temporaries for it; here
@@ -15,17 +15,17 @@ for 24 hypotheses × 400 pairs), so the few lines stay written out twice.
 
 Same formulas as the references, so the results agree to rounding
 (``tests/test_outliers_ransac.py``). At the daemon's sizes the outlier stage went from 2.6 to
-≈ 1.2 ms per ORB frame. Disk caching as in ``frontend/_surf_kernels``.
+≈ 1.2 ms per ORB frame. Compiled by :func:`robotd.jit.jit` (disk cache, GIL released).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from robotd.frontend._surf_kernels import _jit
+from robotd.jit import jit
 
 
-@_jit
+@jit
 def similarity_d2_kernel(
     s: np.ndarray,
     R: np.ndarray,
@@ -94,7 +94,7 @@ def similarity_d2_kernel(
             out[k, i] = q / det if det > 0 else np.inf
 
 
-@_jit
+@jit
 def gn_normal_equations(
     a: np.ndarray,
     b: np.ndarray,
@@ -163,7 +163,7 @@ def gn_normal_equations(
             g[p] += acc
 
 
-@_jit
+@jit
 def gn_weights(
     A: np.ndarray, B: np.ndarray, s0: float, R0: np.ndarray, has_a: bool, has_b: bool, W: np.ndarray
 ) -> None:  # pragma: no cover - compiled
@@ -224,7 +224,7 @@ def gn_weights(
                 W[i, :, :] = 0.0
 
 
-@_jit
+@jit
 def _solve_small(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> bool:  # pragma: no cover - compiled
     """x = H⁻¹ g by Gaussian elimination with partial pivoting (H is at most 7 × 7); False when a
     pivot is exactly zero (singular H, where numpy's solve raises)."""
@@ -255,7 +255,7 @@ def _solve_small(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> bool:  # pragma
     return True
 
 
-@_jit
+@jit
 def gn_fit(
     a: np.ndarray,
     b: np.ndarray,

@@ -247,7 +247,7 @@ def similarity_d2(
 
     Mahalanobis: d² = eᵀ C⁻¹ e with C_i = B_i + s² R A_i Rᵀ (A: (N, d, d) covariance of a in its
     frame, B: (N, d, d) of b); a C that is not positive definite gives +inf. Euclidean: d² = |e|².
-    (Mahalanobis: numba kernel; numpy reference: :func:`similarity_d2_numpy`.)
+    (Mahalanobis: numba kernel; numpy twin: ``similarity_d2_numpy`` in tests/support/reference_outliers.py.)
     """
     if euclidean:
         e = similarity_residuals(s, R, t, a, b)
@@ -289,34 +289,6 @@ def warmup() -> None:
     fit_similarity_mahalanobis(a, a, C, C, 1.0, np.eye(3), np.zeros(3), iterations=1)
 
 
-def similarity_d2_numpy(
-    s: np.ndarray,
-    R: np.ndarray,
-    t: np.ndarray,
-    a: np.ndarray,
-    b: np.ndarray,
-    A: np.ndarray | None,
-    B: np.ndarray | None,
-    euclidean: bool = False,
-) -> np.ndarray:
-    """numpy reference of :func:`similarity_d2` (the same formulas; the kernel agrees to rounding)."""
-    e = similarity_residuals(s, R, t, a, b)
-    if euclidean:
-        return np.einsum("kni,kni->kn", e, e)
-    dim = a.shape[1]
-    if A is not None:
-        # s² R A_i Rᵀ for every (hypothesis, pair): stacked matmuls, (K, N, d, d)
-        C = (R[:, None] @ A[None]) @ np.swapaxes(R, 1, 2)[:, None]
-        C *= (s * s)[:, None, None, None]
-        if B is not None:
-            C += B[None]
-    elif B is not None:
-        C = np.broadcast_to(B[None], (s.shape[0], *B.shape))
-    else:
-        C = np.zeros((s.shape[0], a.shape[0], dim, dim))
-    return mahalanobis_sq(e, C)
-
-
 # --------------------------------------------------------------------------------------------
 # Shared pieces of the RANSAC loops
 
@@ -344,21 +316,12 @@ def _better(cnt: int, cost: float, best_cnt: int, best_cost: float, mode: str) -
 # Mahalanobis-weighted similarity fit (re-fit on inliers)
 
 
-def _exp_rot(w: np.ndarray) -> np.ndarray:
-    """Rotation from a 3-vector (3-D) or a 1-vector angle (2-D)."""
-    if w.size == 1:
-        c, s = math.cos(float(w[0])), math.sin(float(w[0]))
-        return np.array([[c, -s], [s, c]])
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = w / th
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
-
-
 def _fit_covariance(H: np.ndarray) -> np.ndarray:
-    """The fit's covariance: the inverse Gauss–Newton information, symmetrised; inf when singular."""
+    """The fit's covariance: the inverse Gauss–Newton information, symmetrised; inf when singular.
+
+    Also used by the numpy twin of the fit (tests/support/reference_outliers.py), so that both
+    compute it alike.
+    """
     try:
         cov = np.linalg.inv(H)
     except np.linalg.LinAlgError:
@@ -384,7 +347,8 @@ def fit_similarity_mahalanobis(
     makes the re-fit on inliers improve the hypothesis; a pair whose Cᵢ is not positive definite
     is left out. Perturbation: t + δt, exp(δθ) R, s·e^{δσ}.
     ``a``, ``b``: (N, d), d = 2 or 3; ``A``, ``B``: (N, d, d) or None. Returns (s, R, t, cov) with
-    cov the inverse Gauss–Newton information over (δt, δθ[, δσ]).
+    cov the inverse Gauss–Newton information over (δt, δθ[, δσ]). (numba kernels; numpy twin:
+    ``fit_similarity_mahalanobis_numpy`` in tests/support/reference_outliers.py.)
     """
     n, d = a.shape
     # the kernels index without bounds checks: refuse what numpy would have raised on
@@ -427,63 +391,6 @@ def fit_similarity_mahalanobis(
         GN_STEP_TOL,
         H,
     )
-    return s, R, t, _fit_covariance(H)
-
-
-def fit_similarity_mahalanobis_numpy(
-    a: np.ndarray,
-    b: np.ndarray,
-    A: np.ndarray | None,
-    B: np.ndarray | None,
-    s0: float,
-    R0: np.ndarray,
-    t0: np.ndarray,
-    with_scale: bool = True,
-    iterations: int = 5,
-) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """numpy reference of :func:`fit_similarity_mahalanobis` (the kernel agrees to rounding)."""
-    n, d = a.shape
-    C = np.zeros((n, d, d))
-    if A is not None:
-        C += s0 * s0 * (R0 @ A @ R0.T)
-    if B is not None:
-        C += B
-    W = np.linalg.inv(C) if (A is not None or B is not None) else np.broadcast_to(np.eye(d), (n, d, d))
-    s, R, t = float(s0), R0.copy(), t0.copy()
-    k_rot = 3 if d == 3 else 1
-    npar = d + k_rot + (1 if with_scale else 0)
-    H = np.eye(npar)
-    # J (N, d, npar) is rebuilt in place; its ∂e/∂δt = −I block never changes
-    J = np.zeros((n, d, npar))
-    J[:, np.arange(d), np.arange(d)] = -1.0
-    for _ in range(max(1, iterations)):
-        sRa = s * (a @ R.T)
-        e = b - (sRa + t)
-        # e decreases by the model's increment: ∂e/∂δt = −I, ∂e/∂δθ = −∂(exp(δθ) sRa)/∂δθ, ∂e/∂δσ = −sRa
-        # ∂e/∂δθ = −∂(exp(δθ) v)/∂δθ = [v]× for v = sRa in 3-D, (v_y, −v_x) in 2-D, written in place
-        if d == 3:
-            x, y, z = sRa[:, 0], sRa[:, 1], sRa[:, 2]
-            J[:, 0, 4], J[:, 0, 5] = -z, y
-            J[:, 1, 3], J[:, 1, 5] = z, -x
-            J[:, 2, 3], J[:, 2, 4] = -y, x
-        else:
-            J[:, 0, 2], J[:, 1, 2] = sRa[:, 1], -sRa[:, 0]
-        if with_scale:
-            J[:, :, -1] = -sRa
-        # H = Σ Jᵢᵀ Wᵢ Jᵢ and g = Σ Jᵢᵀ Wᵢ eᵢ as two flat products over the stacked (N·d) rows
-        JW = np.matmul(J.transpose(0, 2, 1), W).transpose(1, 0, 2).reshape(npar, n * d)
-        H = JW @ J.reshape(n * d, npar)
-        g = JW @ e.reshape(n * d)
-        try:
-            delta = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
-            break
-        t = t + delta[:d]
-        R = _exp_rot(delta[d : d + k_rot]) @ R
-        if with_scale:
-            s = s * math.exp(float(delta[-1]))
-        if float(np.linalg.norm(delta)) < GN_STEP_TOL:
-            break
     return s, R, t, _fit_covariance(H)
 
 

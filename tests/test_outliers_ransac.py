@@ -13,7 +13,6 @@ from robotd.outliers import (
     OutlierParams,
     detect_outliers,
     fit_similarity_mahalanobis,
-    fit_similarity_mahalanobis_numpy,
     fundamental_8point,
     iteration_budget,
     mahalanobis_sq,
@@ -22,9 +21,9 @@ from robotd.outliers import (
     sample_indices,
     sampson_sq,
     similarity_d2,
-    similarity_d2_numpy,
 )
 from robotd.research.synthetic_pairs import simulate_pairs
+from support.reference_outliers import fit_similarity_mahalanobis_numpy, similarity_d2_numpy
 
 CHI2_3_099 = 11.345
 

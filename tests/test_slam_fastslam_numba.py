@@ -8,11 +8,11 @@ import pytest
 from robotd.errors import EstimatorError
 from robotd.msgs import MotionIncrement
 from robotd.slam import models as md
-from robotd.slam._reference import fastslam_step_reference
 from robotd.slam._store import LandmarkStore
 from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
+from support.reference_fastslam import fastslam_step_reference
 
 nb = pytest.importorskip("numba")
 K = pytest.importorskip("robotd.slam._kernels")

@@ -12,10 +12,12 @@ import cv2
 import numpy as np
 import pytest
 
+from robotd import jit as J
 from robotd.errors import ConfigError, InputError
 from robotd.frontend import _surf_kernels as K
 from robotd.frontend import surf as S
 from robotd.frontend.features import Features
+from support.reference_surf import box_filter_kernels, describe_reference, hessian_layer_reference
 from tests.conftest import data_path
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -66,7 +68,7 @@ def test_hessian_kernel_matches_dense_box_filters(rng: np.random.Generator, octa
         S.integral_image(img), sizes, step, ny, nx, S.HESSIAN_WEIGHT, det, trace, 1.0, lo, hi_i, hi_j, cand
     )
     for k, L in enumerate(sizes):
-        ref_det, ref_trace = S.hessian_layer_reference(img, int(L), step)
+        ref_det, ref_trace = hessian_layer_reference(img, int(L), step)
         assert np.any(ref_det != 0), f"filter {L} fits nowhere: test image too small"
         # float32 output of float64 arithmetic: relative 1e-5 of the map's range.
         np.testing.assert_allclose(det[k], ref_det, rtol=1e-5, atol=1e-5 * np.abs(ref_det).max())
@@ -88,7 +90,7 @@ def test_maxima_kernel_matches_numpy_reference(rng: np.random.Generator, octave:
     n = K.hessian_layers(
         S.integral_image(img), sizes, step, ny, nx, S.HESSIAN_WEIGHT, det, trace, 5.0, lo, hi_i, hi_j, cand
     )
-    ref = S.local_maxima_reference(det, lo, hi_i, hi_j, 5.0)
+    ref = S.local_maxima_numpy(det, lo, hi_i, hi_j, 5.0)
     assert len(ref) > 5
     np.testing.assert_array_equal(cand[:n], ref)
     # Every reported sample really is >= all 26 neighbours and above the threshold.
@@ -111,7 +113,7 @@ def test_filter_sizes_follow_bay() -> None:
     assert [S.filter_size(0, k) for k in range(4)] == [9, 15, 21, 27]
     assert [S.filter_size(1, k) for k in range(4)] == [15, 27, 39, 51]
     assert [S.filter_size(2, k) for k in range(4)] == [27, 51, 75, 99]
-    kxx, kyy, kxy = S.box_filter_kernels(9)
+    kxx, kyy, kxy = box_filter_kernels(9)
     # Each filter has zero DC response (a constant image gives no blob) and the weights of Bay Fig. 1.
     assert kxx.sum() == 0 and kyy.sum() == 0 and kxy.sum() == 0
     assert (kyy == -2).sum() == 15 and (kyy == 1).sum() == 30 and (kxy != 0).sum() == 36
@@ -126,7 +128,7 @@ def test_descriptor_kernel_matches_reference(rng: np.random.Generator, upright: 
     # The strongest few plus the feature nearest the border (window partly outside: zero padding).
     border = int(np.argmin(np.minimum(f.xy, np.array([170, 140]) - 1 - f.xy).min(axis=1)))
     for k in [0, 1, 2, 3, 4, border]:
-        theta, desc = S.describe_reference(img, float(f.xy[k, 0]), float(f.xy[k, 1]), float(f.size[k]), upright)
+        theta, desc = describe_reference(img, float(f.xy[k, 0]), float(f.xy[k, 1]), float(f.size[k]), upright)
         if upright:
             assert f.angle[k] == -1
         else:
@@ -164,7 +166,7 @@ def test_blob_is_found_at_its_position_and_scale() -> None:
         x0, y0 = round(cx), round(cy)
         dets = []
         for L in sizes:
-            kxx, kyy, kxy = S.box_filter_kernels(int(L))
+            kxx, kyy, kxy = box_filter_kernels(int(L))
             h = L // 2
             patch = img[y0 - h : y0 + h + 1, x0 - h : x0 + h + 1].astype(np.float64)
             dxx, dyy, dxy = ((patch * k_).sum() / L**2 for k_ in (kxx, kyy, kxy))
@@ -426,20 +428,31 @@ def test_init_sample_two_finds_the_blob_too() -> None:
 
 
 def test_jit_falls_back_without_a_disk_cache(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
-    """With no writable cache location numba refuses cache=True; the kernel must still compile."""
-    real_njit = K.numba.njit
+    """With no writable cache location numba refuses cache=True; the kernel must still compile, with
+    the same options otherwise (robotd.jit, the decorator of every kernel module)."""
+    real_njit = J.numba.njit
+    calls: list[dict] = []
 
     def njit(*args, **kwargs):
+        calls.append(kwargs)
         if kwargs.get("cache"):
             raise RuntimeError("cannot cache function 'f': no locator available for file '/ro/x.py'")
         return real_njit(*args, **kwargs)
 
-    monkeypatch.setattr(K.numba, "njit", njit)
+    monkeypatch.setattr(J.numba, "njit", njit)
 
     def add_one(x: int) -> int:
         return x + 1
 
-    with caplog.at_level(logging.WARNING, logger=K.__name__):
-        fn = K._jit(add_one)
+    with caplog.at_level(logging.WARNING, logger=J.__name__):
+        fn = J.jit(add_one)
+        fast = J.jit(fastmath={"contract"}, inline="always")(add_one)
     assert fn(41) == 42
+    assert fast(1) == 2
     assert "numba disk cache unavailable" in caplog.text
+    assert calls == [
+        {"cache": True, "nogil": True},
+        {"cache": False, "nogil": True},
+        {"cache": True, "nogil": True, "fastmath": {"contract"}, "inline": "always"},
+        {"cache": False, "nogil": True, "fastmath": {"contract"}, "inline": "always"},
+    ]

@@ -1,20 +1,20 @@
-"""numba kernel of the detectors' grid bucketing; the numpy reference is ``detectors.bucket_select_numpy``.
+"""numba kernel of the detectors' grid bucketing; numpy twin: tests/support/reference_frontend.py.
 
 The caller sorts (two stable numpy sorts, ≈ 0.08 ms on 4000 ORB candidates); the per-cell quota
 and the refill are one pass here instead of the numpy version's further sorts and gathers
 (≈ 0.45 ms per image in all, holding the GIL the other image's detection thread also needs).
-numba's own stable argsort was slower than numpy's and data-dependent. Disk caching as in
-``_surf_kernels``.
+numba's own stable argsort was slower than numpy's and data-dependent. Compiled by
+:func:`robotd.jit.jit` (disk cache, GIL released).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from robotd.frontend._surf_kernels import _jit
+from robotd.jit import jit
 
 
-@_jit
+@jit
 def bucket_kernel(g: np.ndarray, cell: np.ndarray, response: np.ndarray, max_features: int, n_cells: int) -> np.ndarray:
     """Indices of at most ``max_features`` features (``detectors.bucket_select``'s contract).
 

@@ -1,4 +1,4 @@
-"""numba kernels of the stereo matcher's per-pair loops; the readable numpy versions are in ``stereo_match.py``.
+"""numba kernels of the stereo matcher's per-pair loops; readable numpy twins: tests/support/reference_frontend.py.
 
 Each kernel computes exactly what its numpy reference computes (``tests/test_frontend_kernels.py``
 checks equality on random and rendered inputs), in one pass and without the numpy version's
@@ -9,17 +9,17 @@ and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads r
 - :func:`ratio_cross_kernel`: ratio test (or lone-candidate limit) and cross-check.
 - :func:`refine_kernel`: ZSSD patch cost at integer disparities and the parabola fit.
 
-Disk caching as in ``_surf_kernels`` (``NUMBA_CACHE_DIR`` for read-only installs).
+Compiled by :func:`robotd.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for read-only installs).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from robotd.frontend._surf_kernels import _jit
+from robotd.jit import jit
 
 
-@_jit
+@jit
 def candidate_pairs_kernel(
     xl: np.ndarray,
     xr: np.ndarray,
@@ -56,7 +56,7 @@ def candidate_pairs_kernel(
     return n
 
 
-@_jit
+@jit
 def ratio_cross_kernel(
     i_s: np.ndarray,
     d_s: np.ndarray,
@@ -123,7 +123,7 @@ def ratio_cross_kernel(
     return n
 
 
-@_jit
+@jit
 def refine_kernel(
     left: np.ndarray,
     right: np.ndarray,

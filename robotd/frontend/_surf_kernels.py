@@ -14,40 +14,23 @@ Both read a float64 integral image ``ii`` of shape (H+1, W+1) with a zero first 
 ``ii[r, c]`` is the sum of ``image[:r, :c]`` (OpenCV's ``cv2.integral`` layout). Pixel centres are at
 integer coordinates (x = column, y = row).
 
-Caching: ``cache=True`` writes compiled code next to this file (``__pycache__``), or where
-``NUMBA_CACHE_DIR`` points. When neither that nor numba's per-user cache directory is writable (a
-read-only install under a hardened service), numba refuses ``cache=True`` when the function is
-decorated; :func:`_jit` then compiles without a disk cache (every process pays the compile once)
-and logs a warning. For the daemon set ``NUMBA_CACHE_DIR`` to a writable directory (systemd:
-``CacheDirectory=robotd`` and ``Environment=NUMBA_CACHE_DIR=/var/cache/robotd/numba``).
-
-``nogil=True``: the kernels release the GIL, so the left and right images can be processed in two
-threads.
+Both are compiled by :func:`robotd.jit.jit` (disk cache, ``NUMBA_CACHE_DIR`` and the fallback for
+read-only installs are explained there); they release the GIL, so the left and right images can be
+processed in two threads. The helpers stay plain ``numba.njit``: they are compiled only into the
+two kernels, whose cache entries hold them, and only the kernels' entry points release the GIL.
 """
 
 from __future__ import annotations
 
-import logging
 import math
-from collections.abc import Callable
-from typing import Any
 
 import numba
 import numpy as np
 
-logger = logging.getLogger(__name__)
+from robotd.jit import jit
 
 
-def _jit(fn: Callable[..., Any]) -> Any:
-    """``numba.njit(cache=True, nogil=True)``, falling back to no disk cache when none is writable."""
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
-        logger.warning("numba disk cache unavailable for %s (%s); compiling per process", fn.__name__, exc)
-        return numba.njit(cache=False, nogil=True)(fn)
-
-
-@_jit
+@jit
 def hessian_layers(
     ii: np.ndarray,
     sizes: np.ndarray,
@@ -272,7 +255,7 @@ def _box_mean(ii: np.ndarray, x: float, y: float, k: int) -> float:
     return (top + fy * (bottom - top)) / (k * k)
 
 
-@_jit
+@jit
 def orient_and_describe(
     ii: np.ndarray,
     xy: np.ndarray,

@@ -126,7 +126,7 @@ def bucket_select(
     ``xy``: (N, 2) [px] (column, row); ``response``: (N,); ``shape``: (H, W). Each cell keeps up to
     ceil(max_features / cells) of its strongest features; the quota unused by sparse cells is
     filled with the strongest of the remaining features. Returned in decreasing response order.
-    (numba kernel; numpy reference: :func:`bucket_select_numpy`.)
+    (numba kernel; its numpy twin ``bucket_select_numpy`` is in tests/support/reference_frontend.py.)
     """
     n = xy.shape[0]
     if n <= max_features:
@@ -148,38 +148,6 @@ def warmup() -> None:
     """Compile or load the bucketing kernel now (the daemon calls it at start-up)."""
     idx = np.arange(3, dtype=np.int64)
     _dk.bucket_kernel(idx, np.array([0, 1, 1], np.int64), np.array([3.0, 2.0, 1.0], np.float32), 2, 2)
-
-
-def bucket_select_numpy(
-    xy: np.ndarray, response: np.ndarray, shape: tuple[int, int], max_features: int, grid_rows: int, grid_cols: int
-) -> np.ndarray:
-    """numpy reference of :func:`bucket_select` (same indices in the same order)."""
-    n = xy.shape[0]
-    if n <= max_features:
-        return np.argsort(-response, kind="stable")
-    h, w = shape
-    col = np.clip((xy[:, 0] * grid_cols / max(w, 1)).astype(np.int64), 0, grid_cols - 1)
-    row = np.clip((xy[:, 1] * grid_rows / max(h, 1)).astype(np.int64), 0, grid_rows - 1)
-    cell = row * grid_cols + col
-    # sort by cell, then by decreasing response; rank of each feature inside its cell. Two stable
-    # sorts give lexsort's order; the cell key fits int16 (≤ 64 × 64 cells), which numpy sorts by
-    # radix: ≈ 4× faster than np.lexsort on 4000 candidates
-    key_type = np.int16 if grid_rows * grid_cols <= np.iinfo(np.int16).max else np.int64
-    by_resp = np.argsort(-response, kind="stable")
-    order = by_resp[np.argsort(cell[by_resp].astype(key_type), kind="stable")]
-    cell_sorted = cell[order]
-    starts = np.r_[0, np.flatnonzero(np.diff(cell_sorted)) + 1]
-    counts = np.diff(np.r_[starts, n])
-    rank = np.arange(n) - np.repeat(starts, counts)
-    quota = -(-max_features // (grid_rows * grid_cols))
-    first = order[rank < quota]
-    if first.size >= max_features:
-        keep = first[np.argsort(-response[first], kind="stable")[:max_features]]
-    else:
-        rest = order[rank >= quota]
-        rest = rest[np.argsort(-response[rest], kind="stable")[: max_features - first.size]]
-        keep = np.r_[first, rest]
-    return keep[np.argsort(-response[keep], kind="stable")]
 
 
 class _OpenCVDetector:

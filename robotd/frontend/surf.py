@@ -44,11 +44,12 @@ Conventions of the returned :class:`~robotd.frontend.features.Features`:
   decreasing response.
 
 The heavy loops (response maps, orientation, descriptor) are numba kernels in ``_surf_kernels``;
-:func:`hessian_layer_reference` and :func:`describe_reference` are plain numpy/Python versions of
-the same mathematics that the tests compare the kernels against. Haar samples that fall partly
-outside the image see zeros there (the box sums are clipped). The kernels are compiled on first
-use and cached on disk (``_surf_kernels`` explains ``NUMBA_CACHE_DIR`` for read-only installs);
-they release the GIL, so two images can be processed in two threads.
+their plain numpy/Python twins, ``hessian_layer_reference`` and ``describe_reference`` (the same
+mathematics, which the tests compare the kernels against), are in tests/support/reference_surf.py.
+Haar samples that fall partly outside the image see zeros there (the box sums are clipped). The
+kernels are compiled on first use and cached on disk (:mod:`robotd.jit` explains
+``NUMBA_CACHE_DIR`` for read-only installs); they release the GIL, so two images can be processed
+in two threads.
 """
 
 from __future__ import annotations
@@ -170,11 +171,14 @@ def candidate_ranges(
     return lo, hi_i, hi_j
 
 
-def local_maxima_reference(
+def local_maxima_numpy(
     det: np.ndarray, lo: np.ndarray, hi_i: np.ndarray, hi_j: np.ndarray, threshold: float
 ) -> np.ndarray:
     """(M, 3) int64 rows (layer, i, j) of the 3x3x3 maxima of ``det`` (n_layers, ny, nx): numpy
-    version of the kernel's scan (Bay §3.3, same tie rule), in (layer, i, j) order. For the tests.
+    version of the kernel's scan (Bay §3.3, same tie rule), in (layer, i, j) order.
+
+    The runtime fallback of :func:`detect` when the maxima outnumber the kernel's candidate buffer
+    (``_MAX_CANDIDATES``); the tests also hold the kernel's scan to it (identical rows).
     """
     n_layers, ny, nx = det.shape
     flat = det.reshape(-1)
@@ -338,7 +342,7 @@ def detect(image: np.ndarray, params: SurfParams | None = None, ii: np.ndarray |
         )
         if n_cand > capacity:
             logger.debug("surf: %d maxima in octave %d exceed the buffer of %d; numpy rescan", n_cand, o, capacity)
-            cand = local_maxima_reference(det, lo, hi_i, hi_j, p.hessian_threshold)
+            cand = local_maxima_numpy(det, lo, hi_i, hi_j, p.hessian_threshold)
         else:
             cand = cand[:n_cand]
         kp = _octave_keypoints(det, trace, sizes, step, cand, lo, hi_i, hi_j, p.hessian_threshold)
@@ -451,151 +455,3 @@ def detect_and_compute(
         desc,
         False,
     )
-
-
-# ---------------------------------------------------------------------------------------------
-# Readable references of the kernels (used by the tests; slow).
-
-
-def _box_ref(ii: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> float:
-    h, w = ii.shape[0] - 1, ii.shape[1] - 1
-    r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, h - 1), min(c1, w - 1)
-    if r0 > r1 or c0 > c1:
-        return 0.0
-    return float(ii[r1 + 1, c1 + 1] - ii[r0, c1 + 1] - ii[r1 + 1, c0] + ii[r0, c0])
-
-
-def box_filter_kernels(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Dense (L, L) weights of the box filters Dxx, Dyy, Dxy of side ``size`` (Bay et al. Fig. 1).
-
-    Dyy: three lobes of ``L/3`` rows (+1, -2, +1) over ``2 L/3 - 1`` columns; Dxx its transpose;
-    Dxy: four ``L/3`` x ``L/3`` lobes (+1 top-left and bottom-right, -1 elsewhere) around a cross
-    of zeros. Rows are y (down), columns x (right); the centre is element (L//2, L//2).
-    """
-    L, lobe, half = size, size // 3, size // 2
-    mid, band = lobe // 2, lobe - 1
-    kyy = np.zeros((L, L))
-    kyy[:, half - band : half + band + 1] = 1.0
-    kyy[half - mid : half + mid + 1, half - band : half + band + 1] = -2.0
-    kxx = kyy.T.copy()
-    kxy = np.zeros((L, L))
-    kxy[half - lobe : half, half - lobe : half] = 1.0
-    kxy[half + 1 : half + lobe + 1, half + 1 : half + lobe + 1] = 1.0
-    kxy[half - lobe : half, half + 1 : half + lobe + 1] = -1.0
-    kxy[half + 1 : half + lobe + 1, half - lobe : half] = -1.0
-    return kxx, kyy, kxy
-
-
-def hessian_layer_reference(image: np.ndarray, size: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """det and trace maps (ny, nx) of one filter side ``size`` by explicit correlation with
-    :func:`box_filter_kernels` at the grid (j*step, i*step); zeros where the filter does not fit.
-
-    Independent of the integral image, so it checks the kernel's box arithmetic. Slow (Python loop).
-    """
-    img = image.astype(np.float64)
-    h, w = img.shape
-    L, half = size, size // 2
-    kxx, kyy, kxy = box_filter_kernels(size)
-    ny, nx = (h - 1) // step + 1, (w - 1) // step + 1
-    det = np.zeros((ny, nx))
-    trace = np.zeros((ny, nx))
-    for i in range(ny):
-        y = i * step
-        if y - half < 0 or y + half > h - 1:
-            continue
-        for jx in range(nx):
-            x = jx * step
-            if x - half < 0 or x + half > w - 1:
-                continue
-            patch = img[y - half : y + half + 1, x - half : x + half + 1]
-            dxx = float((patch * kxx).sum()) / L**2
-            dyy = float((patch * kyy).sum()) / L**2
-            dxy = float((patch * kxy).sum()) / L**2
-            det[i, jx] = dxx * dyy - (HESSIAN_WEIGHT * dxy) ** 2
-            trace[i, jx] = dxx + dyy
-    return det, trace
-
-
-def describe_reference(
-    image: np.ndarray, x: float, y: float, size: float, upright: bool = False
-) -> tuple[float, np.ndarray]:
-    """Orientation [rad] and 64-D descriptor of one keypoint, in plain Python (Bay §4.1–4.2).
-
-    The same mathematics as the kernel, written sample by sample with explicit pixel sums;
-    ``size`` is the filter side L (scale s = 1.2 L / 9).
-    """
-    img = image.astype(np.float64)
-    ii = integral_image(image)
-    s = 1.2 * size / 9.0
-
-    def haar_at_corner(c: int, r: int, half: int) -> tuple[float, float]:
-        # Wavelet centred on the pixel corner (c - 0.5, r - 0.5).
-        right = _box_ref(ii, r - half, r + half - 1, c, c + half - 1)
-        left = _box_ref(ii, r - half, r + half - 1, c - half, c - 1)
-        bottom = _box_ref(ii, r, r + half - 1, c - half, c + half - 1)
-        top = _box_ref(ii, r - half, r - 1, c - half, c + half - 1)
-        return right - left, bottom - top
-
-    def haar_smooth(px: float, py: float, half: int) -> tuple[float, float]:
-        c0, r0 = math.floor(px + 0.5), math.floor(py + 0.5)
-        fx, fy = px + 0.5 - c0, py + 0.5 - r0
-        out = np.zeros(2)
-        for dr, wr in ((0, 1 - fy), (1, fy)):
-            for dc, wc in ((0, 1 - fx), (1, fx)):
-                out += wr * wc * np.array(haar_at_corner(c0 + dc, r0 + dr, half))
-        return float(out[0]), float(out[1])
-
-    def box_mean(px: float, py: float, k: int) -> float:
-        tx, ty = px - 0.5 * (k - 1), py - 0.5 * (k - 1)
-        c0, r0 = math.floor(tx), math.floor(ty)
-        fx, fy = tx - c0, ty - r0
-        total = 0.0
-        for dr, wr in ((0, 1 - fy), (1, fy)):
-            for dc, wc in ((0, 1 - fx), (1, fx)):
-                r, c = r0 + dr, c0 + dc
-                # Explicit sum over the pixels of the box that lie in the image (zero padding).
-                block = img[max(r, 0) : max(r + k, 0), max(c, 0) : max(c + k, 0)]
-                total += wr * wc * float(block.sum())
-        return total / (k * k)
-
-    theta = 0.0
-    if not upright:
-        half4 = max(1, round(2.0 * s))
-        votes = []
-        for v in range(-6, 7):
-            for u in range(-6, 7):
-                if u * u + v * v >= 36:
-                    continue
-                hx, hy = haar_smooth(x + u * s, y + v * s, half4)
-                if hx == 0 and hy == 0:
-                    continue
-                g = math.exp(-(u * u + v * v) / 8.0)
-                votes.append((math.atan2(hy, hx) % (2 * math.pi), g * hx, g * hy))
-        ang = np.array([a for a, _, _ in votes])
-        vx = np.array([b for _, b, _ in votes])
-        vy = np.array([c for _, _, c in votes])
-        bins = np.minimum((ang * _ORI_BINS / (2 * math.pi)).astype(int), _ORI_BINS - 1)
-        best = -1.0
-        for b0 in range(_ORI_BINS):
-            inwin = ((bins - b0) % _ORI_BINS) < _ORI_WINDOW_BINS
-            sx, sy = vx[inwin].sum(), vy[inwin].sum()
-            if sx * sx + sy * sy > best:
-                best = sx * sx + sy * sy
-                theta = math.atan2(sy, sx) % (2 * math.pi)
-    co, si = math.cos(theta), math.sin(theta)
-    k = max(1, round(s))
-    patch = np.zeros((21, 21))
-    for r in range(21):
-        for c in range(21):
-            a, b = (c - 10) * s, (r - 10) * s
-            patch[r, c] = box_mean(x + a * co - b * si, y + a * si + b * co, k)
-    desc = np.zeros((4, 4, 4))
-    for row in range(20):
-        for col in range(20):
-            g = math.exp(-((col - 9.5) ** 2 + (row - 9.5) ** 2) / (2 * 3.3**2))
-            cell = patch[row : row + 2, col : col + 2]
-            du = g * float(cell[:, 1].sum() - cell[:, 0].sum())
-            dv = g * float(cell[1, :].sum() - cell[0, :].sum())
-            desc[row // 5, col // 5] += (du, abs(du), dv, abs(dv))
-    flat = desc.reshape(-1)
-    return theta, flat / max(float(np.linalg.norm(flat)), 1e-300)

@@ -2,7 +2,8 @@
 
 ``fastslam_step_numba`` has the signature and the effects of
 :func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
-and agrees with it and with :mod:`robotd.slam._reference` to 1e-9 given the same ``eps``. Each
+and agrees with it and with its readable twin ``fastslam_step_reference``
+(tests/support/reference_fastslam.py) to 1e-9 given the same ``eps``. Each
 particle is one iteration of a ``prange`` loop (one contiguous range of particles per thread,
 sharing its scratch arrays), so there are no per-call numpy dispatch costs.
 
@@ -12,8 +13,8 @@ robot-frame form of the reference, on tuples that LLVM keeps in registers; the i
 and the proposal share one pass over the observations, and the proposal advances the cosines and
 sines of the pose angles instead of calling trig functions per observation.
 
-Compiled with ``cache=True`` (first call compiles for ~10–20 s, later processes load the cache;
-``NUMBA_CACHE_DIR`` must be writable by the service).
+Compiled by :func:`robotd.jit.jit` (first call compiles for ~10–20 s, later processes load the disk
+cache; ``NUMBA_CACHE_DIR`` must be writable by the service, else every process compiles anew).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
+from robotd.jit import jit
 from robotd.slam._store import LandmarkStore
 
 _TWO_PI = 2.0 * math.pi
@@ -33,7 +35,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 _FM = {"contract", "reassoc", "arcp", "nsz"}
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _wrap(a: float) -> float:
     w = a - _TWO_PI * math.floor((a + math.pi) / _TWO_PI)
     if w == -math.pi:
@@ -41,7 +43,7 @@ def _wrap(a: float) -> float:
     return w
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _mm_into(A, B, C, n: int, k: int, m: int) -> None:  # type: ignore[no-untyped-def]
     """C = A @ B for (n, k) @ (k, m); sizes are passed so that they are compile-time constants."""
     for i in range(n):
@@ -52,7 +54,7 @@ def _mm_into(A, B, C, n: int, k: int, m: int) -> None:  # type: ignore[no-untype
             C[i, j] = acc
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _cholesky_into(A, L, n: int) -> bool:  # type: ignore[no-untyped-def]
     """Lower Cholesky factor into L; False when A is not positive definite."""
     for i in range(n):
@@ -94,7 +96,7 @@ def _cholesky_into(A, L, n: int) -> bool:  # type: ignore[no-untyped-def]
 # covariances are covariances: only their upper triangles are read.
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _rot3_cs(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float):  # type: ignore[no-untyped-def]
     """R_z(yaw) R_y(pitch) R_x(roll) as a 9-tuple (row order) from the angles' cosines and sines."""
     return (
@@ -110,14 +112,14 @@ def _rot3_cs(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float): 
     )
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _rot3t(roll: float, pitch: float, yaw: float):  # type: ignore[no-untyped-def]
     """(R_z(yaw) R_y(pitch) R_x(roll) as a 9-tuple, sin yaw, cos yaw) — the latter give W_pitch."""
     cy, sy = math.cos(yaw), math.sin(yaw)
     return _rot3_cs(math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), cy, sy), sy, cy
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _turn(c: float, s: float, delta: float):  # type: ignore[no-untyped-def]
     """(cos(a + δ), sin(a + δ)) from c = cos a, s = sin a by the angle-addition formulas.
 
@@ -135,13 +137,13 @@ def _turn(c: float, s: float, delta: float):  # type: ignore[no-untyped-def]
     return c * cd - s * sd, s * cd + c * sd
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _sym3(C):  # type: ignore[no-untyped-def]
     """Upper triangle of a 3×3 array as a 6-tuple."""
     return (C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2])
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _sandwich3(R, S):  # type: ignore[no-untyped-def]
     """R S R^T for R a 9-tuple and S a symmetric 6-tuple (returns a 6-tuple)."""
     s00, s01, s02, s11, s12, s22 = S
@@ -165,13 +167,13 @@ def _sandwich3(R, S):  # type: ignore[no-untyped-def]
     )
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _add3(A, B):  # type: ignore[no-untyped-def]
     """Sum of two symmetric 6-tuples."""
     return (A[0] + B[0], A[1] + B[1], A[2] + B[2], A[3] + B[3], A[4] + B[4], A[5] + B[5])
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _inv_sym3(A):  # type: ignore[no-untyped-def]
     """(inverse as a 6-tuple, determinant) of a symmetric 3×3 6-tuple (adjugate formula)."""
     a00, a01, a02, a11, a12, a22 = A
@@ -186,7 +188,7 @@ def _inv_sym3(A):  # type: ignore[no-untyped-def]
     return (c00 * r, c01 * r, c02 * r, c11 * r, c12 * r, c22 * r), det
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _logpdf3(n0: float, n1: float, n2: float, Si, det: float) -> float:  # type: ignore[no-untyped-def]
     """log N(ν; 0, S) from S^{-1} (6-tuple) and det S."""
     maha = (
@@ -198,7 +200,7 @@ def _logpdf3(n0: float, n1: float, n2: float, Si, det: float) -> float:  # type:
     return -0.5 * (maha + math.log(det) + 3.0 * _LOG_2PI)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _innov3t(x, m, zm, R):  # type: ignore[no-untyped-def]
     """(d = m - p, ν_w = R z_meas - d) as 3-tuples."""
     d0, d1, d2 = m[0] - x[0], m[1] - x[1], m[2] - x[2]
@@ -211,7 +213,7 @@ def _innov3t(x, m, zm, R):  # type: ignore[no-untyped-def]
     return (d0, d1, d2), nu
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _pose_part3t(Sg, d, R, sy: float, cy: float, T):  # type: ignore[no-untyped-def]
     """T = Σ Ĥ^T (into the 6×3 array T) and Ĥ Σ Ĥ^T (returned, 6-tuple) for Σ = Sg (6×6).
 
@@ -237,7 +239,7 @@ def _pose_part3t(Sg, d, R, sy: float, cy: float, T):  # type: ignore[no-untyped-
     )
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _particle3(  # type: ignore[no-untyped-def]
     k,
     version,
@@ -431,13 +433,13 @@ def _particle3(  # type: ignore[no-untyped-def]
 # 3-tuples (a00, a01, a11).
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _add2(A, B):  # type: ignore[no-untyped-def]
     """Sum of two symmetric 3-tuples."""
     return (A[0] + B[0], A[1] + B[1], A[2] + B[2])
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _sandwich2(c: float, s: float, S):  # type: ignore[no-untyped-def]
     """R S R^T for R = [[c, -s], [s, c]] and a symmetric 3-tuple S."""
     s00, s01, s11 = S
@@ -446,7 +448,7 @@ def _sandwich2(c: float, s: float, S):  # type: ignore[no-untyped-def]
     return (a0 * c - a1 * s, a0 * s + a1 * c, b0 * s + b1 * c)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _inv_sym2(A):  # type: ignore[no-untyped-def]
     """(inverse as a 3-tuple, determinant) of a symmetric 2×2 3-tuple."""
     a00, a01, a11 = A
@@ -455,21 +457,21 @@ def _inv_sym2(A):  # type: ignore[no-untyped-def]
     return (a11 * r, -a01 * r, a00 * r), det
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _logpdf2(n0: float, n1: float, Si, det: float) -> float:  # type: ignore[no-untyped-def]
     """log N(ν; 0, S) from S^{-1} (3-tuple) and det S."""
     maha = Si[0] * n0 * n0 + 2.0 * Si[1] * n0 * n1 + Si[2] * n1 * n1
     return -0.5 * (maha + math.log(det) + 2.0 * _LOG_2PI)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _innov2t(x, m, zm, c: float, s: float):  # type: ignore[no-untyped-def]
     """(d = m - p, ν_w = R z_meas - d) as 2-tuples."""
     d0, d1 = m[0] - x[0], m[1] - x[1]
     return (d0, d1), (c * zm[0] - s * zm[1] - d0, s * zm[0] + c * zm[1] - d1)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM, inline="always")
+@jit(fastmath=_FM, inline="always")
 def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
     """T = Σ Ĥ^T (into the 3×2 array T) and Ĥ Σ Ĥ^T (returned, 3-tuple) for Ĥ = [-I | (d_y, -d_x)]."""
     a0, a1 = d[1], -d[0]
@@ -479,7 +481,7 @@ def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
     return (-T[0, 0] + a0 * T[2, 0], -T[0, 1] + a0 * T[2, 1], -T[1, 1] + a1 * T[2, 1])
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _particle2(  # type: ignore[no-untyped-def]
     k,
     version,
@@ -618,7 +620,7 @@ def _particle2(  # type: ignore[no-untyped-def]
     dlogw[k] = w
 
 
-@nb.njit(cache=True, nogil=True, parallel=True, fastmath=_FM)
+@jit(fastmath=_FM, parallel=True)
 def _step(  # type: ignore[no-untyped-def]
     version,
     pose,
@@ -713,7 +715,7 @@ def _step(  # type: ignore[no-untyped-def]
                 )
 
 
-@nb.njit(cache=True, nogil=True, fastmath=_FM)
+@jit(fastmath=_FM)
 def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # type: ignore[no-untyped-def]
     """§6.3 motion model for every particle: p' = p + R(η) Δp, η' = wrap(η + E(roll, pitch) ω), and
     (``want_S``) S = V M V^T + diag(extra), V = blockdiag(R, E), symmetric by construction.
@@ -786,7 +788,7 @@ def predict3_numba(
     return out_pose, (out_S if want_S else None), int(bad)
 
 
-@nb.njit(cache=True, nogil=True)
+@jit
 def copy_blocks(pool_mean, pool_cov, src, dst) -> None:  # type: ignore[no-untyped-def]
     """Copy-on-write block copies pool[src[i]] -> pool[dst[i]] in place (no gather temporary)."""
     n = pool_mean.shape[0]

@@ -11,7 +11,7 @@ Landmark slots ``0 … n_slots-1`` are shared by all particles through the globa
 :class:`~robotd.slam._book.LandmarkBook` (ids -> slots); freed slots are reused.
 
 The hot path is split into pure kernels, vectorised over particles × observations, which take
-every random number as an argument (``eps``), so that :mod:`robotd.slam._reference` (plain
+every random number as an argument (``eps``), so that ``tests/support/reference_fastslam.py`` (plain
 per-particle loops) can be compared with them exactly. FastSLAM 2.0's proposal incorporates the
 observations one after another (loop over observations, vectorised over particles).
 """

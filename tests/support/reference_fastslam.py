@@ -1,10 +1,16 @@
 """Plain per-particle FastSLAM (algorithms.md §9, §10): the readable reference for the fast paths.
 
 One particle and one observation at a time, general ``np.linalg`` solves, no closed-form inverses.
-``fastslam_step_reference`` has the signature of :func:`robotd.slam.fastslam.fastslam_step` and must
-agree with it (and with the numba kernels) to 1e-9 given the same random draws. It is far too slow
-for the daemon (~0.7 s per 2D step at 100 particles × 100 observations) and is used by the tests and
-the benchmark's comparison row only.
+``fastslam_step_reference`` has the signature of :func:`robotd.slam.fastslam.fastslam_step` and is
+the readable twin of both fast paths: that vectorised numpy step and the numba kernel
+``robotd.slam._kernels.fastslam_step_numba``. It is far too slow for the daemon (~0.7 s per 2D
+step at 100 particles × 100 observations), so it lives with the tests (moved here unchanged from
+robotd/slam/_reference.py).
+
+Agreement: given the same random draws ``eps``, poses, log-weight increments, landmark means and
+covariances (and the 2.0 proposal outputs) agree to 1e-9 absolute (``AGREE`` in
+tests/test_slam_fastslam.py and tests/test_slam_fastslam_numba.py), in 2D and 3D, FastSLAM 1.0
+and 2.0, also at large roll/pitch and any yaw.
 """
 
 from __future__ import annotations
@@ -43,7 +49,8 @@ def fastslam_step_reference(
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-particle loop version of ``fastslam_step`` (same arguments, same in-place effects)."""
+    """Per-particle loop version of ``fastslam_step`` (same arguments, same in-place effects); the
+    tests hold ``fastslam_step`` and ``fastslam_step_numba`` to it to 1e-9 (module docstring)."""
     dim = 2 if model.dx == 3 else 3
     P = pose.shape[0]
     out_pose = pose.copy()
