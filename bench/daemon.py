@@ -33,7 +33,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from robotd.config import load_config
-from robotd.daemon import Daemon, rss_mb
+from robotd.daemon import Daemon
+from robotd.daemon.health import rss_mb
 
 
 def _free_port() -> int:

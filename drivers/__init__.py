@@ -45,6 +45,12 @@ HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
 @runtime_checkable
 class StereoCamera(Protocol):
     url: str
+    raw_calibration: dict[str, Any] | None  # the device's own calibration dump (OAK EEPROM), else None
+
+    @property
+    def fps(self) -> float | None:
+        """Nominal frame rate [Hz] (the daemon's latency budget follows it); None when unknown (replay)."""
+        ...
 
     def __enter__(self) -> StereoCamera: ...
     def __exit__(self, *exc: object) -> None: ...

@@ -191,6 +191,8 @@ class _ImageDatasetCamera(Driver):
     """Common replay logic of the folder datasets: select, load, rectify, pace, count."""
 
     url: str
+    raw_calibration = None
+    fps = None  # frames carry their recorded stamps; there is no nominal rate to budget for
 
     def __init__(self, url: str, entries: list[FrameEntry], replay: ReplayOptions) -> None:
         self.url = url
@@ -662,6 +664,8 @@ def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
 class McapCamera(Driver):
     """Replay a ``robotd record`` session: the recorded frames, same order and stamps, every time.
 
+    (``raw_calibration`` stays None: the recording's own calibration is what ``rectified_model`` gives.)
+
     Options: start/stop/stride (over the recorded frames), realtime/speed. ``recorded_odometry()``
     and :func:`open_mcap_vehicle` give the recorded odometry; :meth:`events` gives frames and
     odometry interleaved exactly as recorded (what a deterministic single-thread replay wants).
@@ -683,6 +687,8 @@ class McapCamera(Driver):
         except PersistenceError as exc:
             raise DatasetError(str(exc)) from None
         self.meta = self.reader.meta
+        self.raw_calibration: dict[str, Any] | None = None
+        self.fps: float | None = None
         self._closed = False
         self._stats: dict[str, Any] = {"frames": 0, "drops": 0, "gaps": 0, "read_errors": 0}
 

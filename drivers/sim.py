@@ -302,6 +302,8 @@ class SimRig:
 class SimCamera(Driver):
     """``sim://`` stereo camera (StereoCamera protocol). Open with ``with`` or :func:`open_sim_camera`."""
 
+    raw_calibration = None  # a rendered rig has no device calibration
+
     def __init__(self, url: str, params: SimParams, t0_ns: int | None = None) -> None:
         self.url = url
         self.params = params

@@ -147,7 +147,7 @@ def cmd_experiments(args: argparse.Namespace) -> int:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    from robotd.publish import echo
+    from robotd.echo import echo
 
     configure_logging(args.log_level or "WARNING")
     return echo(args.key, connect=args.connect, count=args.count, timeout_s=args.timeout)

@@ -240,7 +240,7 @@ def odometry_from_json(d: Mapping[str, Any]) -> Odometry:
     return Odometry(int(d["t_ns"]), np.array(d["vel_R_mps"], float), np.array(d["rate_R_radps"], float), d["source"])
 
 
-def pose_to_json(p: PoseEstimate) -> dict[str, Any]:
+def pose_estimate_msg(p: PoseEstimate) -> dict[str, Any]:
     neff = float(p.neff)
     return {
         "t_ns": int(p.t_ns),
@@ -252,7 +252,7 @@ def pose_to_json(p: PoseEstimate) -> dict[str, Any]:
     }
 
 
-def pose_from_json(d: Mapping[str, Any]) -> PoseEstimate:
+def pose_estimate_from_msg(d: Mapping[str, Any]) -> PoseEstimate:
     neff = float("nan") if d.get("neff") is None else float(d["neff"])
     return PoseEstimate(int(d["t_ns"]), np.array(d["xyz_W_m"], float), np.array(d["rpy_rad"], float),
                         np.array(d["cov"], float), neff, int(d["n_particles"]))  # fmt: skip
@@ -445,7 +445,7 @@ class SessionWriter:
         self._check_open()
         k = self.counts["poses"]
         self._add("pose", pose.t_ns, pose_in_frame_msg(pose), seq=k)
-        self._add("pose_estimate", pose.t_ns, pose_to_json(pose), seq=k)
+        self._add("pose_estimate", pose.t_ns, pose_estimate_msg(pose), seq=k)
         self.counts["poses"] += 1
 
     def close(self) -> None:
@@ -553,7 +553,7 @@ class SessionReader:
                     elif topic == TOPIC_ODOMETRY:
                         yield odometry_from_json(d)
                     elif topic == TOPIC_POSE_ESTIMATE:
-                        yield pose_from_json(d)
+                        yield pose_estimate_from_msg(d)
         except (self._McapError, OSError, ValueError, KeyError) as exc:
             raise PersistenceError(f"{self.path}: corrupt recording: {exc!r}") from None
 

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from robotd.budget import LatencyBudget, StageTimer
+from robotd.daemon.budget import LatencyBudget, StageTimer
 from robotd.geometry import so3_exp, so3_log
 from robotd.msgs import Odometry
 from robotd.odometry import OdometryIntegrator

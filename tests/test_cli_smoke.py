@@ -79,18 +79,18 @@ def test_echo_prints_published_samples(capsys: pytest.CaptureFixture[str]) -> No
 
     from robotd.config import ZenohConfig
     from robotd.msgs import PoseEstimate
-    from robotd.publish import Publisher, pose_to_json
+    from robotd.outputs.zenoh import ZenohOutput, pose_payload
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    pub = Publisher(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]), "r9")
+    pub = ZenohOutput(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]), "r9")
     stop = threading.Event()
 
     def feed() -> None:
         k = 0
         while not stop.is_set():
-            pub.publish_pose(pose_to_json(PoseEstimate(k, np.zeros(3), np.zeros(3), np.eye(6)), "r9", k, 50, 0, 1.0))
+            pub.publish_pose(pose_payload(PoseEstimate(k, np.zeros(3), np.zeros(3), np.eye(6)), "r9", k, 50, 0, 1.0))
             k += 1
             time.sleep(0.05)
 

@@ -1,7 +1,7 @@
 """The daemon's thread settings: OpenBLAS limited while it runs (slam.blas_threads), restored after.
 
 In a fresh process (the robotd command's situation): an earlier limit-and-restore in the same
-process can leave OpenBLAS ignoring the next change (robotd.daemon._limit_blas_threads).
+process can leave OpenBLAS ignoring the next change (robotd.daemon.threadpools.limit_blas_threads).
 """
 
 from __future__ import annotations

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from robotd.codec import decode_map, encode_map
+from robotd.daemon.sdnotify import Notifier
 from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap
 from robotd.persist import MapStore
-from robotd.sdnotify import Notifier
 
 
 def _state(rng: np.random.Generator) -> dict:

@@ -385,6 +385,11 @@ class OakCamera(Driver):
         self._stats: dict[str, Any] = {"frames": 0, "reconnects": 0, "link_errors": 0, "open_failures": 0,
                                        "timeouts": 0, "degraded": False, "last_error": ""}  # fmt: skip
 
+    @property
+    def fps(self) -> float:
+        """The configured frame rate [Hz] (``?fps=``)."""
+        return float(self.opts.fps)
+
     # lifecycle --------------------------------------------------------------------------------
     def open(self) -> None:
         try:

@@ -1,4 +1,4 @@
-"""Zenoh key space, encodings, the map queryable and the liveliness token (docs/topics.md).
+"""The Zenoh output: key space, encodings, the map queryable and the liveliness token (docs/topics.md).
 
 Keys under ``robotd/<robot_id>/``:
 
@@ -17,19 +17,19 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 import threading
-import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import zenoh
 
-from robotd.codec import decode_map, encode_map
+from robotd.codec import encode_map
 from robotd.config import ZenohConfig
 from robotd.errors import DriverError
 from robotd.geometry import euler_to_quat
 from robotd.msgs import LandmarkMap, PoseEstimate
+from robotd.outputs.base import Output, StepReport
 
 logger = logging.getLogger(__name__)
 
@@ -54,9 +54,10 @@ def make_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     return conf
 
 
-def pose_to_json(
+def pose_payload(
     pose: PoseEstimate, robot_id: str, seq: int, quality: int, reset_counter: int, latency_ms: float
 ) -> dict[str, Any]:
+    """The ``robotd/<id>/pose`` message (schema robotd.pose/1, docs/topics.md)."""
     q = euler_to_quat(pose.rpy_rad)
     return {
         "schema": POSE_SCHEMA,
@@ -77,8 +78,10 @@ def pose_to_json(
     }
 
 
-class Publisher:
+class ZenohOutput(Output):
     """Owns the Zenoh session and every declared entity; closes them all on ``close()``."""
+
+    name = "zenoh"
 
     def __init__(self, cfg: ZenohConfig, robot_id: str) -> None:
         self.cfg = cfg
@@ -115,7 +118,22 @@ class Publisher:
         self._queryable = s.declare_queryable(f"{self.prefix}/map", self._on_map_query, complete=True)
         self._token = s.liveliness().declare_token(f"{self.prefix}/alive")
         self._closed = False
+        self.map_period_s = cfg.map_period_s
+        self.health_period_s = cfg.health_period_s
         logger.info("zenoh session %s publishing under %s/ (mode %s)", s.info.zid(), self.prefix, cfg.mode)
+
+    # ------------------------------------------------------------------ the Output hooks
+    def publish(self, report: StepReport) -> None:
+        """The pose on every step; the map when the report carries a snapshot."""
+        res = report.result
+        self.publish_pose(
+            pose_payload(res.pose, self.robot_id, report.seq, report.quality, report.reset_counter, report.latency_ms)
+        )
+        if report.landmarks is not None:
+            self.update_map(res.t_ns, report.landmarks)
+
+    def stats(self) -> dict[str, Any]:
+        return dict(self.counts)
 
     # runs on a Zenoh thread: reply from the immutable snapshot, never block
     def _on_map_query(self, query: zenoh.Query) -> None:
@@ -146,7 +164,7 @@ class Publisher:
         if publish:
             self._put(self._map, blob, "map")
 
-    def publish_health(self, doc: dict[str, Any]) -> None:
+    def publish_health(self, doc: Mapping[str, Any]) -> None:
         self._put(self._health, json.dumps({"schema": HEALTH_SCHEMA, "robot": self.robot_id, **doc}), "health")
 
     def _put(self, pub: Any, payload: Any, name: str) -> None:
@@ -167,77 +185,3 @@ class Publisher:
             except Exception as exc:
                 logger.debug("undeclare: %s", exc)
         self.session.close()
-
-    def __enter__(self) -> Publisher:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-# --------------------------------------------------------------------------------------------
-# robotd echo
-
-
-def _client_config(connect: list[str]) -> zenoh.Config:
-    conf = zenoh.Config()
-    if connect:
-        conf.insert_json5("mode", '"client"' if len(connect) == 1 else '"peer"')
-        conf.insert_json5("connect/endpoints", json.dumps(connect))
-        conf.insert_json5("listen/endpoints", "[]")
-    else:
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
-def format_sample(key: str, payload: bytes) -> str:
-    """A printable line for a published sample (CBOR maps summarised, JSON as is)."""
-    if key.endswith("/map"):
-        try:
-            meta, lm = decode_map(payload)
-            return json.dumps({"key": key, **{k: v for k, v in meta.items()}, "first_ids": lm.ids[:5].tolist()})
-        except Exception as exc:
-            return json.dumps({"key": key, "error": str(exc), "bytes": len(payload)})
-    try:
-        return json.dumps({"key": key, "value": json.loads(payload)})
-    except ValueError:
-        return json.dumps({"key": key, "bytes": len(payload)})
-
-
-def echo(key: str, connect: list[str], count: int = 0, timeout_s: float = 0.0) -> int:
-    """Print samples on ``key`` (one JSON line each). ``robotd/*/map`` queries the map once."""
-    done = threading.Event()
-    n = 0
-    lock = threading.Lock()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        nonlocal n
-        with lock:
-            if done.is_set():
-                return
-            print(format_sample(str(sample.key_expr), sample.payload.to_bytes()), flush=True)
-            n += 1
-            if count and n >= count:
-                done.set()
-
-    with zenoh.open(_client_config(connect or ["tcp/127.0.0.1:7447"])) as session:
-        if key.endswith("/map") and "*" not in key:
-            for reply in session.get(key, timeout=timeout_s or 5.0):
-                if reply.ok is not None:
-                    print(format_sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()), flush=True)
-                    n += 1
-            return 0 if n else 1
-        sub = session.declare_subscriber(key, on_sample)
-        t_end = time.monotonic() + timeout_s if timeout_s else float("inf")
-        try:
-            while not done.is_set() and time.monotonic() < t_end:
-                done.wait(0.1)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            done.set()
-            sub.undeclare()
-    sys.stdout.flush()
-    return 0 if n or not count else 1

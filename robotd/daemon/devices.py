@@ -1,0 +1,85 @@
+"""Opening the daemon's devices: the camera, the vehicle link and, when it is elsewhere, the
+autopilot link; a missing hardware device is a degraded state with retries, not an exit."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import drivers
+from robotd.config import Config
+from robotd.daemon.sdnotify import Notifier
+from robotd.errors import DriverError
+
+logger = logging.getLogger(__name__)
+
+# devices that can appear later (plugged in, powered up): opening them is retried
+HARDWARE_SCHEMES = ("oak", "serial", "mavlink+udp", "mavlink+serial")
+D = TypeVar("D")
+
+
+@dataclass(frozen=True, slots=True)
+class Devices:
+    camera: drivers.StereoCamera
+    vehicle: drivers.VehicleLink
+    autopilot: drivers.AutopilotLink | None  # where the pose goes, if anywhere
+    autopilot_link: drivers.VehicleLink | None  # a MAVLink link opened only for the pose
+
+
+def link_options(cfg: Config, url: str) -> dict[str, Any]:
+    """Driver keywords from the config for a MAVLink link (other links take theirs from the URL)."""
+    if not url.startswith("mavlink"):
+        return {}
+    m = cfg.mavlink
+    opts: dict[str, Any] = {"sysid": m.system_id, "message": m.message}
+    if m.signing_key_file:
+        opts["signing_key"] = m.signing_key_file
+    if m.set_origin:
+        opts["origin"] = (m.origin_lat_deg, m.origin_lon_deg, m.origin_alt_m)
+    return opts
+
+
+def open_devices(cfg: Config, stack: contextlib.ExitStack, stop: threading.Event, notifier: Notifier) -> Devices:
+    """Open the camera and the vehicle link (and a separate autopilot link when ``mavlink.enabled``
+    and the vehicle link is not MAVLink); each is closed when ``stack`` unwinds."""
+
+    def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str) -> D:
+        return open_with_retry(stack, kind, opener, url, stop, notifier, **link_options(cfg, url))
+
+    camera = open_("camera", drivers.open_camera, cfg.camera.url)
+    vehicle = open_("vehicle", drivers.open_vehicle, cfg.vehicle.url)
+    if cfg.mavlink.enabled and not cfg.vehicle.url.startswith("mavlink"):
+        # odometry from one link (e.g. the MCU over serial), the pose to the autopilot on another
+        link = open_("autopilot", drivers.open_vehicle, cfg.mavlink.url)
+        return Devices(camera, vehicle, link.autopilot, link)
+    return Devices(camera, vehicle, vehicle.autopilot, None)
+
+
+def open_with_retry(
+    stack: contextlib.ExitStack,
+    kind: str,
+    opener: Callable[..., contextlib.AbstractContextManager[D]],
+    url: str,
+    stop: threading.Event,
+    notifier: Notifier,
+    **options: Any,
+) -> D:
+    """Open a driver; a missing hardware device is retried (backing off to 10 s) until ``stop``."""
+    delay = 0.5
+    while True:
+        try:
+            return stack.enter_context(opener(url, **options))
+        except DriverError as exc:
+            if stop.is_set():
+                raise
+            if url.split("://")[0] not in HARDWARE_SCHEMES:
+                raise  # a simulator or dataset that fails to open will not heal by waiting
+            logger.error("%s %s unavailable: %s; retrying in %.1f s", kind, url, exc, delay)
+            notifier.status(f"waiting for {kind}: {exc}")
+            if stop.wait(delay):
+                raise
+            delay = min(delay * 2, 10.0)

@@ -1,0 +1,157 @@
+"""The daemon's health: counters kept by its threads, the health document (``robotd/<id>/health``,
+docs/topics.md) and the once-a-second status line (stderr, systemd STATUS=)."""
+
+from __future__ import annotations
+
+import os
+import resource
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from robotd.daemon.budget import LatencyBudget, StageTimer
+from robotd.geometry import se3_inverse
+from robotd.outputs.base import StepReport
+from robotd.queues import DropOldestQueue
+
+
+def rss_mb() -> float:
+    """Resident set size now (Linux /proc), MB."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+
+
+class HasStats(Protocol):
+    def stats(self) -> dict[str, Any]: ...
+
+
+@dataclass
+class DaemonStats:
+    started_ns: int = field(default_factory=time.monotonic_ns)
+    frames_in: int = 0
+    odometry_in: int = 0
+    steps: int = 0
+    step_errors: int = 0
+    last_step_ns: int = 0
+    published: int = 0
+    latencies_ms: list[float] = field(default_factory=list)  # capture → publish, last window
+    seq_gaps: int = 0
+    reset_counter: int = 0
+    last_error_m: float = float("nan")
+    max_latency_window: int = 2000
+
+    def add_latency(self, ms: float) -> None:
+        self.latencies_ms.append(ms)
+        if len(self.latencies_ms) > self.max_latency_window:
+            del self.latencies_ms[: len(self.latencies_ms) - self.max_latency_window]
+
+
+class HealthMonitor:
+    """What the threads report (steps, published results) and the documents made from it."""
+
+    def __init__(self) -> None:
+        self.stats = DaemonStats()
+        self.timer = StageTimer()  # stage latencies over the last frames
+        self._lock = threading.Lock()
+        self._last: StepReport | None = None
+        self._first_truth_inv: np.ndarray | None = None
+
+    def on_step(self, timings_ms: Mapping[str, float]) -> None:
+        """SLAM thread: one step completed."""
+        for k, v in timings_ms.items():
+            self.timer.add(k, v)
+        self.stats.steps += 1
+        self.stats.last_step_ns = time.monotonic_ns()
+
+    def on_published(self, report: StepReport, truth_T_world_robot: np.ndarray | None) -> None:
+        """Publisher thread: a step's report went to the outputs; ``truth``: the simulator's pose."""
+        self.stats.add_latency(report.latency_ms)
+        self.stats.published += 1
+        self.stats.reset_counter = report.reset_counter
+        if truth_T_world_robot is not None:
+            if self._first_truth_inv is None:
+                self._first_truth_inv = se3_inverse(truth_T_world_robot)
+            T_true = self._first_truth_inv @ truth_T_world_robot
+            est = report.result.pose.T_world_robot
+            self.stats.last_error_m = float(np.linalg.norm(est[:3, 3] - T_true[:3, 3]))
+        with self._lock:
+            self._last = report
+
+    @property
+    def last(self) -> StepReport | None:
+        with self._lock:
+            return self._last
+
+    def doc(
+        self,
+        ready: bool,
+        budget: LatencyBudget,
+        frame_q: DropOldestQueue[Any],
+        odo_q: DropOldestQueue[Any],
+        devices: Mapping[str, HasStats | None],
+    ) -> dict[str, Any]:
+        """The health document (docs/topics.md ``robotd.health/1``)."""
+        lat = np.asarray(self.stats.latencies_ms[-300:]) if self.stats.latencies_ms else np.zeros(0)
+        last = self.last
+        res = last.result if last else None
+        return {
+            "t_ns": time.monotonic_ns(),
+            "uptime_s": round((time.monotonic_ns() - self.stats.started_ns) / 1e9, 3),
+            "ready": ready,
+            "tracking": bool(res.tracking) if res else False,
+            "quality": last.quality if last else 0,
+            "stages_ms": self.timer.percentiles(),
+            "latency_ms": {
+                "p50": float(np.percentile(lat, 50)) if lat.size else None,
+                "p99": float(np.percentile(lat, 99)) if lat.size else None,
+            },
+            "frames_in": self.stats.frames_in,
+            "frames_processed": self.stats.steps,
+            "frame_drops": frame_q.dropped,
+            "odometry_drops": odo_q.dropped,
+            "seq_gaps": self.stats.seq_gaps,
+            "step_errors": self.stats.step_errors,
+            "budget": budget.health(),
+            "neff": None if not res or not np.isfinite(res.pose.neff) else float(res.pose.neff),
+            "particles": res.pose.n_particles if res else 0,
+            "features": res.counts.get("features_left", 0) if res else 0,
+            "landmarks": res.counts.get("landmarks", 0) if res else 0,
+            "error_vs_truth_m": None if not np.isfinite(self.stats.last_error_m) else self.stats.last_error_m,
+            "rss_mb": round(rss_mb(), 1),
+            **{name: _safe_stats(dev) for name, dev in devices.items()},
+        }
+
+    def status_line(self, h: Mapping[str, Any], fps: float) -> str:
+        """The once-a-second line: pose, error against truth, latency, rate, map and budget."""
+        last = self.last
+        if last is None:
+            return f"waiting for frames (in {h['frames_in']}, odometry {self.stats.odometry_in})"
+        p = last.result.pose
+        yaw = np.degrees(p.rpy_rad[2])
+        err = h["error_vs_truth_m"]
+        lat = h["latency_ms"]
+        return (
+            f"pose x {p.xyz_W_m[0]:+7.2f} y {p.xyz_W_m[1]:+7.2f} z {p.xyz_W_m[2]:+6.2f} m yaw {yaw:+6.1f}° | "
+            f"err {'n/a' if err is None else f'{err:.3f} m'} | "
+            f"latency p50 {lat['p50'] or 0:.1f} p99 {lat['p99'] or 0:.1f} ms | "
+            f"{fps:.1f} fps, drops {h['frame_drops']} | lm {h['landmarks']} feat {h['features']} | "
+            f"q {last.quality} budget L{h['budget']['level']}"
+        )
+
+
+def _safe_stats(dev: HasStats | None) -> dict[str, Any]:
+    if dev is None:
+        return {}
+    try:
+        s = dev.stats()
+        return {k: v for k, v in s.items() if isinstance(v, int | float | str | bool) or v is None}
+    except Exception as exc:
+        return {"error": str(exc)}

@@ -1,0 +1,409 @@
+"""The daemon: signals → startup → loop → graceful shutdown (design.md §5.10, interfaces.md §4).
+
+Threads:
+
+- camera: ``camera.frames()`` → frame queue (bounded, drop-oldest, counted)
+- vehicle: ``vehicle.odometry()`` → odometry queue (bounded, drop-oldest, counted)
+- slam: frame queue → odometry integrated to the frame's capture time → ``Pipeline.step`` →
+  publish queue; the latency budget degrades (features, particles, frame skipping) and recovers.
+  It is the only thread that touches the pipeline: the map and state snapshots the outputs ask
+  for are taken here, between steps.
+- publisher: every step's :class:`~robotd.outputs.base.StepReport` to every output (robotd.outputs)
+- main: supervises: sd_notify (READY=1 once camera and vehicle deliver, WATCHDOG=1 only on real
+  SLAM progress, STATUS=), the once-a-second health line, the health document for the outputs,
+  and the stop flag that the signal handlers set (they do nothing else).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+import drivers
+from robotd.autopilot import ResetCounterPolicy, ResetEvent
+from robotd.config import Config
+from robotd.daemon.budget import LatencyBudget, StageTimer
+from robotd.daemon.devices import open_devices
+from robotd.daemon.health import DaemonStats, HealthMonitor
+from robotd.daemon.sdnotify import Notifier
+from robotd.daemon.signals import StopSignals
+from robotd.daemon.threadpools import ThreadLimits, limit_threads
+from robotd.errors import RobotdError
+from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+from robotd.odometry import OdometryIntegrator
+from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
+from robotd.outputs.base import shortest_period
+from robotd.outputs.mapfile import MapFileOutput
+from robotd.outputs.recorder import RecorderOutput
+from robotd.pipeline import Pipeline
+from robotd.queues import DropOldestQueue
+
+logger = logging.getLogger("robotd.daemon")  # the name users filter the lifecycle lines by
+
+JOIN_TIMEOUT_S = 2.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Stepped:
+    """One SLAM result on its way from the SLAM thread to the publisher thread, with the
+    snapshots taken for the outputs that asked for them."""
+
+    frame: StereoFrame
+    result: StepResult
+    event: str | None  # a pose discontinuity in this step (ResetEvent)
+    landmarks: LandmarkMap | None
+    state: dict[str, Any] | None
+
+
+class Daemon:
+    def __init__(
+        self,
+        cfg: Config,
+        duration_s: float = 0.0,
+        environ: dict[str, str] | None = None,
+        record_path: str | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.record_path = record_path
+        self.duration_s = duration_s
+        self.stop_event = threading.Event()
+        self.signals = StopSignals(self.stop_event)
+        self._stop_reason = ""
+        self.notifier = Notifier(environ)
+        self.health = HealthMonitor()
+        self.frame_q: DropOldestQueue[StereoFrame] = DropOldestQueue(cfg.camera.queue_size)
+        self.odo_q: DropOldestQueue[Odometry] = DropOldestQueue(cfg.vehicle.queue_size)
+        self.pub_q: DropOldestQueue[_Stepped] = DropOldestQueue(64)
+        self.integrator = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
+        self.camera: drivers.StereoCamera | None = None
+        self.vehicle: drivers.VehicleLink | None = None
+        self.autopilot_link: drivers.VehicleLink | None = None  # a MAVLink link opened only for the pose
+        self.reset_policy = ResetCounterPolicy()
+        self._pending_event: str | None = None  # a discontinuity before the first step (map load)
+        self.pipeline: Pipeline | None = None
+        self.budget: LatencyBudget | None = None
+        self.maps: MapFileOutput | None = None
+        self.outputs: list[Output] = []
+        self.threads: list[threading.Thread] = []
+        self._ready = False
+        self.resumed = False
+        self.exit_code = 0
+        self._limits = ThreadLimits()
+
+    @property
+    def stop_reason(self) -> str:
+        """Why the daemon stopped: the signal's name, "duration reached", "source ended", ..."""
+        return self._stop_reason or self.signals.reason
+
+    @stop_reason.setter
+    def stop_reason(self, why: str) -> None:
+        self._stop_reason = why
+
+    @property
+    def stats(self) -> DaemonStats:
+        return self.health.stats
+
+    @property
+    def timer(self) -> StageTimer:
+        return self.health.timer
+
+    # ------------------------------------------------------------------ startup
+    def startup(self, stack: contextlib.ExitStack) -> None:
+        cfg = self.cfg
+        logger.info(
+            "robotd starting: robot %s, seed %d, camera %s, vehicle %s, filter %s %dD",
+            cfg.robot.id,
+            cfg.robot.seed,
+            cfg.camera.url,
+            cfg.vehicle.url,
+            cfg.slam.filter,
+            cfg.slam.dim,
+        )
+        dev = open_devices(cfg, stack, self.stop_event, self.notifier)
+        self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
+        rig = dev.camera.rectified_model()
+        logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
+        self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
+        warm_s = self.pipeline.warmup()
+        self._limits = limit_threads(self.pipeline.frontend.params.parallel_detect, cfg.slam.blas_threads)
+        logger.info("filter and matcher kernels ready in %.1f s", warm_s)
+        fps = dev.camera.fps or 30.0
+        deadline = cfg.budget.deadline_ms or 1000.0 / fps
+        particles = cfg.slam.filter != "ekf"
+        self.budget = LatencyBudget(
+            deadline,
+            cfg.frontend.max_features,
+            cfg.slam.n_particles if particles else 1,
+            min(cfg.budget.min_features, cfg.frontend.max_features),
+            min(cfg.budget.min_particles, cfg.slam.n_particles) if particles else 1,
+            cfg.budget.recover_after_frames,
+            warmup_frames=int(fps),  # the first second: caches and the first map
+            frame_period_ms=1000.0 / fps,
+        )
+        logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
+        # the map file is an input too: resume before the first step, then save like any output
+        self.maps = stack.enter_context(MapFileOutput(cfg.persistence, cfg.robot.id))
+        if cfg.persistence.resume and self.maps.resume(self.pipeline):
+            self.resumed = True
+            self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
+        meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
+        ctx = OutputContext(cfg, rig, dev.autopilot, self.record_path, meta, dev.camera.raw_calibration)
+        self.outputs = [self.maps, *build_outputs(ctx, stack)]
+        logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
+
+    # ------------------------------------------------------------------ threads
+    def _camera_loop(self) -> None:
+        assert self.camera is not None
+        try:
+            for frame in self.camera.frames(timeout_s=0.5):
+                if self.stop_event.is_set():
+                    break
+                self.stats.frames_in += 1
+                self.frame_q.put(frame)
+        except RobotdError as exc:
+            logger.error("camera thread stopped: %s", exc)
+        except Exception:
+            logger.exception("camera thread crashed")
+        finally:
+            if not self.stop_event.is_set() and self.duration_s == 0.0:
+                logger.info("camera source ended")
+            self.frame_q.close()
+
+    def _vehicle_loop(self) -> None:
+        assert self.vehicle is not None
+        try:
+            for odo in self.vehicle.odometry(timeout_s=0.5):
+                if self.stop_event.is_set():
+                    break
+                self.stats.odometry_in += 1
+                self.odo_q.put(odo)
+        except RobotdError as exc:
+            logger.error("vehicle thread stopped: %s", exc)
+        except Exception:
+            logger.exception("vehicle thread crashed")
+
+    def _slam_loop(self) -> None:
+        assert self.pipeline is not None and self.budget is not None
+        pipeline, budget = self.pipeline, self.budget
+        last_t: int | None = None
+        last_seq: int | None = None
+        map_period = shortest_period(self.outputs, "map_period_s")
+        state_period = shortest_period(self.outputs, "state_period_s")
+        next_map, next_state = 0.0, time.monotonic() + state_period
+        while not self.stop_event.is_set():
+            frame = self.frame_q.get(timeout=0.2)
+            if frame is None:
+                if self.frame_q.closed:
+                    break
+                continue
+            odometry = self.odo_q.drain()
+            for out in self.outputs:  # what is recorded is exactly what SLAM consumes
+                out.record_inputs(frame, odometry)
+            for odo in odometry:
+                self.integrator.add(odo)
+            if last_seq is not None and frame.seq > last_seq + 1:
+                self.stats.seq_gaps += 1
+            last_seq = frame.seq
+            if not budget.should_process():
+                continue
+            inc = self.integrator.integrate(last_t, frame.t_ns) if last_t is not None else None
+            t0 = time.perf_counter()
+            try:
+                result = pipeline.step(frame, inc)
+            except RobotdError as exc:
+                self.stats.step_errors += 1
+                logger.error("frame %d skipped: %s", frame.seq, exc)
+                continue
+            frame_ms = (time.perf_counter() - t0) * 1e3
+            # the budget judges what the deadline is about: capture to result, queue wait included
+            latency_ms = (time.monotonic_ns() - frame.t_ns) / 1e6
+            last_t = frame.t_ns
+            self.integrator.prune_before(frame.t_ns)
+            self.health.on_step(result.timings_ms)
+            state = budget.record(frame_ms, latency_ms)
+            pipeline.set_max_features(state.max_features)
+            if self.cfg.slam.filter != "ekf":
+                pipeline.set_particles(state.n_particles)
+            now = time.monotonic()
+            landmarks = snapshot = None
+            if now >= next_map:
+                next_map, landmarks = now + map_period, pipeline.estimator.landmarks()
+            if now >= next_state:
+                next_state, snapshot = now + state_period, pipeline.state_dict()
+            event = ResetEvent.RELOCALISATION if result.relocalised else None
+            self.pub_q.put(_Stepped(frame, result, event, landmarks, snapshot))
+        self.pub_q.close()
+
+    def _publisher_loop(self) -> None:
+        seq = 0
+        while True:
+            item = self.pub_q.get(timeout=0.2)
+            if item is None:
+                if self.pub_q.closed:
+                    break
+                continue
+            res = item.result
+            seq += 1
+            event, self._pending_event = self._pending_event or item.event, None
+            report = StepReport(
+                result=res,
+                seq=seq,
+                frame_seq=item.frame.seq,
+                quality=pose_quality(res, self.cfg.frontend.min_inliers),
+                reset_counter=self.reset_policy.update(res.pose, event),
+                latency_ms=(time.monotonic_ns() - res.t_ns) / 1e6,
+                health=self._health_state(res),
+                landmarks=item.landmarks,
+                state=item.state,
+            )
+            self.health.on_published(report, item.frame.truth_T_world_robot)
+            for out in self.outputs:
+                try:
+                    out.publish(report)
+                except RobotdError as exc:
+                    logger.warning("output %s: %s", out.name, exc)
+
+    def _health_state(self, result: StepResult) -> str:
+        if not result.tracking:
+            return "failed"
+        if self.budget is not None and self.budget.state.level > 0:
+            return "degraded"
+        return "tracking"
+
+    # ------------------------------------------------------------------ health
+    def record_summary(self) -> dict[str, Any]:
+        rec = next((o for o in self.outputs if isinstance(o, RecorderOutput)), None)
+        counts = rec.stats() if rec is not None else {"out": self.record_path, "frames": 0, "odometry": 0, "poses": 0}
+        return {**counts, "frames_dropped": self.frame_q.dropped}
+
+    def health_doc(self) -> dict[str, Any]:
+        assert self.budget is not None
+        devices = {"camera": self.camera, "vehicle": self.vehicle}
+        return self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> int:
+        self.signals.install()
+        try:
+            with contextlib.ExitStack() as stack:
+                try:
+                    self.startup(stack)
+                except RobotdError as exc:
+                    if self.stop_event.is_set():
+                        logger.info("stopped during startup (%s)", self.stop_reason)
+                        return 0
+                    logger.error("startup failed: %s", exc)
+                    self.notifier.notify(f"STATUS=startup failed: {exc}", "ERRNO=1")
+                    return 2
+                self._start_threads()
+                try:
+                    self._supervise()
+                finally:
+                    self._shutdown()
+            return self.exit_code
+        finally:
+            self.signals.restore()
+
+    def _start_threads(self) -> None:
+        for name, fn in (
+            ("camera", self._camera_loop),
+            ("vehicle", self._vehicle_loop),
+            ("slam", self._slam_loop),
+            ("publisher", self._publisher_loop),
+        ):
+            t = threading.Thread(target=fn, name=f"robotd-{name}", daemon=True)
+            t.start()
+            self.threads.append(t)
+
+    def _supervise(self) -> None:
+        cfg = self.cfg
+        t_start = time.monotonic()
+        next_status = t_start + cfg.log.status_period_s
+        health_period = shortest_period(self.outputs, "health_period_s")
+        next_health = t_start + health_period
+        wd = self.notifier.watchdog_interval_s
+        next_wd = t_start
+        last_steps = 0
+        last_rate_t, last_rate_steps = t_start, 0
+        needs_vehicle = not cfg.vehicle.url.startswith("none:")
+        while not self.stop_event.wait(0.05):
+            now = time.monotonic()
+            if self.duration_s and now - t_start >= self.duration_s:
+                self.stop_reason = "duration reached"
+                break
+            if not self.threads[2].is_alive():
+                self.stop_reason = "source ended"
+                break
+            if not self._ready and self.stats.steps > 0 and (self.stats.odometry_in > 0 or not needs_vehicle):
+                self._ready = True
+                self.notifier.ready("tracking")
+                logger.info("ready: camera and vehicle link deliver (first step after %.2f s)", now - t_start)
+            if wd is not None and now >= next_wd:
+                # ping only on real progress: SLAM completed a step since the last ping
+                if self.stats.steps > last_steps:
+                    self.notifier.watchdog()
+                    last_steps = self.stats.steps
+                next_wd = now + wd / 2
+            if now >= next_health:
+                next_health = now + health_period
+                doc = self.health_doc()
+                for out in self.outputs:
+                    out.publish_health(doc)
+            if now >= next_status:
+                next_status = now + cfg.log.status_period_s
+                fps = (self.stats.steps - last_rate_steps) / max(now - last_rate_t, 1e-6)
+                last_rate_t, last_rate_steps = now, self.stats.steps
+                line = self.health.status_line(self.health_doc(), fps)
+                logger.info(line)
+                self.notifier.status(line[:200])
+        if self.stop_event.is_set() and not self.stop_reason:
+            self.stop_reason = "stop requested"
+
+    def final_state(self) -> dict[str, Any] | None:
+        """The pipeline's state at shutdown, once the SLAM thread has stopped (nothing else touches
+        the estimator); None when no step ran or the thread is still running."""
+        if self.pipeline is None or self.stats.steps == 0:
+            return None
+        if any(t.name == "robotd-slam" and t.is_alive() for t in self.threads):
+            logger.error("map not saved at shutdown: the SLAM thread is still running")
+            return None
+        return self.pipeline.state_dict()
+
+    def _shutdown(self) -> None:
+        t0 = time.monotonic()
+        logger.info("shutting down (%s)", self.stop_reason or "stop")
+        self.notifier.stopping(f"stopping: {self.stop_reason}")
+        self.stop_event.set()
+        for dev in (self.camera, self.vehicle, self.autopilot_link):
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.close()
+        self.frame_q.close()
+        for t in self.threads:
+            t.join(JOIN_TIMEOUT_S)
+            if t.is_alive():
+                logger.warning("thread %s did not stop within %.1f s", t.name, JOIN_TIMEOUT_S)
+        self._limits.restore()
+        state = self.final_state()
+        for out in self.outputs:
+            out.finish(state, time.monotonic_ns())
+        lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
+        logger.info(
+            "stopped after %d steps: latency p50 %.1f ms p99 %.1f ms, %d frames dropped, shutdown %.2f s",
+            self.stats.steps,
+            np.percentile(lat, 50),
+            np.percentile(lat, 99),
+            self.frame_q.dropped,
+            time.monotonic() - t0,
+        )
+        self.notifier.close()
+
+
+def run_daemon(cfg: Config, duration_s: float = 0.0) -> int:
+    return Daemon(cfg, duration_s).run()

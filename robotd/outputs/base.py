@@ -1,0 +1,101 @@
+"""What every output of the daemon receives, and the base class the outputs build on.
+
+An output is one destination for what SLAM produces: the Zenoh topics, the autopilot link, the
+MCAP recording, the map file. The daemon calls every output's hooks the same way, each on a
+known thread:
+
+- :meth:`Output.record_inputs` (SLAM thread, before each step): the frame and the odometry that
+  step consumes, exactly (a recording replays bit for bit);
+- :meth:`Output.publish` (publisher thread, after each step): the step's :class:`StepReport`;
+- :meth:`Output.publish_health` (supervisor thread, every ``health_period_s``): the health document;
+- :meth:`Output.finish` (shutdown, after the SLAM thread stopped): the final pipeline state;
+- :meth:`Output.close` (when the daemon's ExitStack unwinds).
+
+An output that wants the landmark map or the pipeline's state sets ``map_period_s`` /
+``state_period_s``: the SLAM thread then takes that snapshot between steps (it is the only
+thread that touches the pipeline) and hands it over in the report.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Self
+
+from robotd.autopilot import quality_from
+from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+
+HEALTH_STATES = ("tracking", "degraded", "failed")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StepReport:
+    """One step's result as every output receives it.
+
+    seq: publish sequence number (1, 2, …); frame_seq: the camera's sequence number of the frame.
+    quality: MAVLink convention, −1 lost, 1..100 (:func:`pose_quality`). reset_counter: bumps at
+    every pose discontinuity (interfaces.md §1.5). latency_ms: capture to hand-over to the
+    outputs. health: "tracking" | "degraded" (the latency budget is trading accuracy for time) |
+    "failed" (tracking lost). landmarks / state: the snapshots taken for outputs that asked for
+    them (``map_period_s`` / ``state_period_s``), else None.
+    """
+
+    result: StepResult
+    seq: int
+    frame_seq: int
+    quality: int
+    reset_counter: int
+    latency_ms: float
+    health: str
+    landmarks: LandmarkMap | None = None
+    state: Mapping[str, Any] | None = None
+
+
+def pose_quality(result: StepResult, min_inliers: int) -> int:
+    """The pose's quality in MAVLink's convention (robotd.autopilot.quality_from): −1 lost, else
+    1..100 from the accepted correspondences and N_eff/N."""
+    pose = result.pose
+    return quality_from(
+        result.tracking, result.counts.get("identified", 0), pose.neff, pose.n_particles, min_inliers=min_inliers
+    )
+
+
+class Output:
+    """Base of the daemon's outputs: every hook does nothing; an output overrides what it needs."""
+
+    name = "output"
+    map_period_s: float | None = None  # a LandmarkMap snapshot in the report this often
+    state_period_s: float | None = None  # a pipeline state snapshot (Pipeline.state_dict) this often
+    health_period_s: float | None = None  # publish_health this often
+
+    def record_inputs(self, frame: StereoFrame, odometry: Sequence[Odometry]) -> None:
+        """SLAM thread: the inputs of the next step, in the order it consumes them."""
+
+    def publish(self, report: StepReport) -> None:
+        """Publisher thread: every step's result. A RobotdError is logged and counted; the others go on."""
+
+    def publish_health(self, health: Mapping[str, Any]) -> None:
+        """Supervisor thread: the daemon's health document."""
+
+    def finish(self, state: Mapping[str, Any] | None, t_ns: int) -> None:
+        """Shutdown, once the SLAM thread stopped: the final pipeline state (None when no step ran)."""
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the health output."""
+        return {}
+
+    def close(self) -> None:
+        """Release what the output holds (sessions, files, threads)."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def shortest_period(outputs: Sequence[Output], attr: str) -> float:
+    """The smallest positive ``attr`` period among ``outputs`` (inf when none asks)."""
+    periods = [p for o in outputs if (p := getattr(o, attr)) is not None and p > 0]
+    return min(periods) if periods else math.inf

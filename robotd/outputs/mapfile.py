@@ -1,0 +1,96 @@
+"""The map-file output: the pipeline's state (filter and landmark descriptors) saved to disk
+periodically and at shutdown, and the resume from it at start-up (robotd.persist: atomic,
+versioned, checked; a bad file is moved aside, never overwritten).
+
+The SLAM thread takes the state snapshot between steps; the file is written on this output's own
+writer thread, so a save (fsync included) never delays the poses.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from robotd.config import PersistenceConfig
+from robotd.errors import PersistenceError
+from robotd.outputs.base import Output, StepReport
+from robotd.persist import MapStore, default_state_dir
+from robotd.pipeline import Pipeline
+from robotd.queues import DropOldestQueue
+
+logger = logging.getLogger(__name__)
+
+
+class MapFileOutput(Output):
+    """Saves the map under ``persistence.state_dir`` (or $STATE_DIRECTORY, or ~/.local/state/robotd)."""
+
+    name = "map_file"
+
+    def __init__(self, cfg: PersistenceConfig, robot_id: str) -> None:
+        self.store = MapStore(default_state_dir(cfg.state_dir), robot_id)
+        self.state_period_s = cfg.save_period_s if cfg.save_period_s > 0 else None
+        self._queue: DropOldestQueue[tuple[int, Mapping[str, Any]]] = DropOldestQueue(1)
+        self._thread = threading.Thread(target=self._writer, name="robotd-mapfile", daemon=True)
+        self._thread.start()
+
+    @property
+    def path(self) -> Path:
+        return self.store.path
+
+    def resume(self, pipeline: Pipeline) -> bool:
+        """Load the saved map into ``pipeline``; False (and a log line) when there is none or it is bad."""
+        if not self.store.exists():
+            logger.info("resume: no saved map in %s, starting a new map", self.store.dir)
+            return False
+        try:
+            saved = self.store.load()
+            pipeline.load_state_dict(saved["state"])
+        except PersistenceError as exc:
+            logger.error("resume failed: %s", exc)
+            return False
+        n = int(pipeline.estimator.landmark_ids().shape[0])
+        logger.info("resumed from saved map %s: %d landmarks", self.store.path, n)
+        return True
+
+    def publish(self, report: StepReport) -> None:
+        if report.state is not None:
+            self._queue.put((report.result.t_ns, report.state))
+
+    def finish(self, state: Mapping[str, Any] | None, t_ns: int) -> None:
+        """The final save, once the SLAM thread stopped (after any periodic save still queued)."""
+        self._stop_writer()
+        if state is not None:
+            self.save(state, t_ns)
+
+    def save(self, state: Mapping[str, Any], t_ns: int) -> bool:
+        try:
+            path = self.store.save(dict(state), t_ns)
+        except PersistenceError as exc:
+            logger.error("%s", exc)
+            return False
+        n = len(state.get("database", {}).get("ids", ()))
+        logger.info("map saved to %s (%d landmarks)", path, n)
+        return True
+
+    def stats(self) -> dict[str, Any]:
+        return {"saves": self.store.saves, "failures": self.store.failures}
+
+    def close(self) -> None:
+        self._stop_writer()
+
+    def _writer(self) -> None:
+        while True:
+            item = self._queue.get(timeout=0.5)
+            if item is None:
+                if self._queue.closed:
+                    return
+                continue
+            self.save(item[1], item[0])
+
+    def _stop_writer(self) -> None:
+        self._queue.close()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join()
