@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# the project root first: bench/drivers.py (a benchmark) would otherwise shadow the drivers package
+# the project root first, so the checkout is benchmarked even where another robotd is installed
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.sim import SimParams, SimRig

@@ -6,7 +6,7 @@ MAVLink messages/s over loopback UDP with the mock autopilot) and the camera ben
 through a real depthai host-side Sync node, dataset read + rectify) as subprocesses, so each gets
 a clean interpreter, and merges their JSON.
 
-    python bench/drivers.py [--json]
+    python bench/driver_rates.py [--json]
 """
 
 from __future__ import annotations
@@ -23,8 +23,7 @@ HERE = Path(__file__).resolve().parent
 
 def _run(script: str, extra: list[str]) -> dict[str, Any]:
     out = subprocess.run(
-        # -P: do not put bench/ first on sys.path, where this file would shadow the drivers package
-        [sys.executable, "-P", str(HERE / script), "--json", *extra],
+        [sys.executable, str(HERE / script), "--json", *extra],
         capture_output=True,
         text=True,
         check=False,
