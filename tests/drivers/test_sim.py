@@ -14,6 +14,7 @@ from drivers import AutopilotLink, StereoCamera, VehicleLink, open_camera, open_
 from drivers.sim import SimVehicle, open_sim_camera, open_sim_vehicle, parse_sim_url
 from robotd.errors import DriverError
 from robotd.geometry import T_to_pose6, se3, se3_inverse, so3_exp
+from tests.support.paths import REPO
 
 SMALL = "width=160&height=100"  # fast renders where the image content does not matter
 
@@ -237,9 +238,8 @@ def test_send_pose_reports_the_error_against_truth():
 def test_render_benchmark_prints_exactly_one_json_object(capsys: pytest.CaptureFixture[str]):
     import importlib.util
     import json
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "sim_render.py"
+    path = REPO / "bench" / "sim_render.py"
     spec = importlib.util.spec_from_file_location("bench_sim_render", path)
     assert spec is not None and spec.loader is not None
     bench = importlib.util.module_from_spec(spec)

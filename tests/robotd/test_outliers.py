@@ -23,7 +23,7 @@ from robotd.outliers import (
     similarity_d2,
 )
 from robotd.research.synthetic_pairs import simulate_pairs
-from support.reference_outliers import fit_similarity_mahalanobis_numpy, similarity_d2_numpy
+from tests.support.reference_outliers import fit_similarity_mahalanobis_numpy, similarity_d2_numpy
 
 CHI2_3_099 = 11.345
 

@@ -19,7 +19,7 @@ from robotd.frontend.stereo_match import (
     ratio_and_cross_check,
     refine_disparity,
 )
-from support.reference_frontend import ratio_and_cross_check_numpy, refine_disparity_numpy
+from tests.support.reference_frontend import ratio_and_cross_check_numpy, refine_disparity_numpy
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_match_stereo_on_rendered_pair(sim_pair):
 
 def test_bucket_kernel_equals_numpy(rng):
     from robotd.frontend.detectors import bucket_select
-    from support.reference_frontend import bucket_select_numpy
+    from tests.support.reference_frontend import bucket_select_numpy
 
     for trial in range(80):
         n = int(rng.integers(1, 5000))

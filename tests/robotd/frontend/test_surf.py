@@ -17,8 +17,8 @@ from robotd.errors import ConfigError, InputError
 from robotd.frontend import _surf_kernels as K
 from robotd.frontend import surf as S
 from robotd.frontend.features import Features
-from support.reference_surf import box_filter_kernels, describe_reference, hessian_layer_reference
 from tests.conftest import data_path
+from tests.support.reference_surf import box_filter_kernels, describe_reference, hessian_layer_reference
 
 # --- helpers ---------------------------------------------------------------------------------
 

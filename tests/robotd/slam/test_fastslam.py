@@ -14,8 +14,8 @@ from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam, fastslam_step
 from robotd.slam.params import SlamParams
 from robotd.slam.resampling import effective_sample_size, low_variance_indices, weighted_pose_mean
-from support.reference_fastslam import fastslam_step_reference
-from tests._slam_world import World
+from tests.support.reference_fastslam import fastslam_step_reference
+from tests.support.slam_world import World
 
 AGREE = 1e-9  # vectorised vs reference, same random draws
 

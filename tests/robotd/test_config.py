@@ -11,8 +11,7 @@ import pytest
 from robotd.cli import main
 from robotd.config import Config, config_from_dict, load_config, to_toml
 from robotd.errors import ConfigError
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.support.paths import REPO
 
 
 def test_defaults_are_frozen_dataclasses() -> None:

@@ -12,7 +12,7 @@ from robotd.slam._store import LandmarkStore
 from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
-from support.reference_fastslam import fastslam_step_reference
+from tests.support.reference_fastslam import fastslam_step_reference
 
 nb = pytest.importorskip("numba")
 K = pytest.importorskip("robotd.slam._kernels")

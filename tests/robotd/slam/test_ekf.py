@@ -10,7 +10,7 @@ from robotd.slam import models as md
 from robotd.slam.ekf import EkfSlam
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
-from tests._slam_world import World
+from tests.support.slam_world import World
 
 
 @pytest.mark.parametrize("dim", [2, 3])

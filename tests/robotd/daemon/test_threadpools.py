@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests.support.paths import REPO
+
 SCRIPT = r"""
 import json, sys, threading, time
 import numpy  # noqa: F401  (loads OpenBLAS with one thread per core)
@@ -51,7 +53,7 @@ def test_blas_threads_limited_while_running_and_restored(tmp_path: Path) -> None
         text=True,
         timeout=120,
         env={**env_free, "OPENBLAS_NUM_THREADS": "2"},
-        cwd=Path(__file__).resolve().parents[1],
+        cwd=REPO,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
@@ -79,7 +81,7 @@ def _cli_env(extra: dict[str, str]) -> dict[str, object]:
         text=True,
         timeout=60,
         env={**env, **extra},
-        cwd=Path(__file__).resolve().parents[1],
+        cwd=REPO,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     r: dict[str, object] = json.loads(out.stdout.strip().splitlines()[-1])

@@ -7,7 +7,7 @@ import pytest
 
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
-from tests._slam_world import World
+from tests.support.slam_world import World
 
 
 def _vec(est) -> np.ndarray:
