@@ -13,11 +13,10 @@ from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
 from tests.support.reference_fastslam import fastslam_step_reference
+from tests.support.tolerances import KERNEL_TWIN_ATOL, ROUNDOFF_ATOL, ULP_ATOL
 
 nb = pytest.importorskip("numba")
 K = pytest.importorskip("robotd.slam._kernels")
-
-AGREE = 1e-9
 
 
 def _spd(rng: np.random.Generator, shape: tuple[int, ...], n: int, scale: float, floor: float) -> np.ndarray:
@@ -60,7 +59,7 @@ def test_world_frame_kernel_matches_reference_at_large_angles(version: int, dim:
     pa, wa = K.fastslam_step_numba(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12)
     pb, wb = fastslam_step_reference(version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
     for name, a, b in (("pose", pa, pb), ("dlogw", wa, wb), ("mean", a_mean, b_mean), ("cov", a_cov, b_cov)):
-        np.testing.assert_allclose(a, b, atol=AGREE, rtol=0, err_msg=name)
+        np.testing.assert_allclose(a, b, atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=name)
     # the weights are informative (not a degenerate constant) and the covariances stay symmetric
     assert np.ptp(wa) > 1.0
     np.testing.assert_array_equal(a_cov, np.swapaxes(a_cov, -1, -2))
@@ -96,8 +95,8 @@ def test_predict3_matches_motion3d(per_particle: bool) -> None:
     xr, _, V = md.motion3d(pose, np.broadcast_to(u, (P, 6)))
     Sr = V @ M @ np.swapaxes(V, -1, -2) + np.diag(extra)
     assert bad == -1 and S is not None
-    np.testing.assert_allclose(x, xr, atol=1e-12, rtol=0)
-    np.testing.assert_allclose(S, Sr, atol=1e-12, rtol=0)
+    np.testing.assert_allclose(x, xr, atol=ROUNDOFF_ATOL, rtol=0)
+    np.testing.assert_allclose(S, Sr, atol=ROUNDOFF_ATOL, rtol=0)
     np.testing.assert_array_equal(S, np.swapaxes(S, -1, -2))
 
 
@@ -136,4 +135,4 @@ def test_angle_addition_matches_trig_on_both_branches() -> None:
     for a in rng.uniform(-np.pi, np.pi, 20):
         for delta in (0.0, 1e-9, -3e-4, 0.0499, -0.0501, 0.7, -2.5):
             c, s = K._turn(np.cos(a), np.sin(a), delta)
-            assert abs(c - np.cos(a + delta)) < 1e-15 and abs(s - np.sin(a + delta)) < 1e-15, (a, delta)
+            assert abs(c - np.cos(a + delta)) < ULP_ATOL and abs(s - np.sin(a + delta)) < ULP_ATOL, (a, delta)

@@ -10,6 +10,7 @@ from robotd.slam import models as md
 from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
+from tests.support.tolerances import ROUNDOFF_ATOL
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -30,5 +31,5 @@ def test_best_view_equals_cartesian_h_at_best_particle(dim: int) -> None:
     model = md.CARTESIAN_3D if dim == 3 else md.CARTESIAN_2D
     m = est.store.gather_particle(4, slots)[0]
     ref = model.h(np.repeat(est.pose[4][None], slots.size, 0), m)[0]
-    np.testing.assert_allclose(est._best_view(slots), ref, atol=1e-12, rtol=0)
+    np.testing.assert_allclose(est._best_view(slots), ref, atol=ROUNDOFF_ATOL, rtol=0)
     np.testing.assert_array_equal(est.store.particle_means(4, slots), m)

@@ -12,6 +12,7 @@ from robotd.research.experiments import run_filter
 from robotd.research.landmark_sim import SimConfig, simulate
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.stereo import covariance_from_points
+from tests.support.tolerances import ROUNDOFF_RTOL
 
 F, B, SX, SY = 430.0, 0.0755, 0.5, 0.5 / np.sqrt(2.0)
 
@@ -37,7 +38,9 @@ def test_exact_prediction_gives_the_covariance_at_the_true_point() -> None:
     lm = LandmarkMap(ids[::-1].copy(), m[::-1].copy(), np.tile(np.eye(3), (8, 1, 1)))  # any order
     out = covariance_at_prediction(obs, pose, lm, F, B, SX, SY, inflation=2.0)
     old = ~is_new
-    np.testing.assert_allclose(out.cov_R[old], 2.0 * covariance_from_points(z_true[old], F, B, SX, SY), rtol=1e-12)
+    np.testing.assert_allclose(
+        out.cov_R[old], 2.0 * covariance_from_points(z_true[old], F, B, SX, SY), rtol=ROUNDOFF_RTOL
+    )
     np.testing.assert_array_equal(out.cov_R[is_new], Q_meas[is_new])  # new landmarks keep Q(z)
     np.testing.assert_array_equal(out.xyz_R_m, obs.xyz_R_m)  # the measurement itself is unchanged
     np.testing.assert_array_equal(obs.cov_R, Q_meas)  # input not modified
@@ -88,6 +91,6 @@ def test_planar_keeps_the_measured_height() -> None:
     obs = Observations(0, z, covariance_from_points(z, F, B, SX, SY), np.array([5], np.int64), np.zeros(1, bool))
     lm = LandmarkMap(np.array([5], np.int64), np.array([[3.0, 0.2, 0.0]]), np.eye(3)[None])
     out = covariance_at_prediction(obs, _pose([0, 0, 0], [0, 0, 0]), lm, F, B, SX, SY, planar=True)
-    np.testing.assert_allclose(out.cov_R[0], covariance_from_points(z, F, B, SX, SY)[0], rtol=1e-12)
+    np.testing.assert_allclose(out.cov_R[0], covariance_from_points(z, F, B, SX, SY)[0], rtol=ROUNDOFF_RTOL)
     flat = covariance_at_prediction(obs, _pose([0, 0, 0], [0, 0, 0]), lm, F, B, SX, SY)
     assert not np.allclose(flat.cov_R[0], out.cov_R[0])  # 3D: the map's height 0 is used

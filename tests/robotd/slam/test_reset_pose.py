@@ -8,6 +8,7 @@ import pytest
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
 from tests.support.slam_world import World
+from tests.support.tolerances import ROUNDOFF_ATOL
 
 
 def _vec(est) -> np.ndarray:
@@ -35,7 +36,7 @@ def test_reset_pose_then_track_from_there(name: str, dim: int) -> None:
     if name == "ekf":
         S = est.covariance()
         assert np.all(S[:dx, dx:] == 0) and np.all(S[dx:, :dx] == 0)  # no stale correlations
-        assert np.linalg.eigvalsh(S).min() > -1e-12
+        assert np.linalg.eigvalsh(S).min() > -ROUNDOFF_ATOL
     else:
         w = est.weights()
         np.testing.assert_allclose(w, 1.0 / w.size)
@@ -81,4 +82,4 @@ def test_pose_from_a_similarity_that_is_not_finite_is_none() -> None:
     assert pose_from_similarity(res(0.0, np.eye(3), np.zeros(3))) is None
     assert pose_from_similarity(res(None, None, None)) is None
     x = pose_from_similarity(res(1.0, np.eye(3), np.array([-1.0, 2.0, 0.0])))  # world → robot shift
-    np.testing.assert_allclose(x, [1.0, -2.0, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(x, [1.0, -2.0, 0.0, 0.0, 0.0, 0.0], atol=ROUNDOFF_ATOL)
