@@ -22,6 +22,7 @@ from robotd.autopilot import (
 )
 from robotd.geometry import euler_to_R, quat_to_R
 from robotd.msgs import PoseEstimate
+from tests.support.tolerances import ROUNDOFF_ATOL
 
 
 def pose(xyz=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0), t_ns=1_000_000_000, cov=None) -> PoseEstimate:
@@ -40,7 +41,7 @@ def test_hand_test() -> None:
     assert odometry_fields(pose((0, 0, -0.3)), 50, 0).z == -0.3  # lifted 0.3 m: z goes down
     # a right turn (positive FRD yaw) maps body forward onto local +y
     q = odometry_fields(pose(rpy=(0, 0, math.pi / 2)), 50, 0).q
-    assert quat_to_R(np.array(q)) @ np.array([1.0, 0, 0]) == pytest.approx([0, 1, 0], abs=1e-12)
+    assert quat_to_R(np.array(q)) @ np.array([1.0, 0, 0]) == pytest.approx([0, 1, 0], abs=ROUNDOFF_ATOL)
 
 
 def test_quaternion_is_ZYX_rpy_and_normalised(rng: np.random.Generator) -> None:
@@ -48,9 +49,9 @@ def test_quaternion_is_ZYX_rpy_and_normalised(rng: np.random.Generator) -> None:
         rpy = rng.uniform([-1.5, -1.4, -math.pi], [1.5, 1.4, math.pi])
         f = odometry_fields(pose(rpy=rpy), 50, 0)
         q = np.array(f.q)
-        assert np.linalg.norm(q) == pytest.approx(1.0, abs=1e-12)
+        assert np.linalg.norm(q) == pytest.approx(1.0, abs=ROUNDOFF_ATOL)
         assert q[0] >= 0
-        assert quat_to_R(q) == pytest.approx(euler_to_R(rpy), abs=1e-12)
+        assert quat_to_R(q) == pytest.approx(euler_to_R(rpy), abs=ROUNDOFF_ATOL)
         assert f.time_usec == 1_000_000
         v = vision_position_fields(pose(rpy=rpy), 3)
         assert (v.roll, v.pitch, v.yaw) == pytest.approx(tuple(rpy))
@@ -123,7 +124,7 @@ def test_velocity_from_poses() -> None:
     yaw = math.pi / 2  # facing local +y
     assert vp.update(pose((0, 0, 0), (0, 0, yaw), t_ns=0), 0) == pytest.approx([0, 0, 0])
     v = vp.update(pose((0, 0.2, 0), (0, 0, yaw), t_ns=100_000_000), 0)
-    assert v == pytest.approx([2.0, 0, 0], abs=1e-12)  # moving forward in the body frame
+    assert v == pytest.approx([2.0, 0, 0], abs=ROUNDOFF_ATOL)  # moving forward in the body frame
     # across a reset the last good value is held
     assert vp.update(pose((5, 5, 0), (0, 0, yaw), t_ns=200_000_000), 1) == pytest.approx([2.0, 0, 0])
 

@@ -8,6 +8,11 @@ import pytest
 from robotd.geometry import so3_exp, so3_log
 from robotd.msgs import Odometry
 from robotd.odometry import OdometryIntegrator
+from tests.support.tolerances import CONDITIONED_ATOL
+
+# the translation is integrated over 100 segments of 10 ms, each with the rotation at its midpoint
+# (second order; measured 9.7e-7 m against the closed form)
+MIDPOINT_INTEGRATION_ATOL = 1e-4
 
 
 def _feed(integ: OdometryIntegrator, v: np.ndarray, w: np.ndarray, t0: int, t1: int, hz: int = 100) -> None:
@@ -25,8 +30,8 @@ def test_integration_of_constant_twist_is_exact() -> None:
     th = 0.5
     R = so3_exp(np.array([0, 0, th]))
     V = np.array([[np.sin(th) / th, -(1 - np.cos(th)) / th, 0], [(1 - np.cos(th)) / th, np.sin(th) / th, 0], [0, 0, 1]])
-    assert np.allclose(inc.dp_R_m, V @ v, atol=1e-4)
-    assert np.allclose(inc.drot_R_rad, so3_log(R), atol=1e-9)
+    assert np.allclose(inc.dp_R_m, V @ v, atol=MIDPOINT_INTEGRATION_ATOL)
+    assert np.allclose(inc.drot_R_rad, so3_log(R), atol=CONDITIONED_ATOL)
     assert inc.dt_s == pytest.approx(1.0)
 
 

@@ -14,6 +14,7 @@ from robotd.daemon.sdnotify import Notifier
 from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap
 from robotd.persist import MapStore
+from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
 def _state(rng: np.random.Generator) -> dict:
@@ -93,8 +94,9 @@ def test_map_message_round_trip(rng: np.random.Generator) -> None:
     meta, back = decode_map(encode_map("r1", 5, lm, seq=3))
     assert meta["robot"] == "r1" and meta["seq"] == 3 and meta["n"] == 20
     assert np.array_equal(back.ids, lm.ids)
-    assert np.allclose(back.xyz_W_m, lm.xyz_W_m, atol=1e-6)
-    assert np.allclose(back.cov_W, lm.cov_W, rtol=1e-6, atol=1e-6)
+    # the map file stores float32
+    assert np.allclose(back.xyz_W_m, lm.xyz_W_m, atol=FLOAT32_ROUNDING_TOL)
+    assert np.allclose(back.cov_W, lm.cov_W, rtol=FLOAT32_ROUNDING_TOL, atol=FLOAT32_ROUNDING_TOL)
     with pytest.raises(PersistenceError, match="expected schema"):
         decode_map(b"\xa1aa\x01")
 

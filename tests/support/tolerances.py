@@ -58,7 +58,7 @@ cases); 1e-9 is far above that and far below what a wrong index or branch gives 
 
 KERNEL_TWIN_RTOL = 1e-10
 """A non-iterative kernel against its twin, relative: the outlier stage's squared Mahalanobis
-distances span many decades, so agreement is relative (measured ≤ 2e-12 relative)."""
+distances span many decades, so agreement is relative (measured ≤ 1e-14 relative)."""
 
 # ------------------------------------------------------------------ derivatives
 
