@@ -14,6 +14,7 @@ from drivers import open_camera
 from drivers.dataset import EurocCamera, read_euroc_truth
 from robotd.errors import DatasetError
 from tests.conftest import data_path
+from tests.support.tolerances import ROUNDOFF_ATOL
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +56,7 @@ def test_euroc_truth_is_stationary_in_robot_frame(euroc_frames) -> None:
     _, frames = euroc_frames
     truth = [f.truth_T_world_robot for f in frames if f.truth_T_world_robot is not None]
     assert len(truth) == 74  # README: 74 ground-truth rows inside the image window
-    np.testing.assert_allclose(truth[0], np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(truth[0], np.eye(4), atol=ROUNDOFF_ATOL)
     assert max(np.linalg.norm(T[:3, 3]) for T in truth) < 0.005  # stationary within 3.3 mm (README)
 
 

@@ -13,6 +13,7 @@ from drivers import StereoCamera, open_camera
 from drivers.dataset import KittiCamera, kitti_truth_to_robot, open_kitti_vehicle
 from robotd.errors import DatasetError, DriverError
 from robotd.geometry import R_ROBOT_OPTICAL, pose6_to_T, se3
+from tests.support.tolerances import CONDITIONED_ATOL, ROUNDOFF_ATOL
 
 F, CX, CY, B = 700.0, 16.0, 8.0, 0.5
 
@@ -49,7 +50,7 @@ def test_kitti_synthetic_layout_times_and_truth(tmp_path: Path) -> None:
     # forward along the optical axis is +x in FRD; the baseline-centre origin does not move sideways
     for i, f in enumerate(frames):
         assert f.truth_T_world_robot is not None
-        np.testing.assert_allclose(f.truth_T_world_robot, se3(np.eye(3), [float(i), 0.0, 0.0]), atol=1e-12)
+        np.testing.assert_allclose(f.truth_T_world_robot, se3(np.eye(3), [float(i), 0.0, 0.0]), atol=ROUNDOFF_ATOL)
 
 
 def test_kitti_times_txt_and_selection(tmp_path: Path) -> None:
@@ -78,8 +79,8 @@ def test_truth_conversion_keeps_the_baseline_centre(rng: np.random.Generator) ->
         T_C0_C = pose6_to_T(np.concatenate([rng.normal(0, 3, 3), rng.normal(0, 0.5, 3)]))
         T = kitti_truth_to_robot(T_C0_C, b)
         centre_C0 = T_C0_C[:3, :3] @ np.array([b / 2, 0, 0]) + T_C0_C[:3, 3]
-        np.testing.assert_allclose(T[:3, 3], R_ROBOT_OPTICAL @ centre_C0 - np.array([0, b / 2, 0]), atol=1e-12)
-        np.testing.assert_allclose(T[:3, :3], R_ROBOT_OPTICAL @ T_C0_C[:3, :3] @ R_ROBOT_OPTICAL.T, atol=1e-12)
+        np.testing.assert_allclose(T[:3, 3], R_ROBOT_OPTICAL @ centre_C0 - np.array([0, b / 2, 0]), atol=ROUNDOFF_ATOL)
+        np.testing.assert_allclose(T[:3, :3], R_ROBOT_OPTICAL @ T_C0_C[:3, :3] @ R_ROBOT_OPTICAL.T, atol=ROUNDOFF_ATOL)
 
 
 def test_kitti_gt_odometry_is_marked_and_visual_only_is_empty(tmp_path: Path) -> None:
@@ -89,8 +90,8 @@ def test_kitti_gt_odometry_is_marked_and_visual_only_is_empty(tmp_path: Path) ->
     odo = list(open_kitti_vehicle(f"kitti://{root}?gt_odometry=1&sigma_vel_mps=0&sigma_rate_radps=0").odometry())
     assert len(odo) == 3 and all(o.source == "gt-synthetic" for o in odo)
     for o in odo:  # 1 m per 0.1 s forward
-        np.testing.assert_allclose(o.vel_R_mps, [10.0, 0.0, 0.0], atol=1e-9)
-        np.testing.assert_allclose(o.rate_R_radps, 0.0, atol=1e-9)
+        np.testing.assert_allclose(o.vel_R_mps, [10.0, 0.0, 0.0], atol=CONDITIONED_ATOL)
+        np.testing.assert_allclose(o.rate_R_radps, 0.0, atol=CONDITIONED_ATOL)
 
 
 def test_kitti_errors_name_the_path(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
 from robotd.errors import DriverError
 from robotd.msgs import PoseEstimate
+from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 m = mavlink_module()
 
@@ -85,7 +86,7 @@ def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
         o = r.msg
         assert (o.frame_id, o.child_frame_id) == (m.MAV_FRAME_LOCAL_FRD, m.MAV_FRAME_BODY_FRD)
         assert (r.msg.get_srcSystem(), r.msg.get_srcComponent()) == (7, 197)
-        assert np.linalg.norm(o.q) == pytest.approx(1.0, abs=1e-6)
+        assert np.linalg.norm(o.q) == pytest.approx(1.0, abs=FLOAT32_ROUNDING_TOL)  # float32 q
         diag = [o.pose_covariance[i] for i in DIAG_INDEX]
         assert all(d > 0 for d in diag), "zero covariance gives posErr = 0 (ArduPilot PR 8730)"
         assert math.isnan(o.velocity_covariance[0])

@@ -11,6 +11,7 @@ import pytest
 
 from drivers.mcu_sim import main
 from drivers.serial_link import SerialVehicle
+from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
 def test_mcu_sim_program_streams_to_a_stable_link(tmp_path: Path) -> None:
@@ -32,7 +33,7 @@ def test_mcu_sim_program_streams_to_a_stable_link(tmp_path: Path) -> None:
                 samples += link.drain()
                 time.sleep(0.02)
         assert len(samples) >= 20
-        assert all(s.vel_R_mps[0] == pytest.approx(0.8, abs=1e-6) for s in samples)
+        assert all(s.vel_R_mps[0] == pytest.approx(0.8, abs=FLOAT32_ROUNDING_TOL) for s in samples)
         _, err = proc.communicate(timeout=10)
         assert proc.returncode == 0
         assert "from the host" in err

@@ -21,6 +21,7 @@ from robotd.frontend.stereo_match import (
 )
 from robotd.stereo import RectifiedStereo
 from tests.support.images import smooth_texture
+from tests.support.tolerances import FLOAT32_ARITH_TOL
 
 
 def _middlebury(shared_data):
@@ -42,7 +43,7 @@ def test_distances_match_reference(rng):
     fa = normalise_descriptors(rng.normal(size=(20, 64)), False)
     fb = normalise_descriptors(rng.normal(size=(15, 64)), False)
     ref_f = np.linalg.norm(fa[:, None] - fb[None], axis=2)
-    np.testing.assert_allclose(distance_matrix(fa, fb, False), ref_f, atol=1e-5)
+    np.testing.assert_allclose(distance_matrix(fa, fb, False), ref_f, atol=FLOAT32_ARITH_TOL)
 
 
 def test_ratio_and_cross_check_by_hand():

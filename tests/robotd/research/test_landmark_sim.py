@@ -8,6 +8,7 @@ import pytest
 from robotd.errors import ConfigError
 from robotd.geometry import euler_to_R
 from robotd.research.landmark_sim import SimConfig, apply_increment, dead_reckoning, inject_mismatches, simulate
+from tests.support.tolerances import CONDITIONED_ATOL
 
 SHORT2 = SimConfig(dim=2, path_length_m=40.0, landmark_density_per_m2=1.2)
 SHORT3 = SimConfig(dim=3, path_length_m=40.0, landmark_density_per_m2=1.2)
@@ -30,7 +31,7 @@ def test_same_seed_same_run_different_seed_differs():
 @pytest.mark.parametrize("cfg", [SHORT2, SHORT3], ids=["2d", "3d"])
 def test_trajectory_starts_at_identity_with_constant_speed(cfg):
     run = simulate(cfg, np.random.default_rng(1))
-    assert np.allclose(run.poses_W[0], 0.0, atol=1e-9)
+    assert np.allclose(run.poses_W[0], 0.0, atol=CONDITIONED_ATOL)
     step = np.linalg.norm(np.diff(run.poses_W[:, :3], axis=0), axis=1)
     # 1 m/s at 10 Hz is 0.1 m per frame (3D: slightly more, climbing)
     assert np.allclose(step, 0.1, rtol=0.02)
@@ -43,7 +44,7 @@ def test_terrain_tilt_bounded_and_landmark_heights():
     assert tilt.max() <= 5.0
     assert tilt.max() > 1.0  # there is terrain
     # landmarks between 0 and 3 m above the ground: in FRD (z down) relative to the rover's camera
-    assert np.all(run.landmarks_W[:, 2] <= 0.5 + 1e-9 + 2.0)  # below the camera by ≤ 0.5 m + terrain
+    assert np.all(run.landmarks_W[:, 2] <= 0.5 + CONDITIONED_ATOL + 2.0)  # below the camera by ≤ 0.5 m + terrain
 
 
 @pytest.mark.parametrize("cfg", [SHORT2, SHORT3], ids=["2d", "3d"])
@@ -71,8 +72,8 @@ def test_visible_counts_and_depth_limits():
     assert 20 <= n.mean() <= 50
     X = np.concatenate([s.observations.xyz_R_m[:, 0] for s in run.steps])
     fb = cfg.f_px * cfg.baseline_m
-    assert X.min() >= cfg.depth_min_m - 1e-9
-    assert X.max() <= fb / cfg.d_min_px + 1e-9
+    assert X.min() >= cfg.depth_min_m - CONDITIONED_ATOL
+    assert X.max() <= fb / cfg.d_min_px + CONDITIONED_ATOL
 
 
 def test_is_new_marks_first_sighting_only():
@@ -97,7 +98,7 @@ def test_noiseless_increments_reproduce_truth(cfg):
     )
     run = simulate(quiet, np.random.default_rng(5))
     dr = dead_reckoning(run)
-    assert np.abs(dr[:, :3] - run.poses_W[:, :3]).max() < 1e-9
+    assert np.abs(dr[:, :3] - run.poses_W[:, :3]).max() < CONDITIONED_ATOL
 
 
 def test_odometry_noise_matches_reported_covariance():
