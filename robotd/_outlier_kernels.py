@@ -14,7 +14,7 @@ adjugate returned as a tuple) they made the consensus kernel 20–30 % slower (0
 for 24 hypotheses × 400 pairs), so the few lines stay written out twice.
 
 Same formulas as the references, so the results agree to rounding
-(``tests/test_outliers_ransac.py``). At the daemon's sizes the outlier stage went from 2.6 to
+(``tests/robotd/test_outliers.py``). At the daemon's sizes the outlier stage went from 2.6 to
 ≈ 1.2 ms per ORB frame. Compiled by :func:`robotd.jit.jit` (disk cache, GIL released).
 """
 

@@ -1,6 +1,6 @@
 """numba kernels of the stereo matcher's per-pair loops; readable numpy twins: tests/support/reference_frontend.py.
 
-Each kernel computes exactly what its numpy reference computes (``tests/test_frontend_kernels.py``
+Each kernel computes exactly what its numpy reference computes (``tests/robotd/frontend/test_kernels.py``
 checks equality on random and rendered inputs), in one pass and without the numpy version's
 temporaries: at 1000 ORB features per image the three together took ≈ 2.2 ms per frame in numpy
 and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads run meanwhile.

@@ -23,7 +23,7 @@ The steps, with the paper's sections:
    The window is resampled along the keypoint's axes (s x s box means, bilinear) and the wavelets
    are taken on that patch, so they turn with the keypoint (as OpenCV's SURF does).
 
-Measured (tests/test_surf.py, KITTI and Middlebury frames): under a 30 deg rotation plus 1.5x zoom
+Measured (tests/robotd/frontend/test_surf.py, KITTI and Middlebury frames): under a 30 deg rotation plus 1.5x zoom
 57-64 % of the features repeat and 72-78 % of those match the right feature (nearest neighbour +
 ratio 0.8); a 90 deg rotation changes orientations by exactly 90 deg (median error 0.0 deg). For
 an isotropic Gaussian blob of std sigma the detected scale is s = 0.70-0.75 sigma at every size:

@@ -8,9 +8,9 @@ step at 100 particles × 100 observations), so it lives with the tests (moved he
 robotd/slam/_reference.py).
 
 Agreement: given the same random draws ``eps``, poses, log-weight increments, landmark means and
-covariances (and the 2.0 proposal outputs) agree to 1e-9 absolute (``AGREE`` in
-tests/test_slam_fastslam.py and tests/test_slam_fastslam_numba.py), in 2D and 3D, FastSLAM 1.0
-and 2.0, also at large roll/pitch and any yaw.
+covariances (and the 2.0 proposal outputs) agree to 1e-9 absolute (``KERNEL_TWIN_ATOL`` in
+tests/support/tolerances.py, used by tests/robotd/slam/test_fastslam.py and test_fastslam_numba.py),
+in 2D and 3D, FastSLAM 1.0 and 2.0, also at large roll/pitch and any yaw.
 """
 
 from __future__ import annotations

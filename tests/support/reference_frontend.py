@@ -4,7 +4,7 @@
 - :func:`ratio_and_cross_check_numpy`, :func:`refine_disparity_numpy`: the functions of the same
   name without ``_numpy`` in ``robotd.frontend.stereo_match`` (``_stereo_kernels``).
 
-Moved here unchanged from the hot modules; tests/test_frontend_kernels.py holds the kernels to them.
+Moved here unchanged from the hot modules; tests/robotd/frontend/test_kernels.py holds the kernels to them.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ def bucket_select_numpy(
     ``_detect_kernels.bucket_kernel``: the same grid quota and refill by numpy sorts and gathers.
 
     Agreement: the same indices in the same order (``assert_array_equal``, ties included;
-    tests/test_frontend_kernels.py::test_bucket_kernel_equals_numpy).
+    tests/robotd/frontend/test_kernels.py::test_bucket_kernel_equals_numpy).
     """
     n = xy.shape[0]
     if n <= max_features:
@@ -62,7 +62,7 @@ def ratio_and_cross_check_numpy(
     ``_stereo_kernels.ratio_cross_kernel``, by segment reductions (``np.minimum.reduceat``).
 
     Agreement: the same accepted pairs in the same order and the same rejection counts
-    (tests/test_frontend_kernels.py: random inputs full of ties, and a rendered ORB pair).
+    (tests/robotd/frontend/test_kernels.py: random inputs full of ties, and a rendered ORB pair).
 
     ``i``, ``j``: (P,) indices of candidate pairs; ``dist``: (P,) their descriptor distances.
     For each i the best pair is kept if dist < ratio · second-best distance, or, when it is the
@@ -122,7 +122,7 @@ def refine_disparity_numpy(
     ``_stereo_kernels.refine_kernel``: all ZSSD costs at once from one right strip per keypoint.
 
     Agreement: bit-identical ``d``, ``ok`` and ``edge`` (the costs are exact integers;
-    tests/test_frontend_kernels.py::test_refine_kernel_equals_numpy_on_random_points).
+    tests/robotd/frontend/test_kernels.py::test_refine_kernel_equals_numpy_on_random_points).
 
     ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
     (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum

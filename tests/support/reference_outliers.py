@@ -32,7 +32,7 @@ def similarity_d2_numpy(
     and :func:`robotd.outliers.mahalanobis_sq`.
 
     Agreement: rtol 1e-10 for d = 2, 3 with A and B, A only, B only
-    (tests/test_outliers_ransac.py::test_d2_kernel_matches_numpy_reference).
+    (tests/robotd/test_outliers.py::test_d2_kernel_matches_numpy_reference).
     """
     e = similarity_residuals(s, R, t, a, b)
     if euclidean:
@@ -81,7 +81,7 @@ def fit_similarity_mahalanobis_numpy(
     (``GN_STEP_TOL``) and covariance (``robotd.outliers._fit_covariance``, shared).
 
     Agreement: s, R, t and cov to rtol 1e-9, atol 1e-12, in 2-D and 3-D, with and without scale
-    (tests/test_outliers_ransac.py::test_weighted_fit_kernel_matches_numpy_reference).
+    (tests/robotd/test_outliers.py::test_weighted_fit_kernel_matches_numpy_reference).
     """
     n, d = a.shape
     C = np.zeros((n, d, d))

@@ -6,7 +6,7 @@
   sample with explicit pixel sums.
 
 Moved here unchanged from robotd/frontend/surf.py, with their helpers :func:`box_filter_kernels`
-(also used by tests/test_surf.py to check the filters and a blob's scale) and :func:`_box_ref`.
+(also used by tests/robotd/frontend/test_surf.py to check the filters and a blob's scale) and :func:`_box_ref`.
 Constants and the integral image come from robotd.frontend.surf, so twin and detector share them.
 The maxima scan's numpy version is not here: it is the detector's runtime fallback,
 ``robotd.frontend.surf.local_maxima_numpy``.
@@ -59,7 +59,7 @@ def hessian_layer_reference(image: np.ndarray, size: int, step: int) -> tuple[np
 
     Readable twin of the response maps of ``_surf_kernels.hessian_layers``. Agreement: det and
     trace of every layer to rtol 1e-5 and atol 1e-5 of the map's largest value (the kernel writes
-    float32; tests/test_surf.py::test_hessian_kernel_matches_dense_box_filters).
+    float32; tests/robotd/frontend/test_surf.py::test_hessian_kernel_matches_dense_box_filters).
     """
     img = image.astype(np.float64)
     h, w = img.shape
@@ -95,7 +95,7 @@ def describe_reference(
 
     Readable twin of ``_surf_kernels.orient_and_describe`` (64-D). Agreement: the orientation to
     1e-3 deg and the descriptor to atol 2e-5, oriented and upright, including a keypoint whose
-    window leaves the image (tests/test_surf.py::test_descriptor_kernel_matches_reference).
+    window leaves the image (tests/robotd/frontend/test_surf.py::test_descriptor_kernel_matches_reference).
     """
     img = image.astype(np.float64)
     ii = integral_image(image)

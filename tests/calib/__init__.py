@@ -1,0 +1,1 @@
+"""Tests of ``calib``; this directory mirrors calib/."""

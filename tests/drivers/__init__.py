@@ -1,0 +1,1 @@
+"""Tests of ``drivers``; this directory mirrors drivers/."""

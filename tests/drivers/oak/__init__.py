@@ -1,0 +1,1 @@
+"""Tests of ``drivers.oak``; this directory mirrors drivers/oak/."""

@@ -1,0 +1,336 @@
+"""The MAVLink link against a mock ArduPilot Rover over loopback UDP (ephemeral ports).
+
+The mock records what robotd sends; the tests check what ArduPilot checks (interfaces.md §1).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers import AutopilotLink, VehicleLink, mavlink_pose, open_vehicle
+from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_url
+from drivers.mavlink_mock import MockAutopilot
+from robotd import autopilot
+from robotd.autopilot import DIAG_INDEX
+from robotd.errors import DriverError
+from robotd.msgs import PoseEstimate
+from tests.support.tolerances import FLOAT32_ROUNDING_TOL
+
+m = mavlink_module()
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+def pose_at(t_ns: int, x: float = 0.0, y: float = 0.0, z: float = 0.0, yaw: float = 0.0, cov=None) -> PoseEstimate:
+    return PoseEstimate(t_ns, np.array([x, y, z]), np.array([0.0, 0.0, yaw]), np.zeros((6, 6)) if cov is None else cov)
+
+
+def stream_poses(link: MavlinkVehicle, duration_s: float, hz: float = 30.0, quality: int = 80) -> int:
+    """Send poses of a rover driving forward at 1 m/s, like the pipeline would."""
+    t_end = time.monotonic() + duration_s
+    n = 0
+    while time.monotonic() < t_end:
+        t = time.monotonic_ns()
+        link.autopilot.send_pose(pose_at(t, x=n / hz), quality, 0)
+        n += 1
+        time.sleep(1.0 / hz)
+    return n
+
+
+def test_enum_values_match_pymavlink() -> None:
+    # robotd.autopilot hard-codes these to stay pymavlink-free
+    assert autopilot.MAV_FRAME_LOCAL_FRD == m.MAV_FRAME_LOCAL_FRD == 20
+    assert autopilot.MAV_FRAME_BODY_FRD == m.MAV_FRAME_BODY_FRD == 12
+    assert autopilot.MAV_ESTIMATOR_TYPE_VIO == m.MAV_ESTIMATOR_TYPE_VIO
+    # drivers.mavlink_pose hard-codes the heartbeat states for the same reason
+    assert mavlink_pose.MAV_STATE_STANDBY == m.MAV_STATE_STANDBY
+    assert mavlink_pose.MAV_STATE_ACTIVE == m.MAV_STATE_ACTIVE
+    assert mavlink_pose.MAV_STATE_CRITICAL == m.MAV_STATE_CRITICAL
+    assert mavlink_pose.MAV_STATE_FLIGHT_TERMINATION == m.MAV_STATE_FLIGHT_TERMINATION
+
+
+def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
+    with MockAutopilot(sysid=7, speed_mps=0.5, yaw_rate_radps=0.2, track_width_m=0.4) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4, origin="-33.93,18.86,120.5") as link:
+            assert isinstance(link, VehicleLink) and isinstance(link.autopilot, AutopilotLink)
+            assert wait_for(lambda: link.link_up, 3.0)
+            hb_before = ap.messages("HEARTBEAT")
+            link.drain()
+            n_sent = stream_poses(link, 2.2)
+            odo_in = link.drain()
+            st = link.stats()
+            controls = link.latest_controls()
+    # -- ODOMETRY as ArduPilot's handle_odometry needs it
+    odo = ap.messages("ODOMETRY")
+    assert len(odo) == n_sent - st["poses_superseded"] and len(odo) > 20
+    t_usec = [r.msg.time_usec for r in odo]
+    assert np.all(np.diff(t_usec) > 0), "time_usec must be strictly monotonic"
+    arrivals = np.array([r.t_ns for r in odo]) * 1e-9
+    assert np.max(np.diff(arrivals)) < 0.3, "ArduPilot declares the source unhealthy after 300 ms"
+    assert len(odo) / (arrivals[-1] - arrivals[0]) >= 4.0
+    for r in odo:
+        o = r.msg
+        assert (o.frame_id, o.child_frame_id) == (m.MAV_FRAME_LOCAL_FRD, m.MAV_FRAME_BODY_FRD)
+        assert (r.msg.get_srcSystem(), r.msg.get_srcComponent()) == (7, 197)
+        assert np.linalg.norm(o.q) == pytest.approx(1.0, abs=FLOAT32_ROUNDING_TOL)  # float32 q
+        diag = [o.pose_covariance[i] for i in DIAG_INDEX]
+        assert all(d > 0 for d in diag), "zero covariance gives posErr = 0 (ArduPilot PR 8730)"
+        assert math.isnan(o.velocity_covariance[0])
+        assert o.estimator_type == m.MAV_ESTIMATOR_TYPE_VIO and o.quality == 80
+        assert all(math.isfinite(v) for v in (o.vx, o.vy, o.vz))  # ArduPilot fuses it unchecked
+    assert odo[-1].msg.vx == pytest.approx(30.0 / 30.0, rel=0.3)  # 1 m/s forward, body frame
+    assert odo[-1].msg.x > odo[0].msg.x
+    # -- HEARTBEAT: 1 Hz, onboard controller, invalid autopilot, component 197, state from health
+    hb = ap.messages("HEARTBEAT")
+    for r in hb:
+        assert r.msg.type == m.MAV_TYPE_ONBOARD_CONTROLLER
+        assert r.msg.autopilot == m.MAV_AUTOPILOT_INVALID
+        assert r.msg.get_srcComponent() == 197
+    period = np.diff([r.t_ns for r in hb]) * 1e-9
+    assert np.all((period > 0.8) & (period < 1.3))
+    assert hb_before[0].msg.system_status == m.MAV_STATE_STANDBY  # no pose yet
+    assert hb[-1].msg.system_status == m.MAV_STATE_ACTIVE
+    # -- origin once after the heartbeat, confirmed; message rates requested
+    origin = ap.messages("SET_GPS_GLOBAL_ORIGIN")
+    assert len(origin) == 1
+    assert (origin[0].msg.latitude, origin[0].msg.longitude, origin[0].msg.altitude) == (-339300000, 188600000, 120500)
+    assert origin[0].msg.target_system == 7
+    assert st["origin_confirmed"]
+    cmds = [r.msg for r in ap.messages("COMMAND_LONG") if r.msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL]
+    requested = {int(c.param1): c.param2 for c in cmds}
+    assert requested[m.MAVLINK_MSG_ID_WHEEL_DISTANCE] == 20_000 and requested[m.MAVLINK_MSG_ID_ATTITUDE] == 20_000
+    assert all(c.target_system == 7 and c.target_component == 1 for c in cmds)
+    # -- inputs: WHEEL_DISTANCE speed, ATTITUDE yaw rate, on the host clock
+    assert len(odo_in) > 50
+    v = np.array([o.vel_R_mps[0] for o in odo_in])
+    w = np.array([o.rate_R_radps[2] for o in odo_in])
+    assert np.median(v) == pytest.approx(0.5, abs=0.02)
+    assert np.allclose(w, 0.2)
+    assert np.all(np.diff([o.t_ns for o in odo_in]) > 0)
+    assert controls is not None and controls.throttle == pytest.approx(0.5) and controls.steering == pytest.approx(0.2)
+
+
+def test_timesync_answered_and_offset_estimated() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url) as link:
+            assert wait_for(lambda: len(ap.timesync_replies) >= 2 and link.stats()["timesync_samples"] >= 2, 5.0)
+            st = link.stats()
+            odo = []
+            assert wait_for(lambda: bool(odo.extend(link.drain()) or len(odo) > 20), 3.0)
+            st2 = link.stats()
+    # our replies: echo ts1, tc1 = our monotonic ns, taken between request and reply (one process, one clock)
+    for ts1, t_reply, msg in ap.timesync_replies:
+        assert msg.ts1 == ts1
+        assert ts1 <= msg.tc1 <= t_reply
+    # our requests: offset = autopilot boot clock − host clock = −boot_ns, within half a round trip
+    assert abs(st["timesync_offset_ns"] - (-ap.boot_ns)) <= st["timesync_rtt_ns"] / 2 + 1000
+    # autopilot stamps (ms resolution) are mapped onto the host clock: never in the future
+    now = time.monotonic_ns()
+    assert all(o.t_ns <= now for o in odo)
+    assert st2["stamped_by_arrival"] < st2["odometry"]
+
+
+def test_data_driven_never_resends_and_drops_stale() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            t = time.monotonic_ns()
+            link.autopilot.send_pose(pose_at(t), 50, 0)
+            time.sleep(1.2)  # no new pose: nothing is repeated
+            link.autopilot.send_pose(pose_at(t - 1000), 50, 0)  # older than the last one sent
+            time.sleep(0.2)
+            st = link.stats()
+            st_pose = link.autopilot.stats()
+    assert len(ap.messages("ODOMETRY")) == 1
+    assert st["poses_stale"] == 1
+    assert st_pose["poses_stale"] == 1 and st_pose["odometry_sent"] == 1 and st_pose["health"] == "tracking"
+
+
+def test_reboot_resends_origin_and_rates() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, origin=(10.0, 20.0, 30.0)) as link:
+            assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 1, 3.0)
+            assert wait_for(lambda: link.stats()["rx_types"].get("SYSTEM_TIME", 0) >= 2, 3.0)
+            n_cmd = len(ap.messages("COMMAND_LONG"))
+            ap.boot_ns -= 5_000_000_000  # the autopilot has been up 5 s...
+            assert wait_for(lambda: link.stats()["rx_types"].get("SYSTEM_TIME", 0) >= 3, 3.0)
+            ap.reboot()  # ...and now restarts: SYSTEM_TIME.time_boot_ms drops
+            assert wait_for(lambda: link.stats()["autopilot_reboots"] == 1, 3.0)
+            assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 2, 2.0)
+            assert wait_for(lambda: len(ap.messages("COMMAND_LONG")) >= 2 * n_cmd, 2.0)
+
+
+def test_link_loss_after_3_s_and_recovery() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            ap.heartbeat_enabled = False
+            t0 = time.monotonic()
+            assert wait_for(lambda: not link.link_up, 6.0)
+            lost_after = time.monotonic() - t0
+            assert link.stats()["link_losses"] == 1 and link.stats()["state"] == "degraded"
+            ap.heartbeat_enabled = True
+            assert wait_for(lambda: link.link_up, 3.0)
+    assert 2.0 < lost_after < 5.0  # 3 s timeout after the last heartbeat (up to 1 s earlier)
+
+
+def test_quality_and_health_drive_heartbeat_state() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, heartbeat_hz=10.0) as link:
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), -1, 0)
+            assert wait_for(lambda: ap.messages("HEARTBEAT")[-1:] != [] and _last_state(ap) == m.MAV_STATE_CRITICAL)
+            assert ap.messages("ODOMETRY")[-1].msg.quality == -1  # announced, not hidden
+            link.autopilot.set_health("failed")
+            assert wait_for(lambda: _last_state(ap) == m.MAV_STATE_FLIGHT_TERMINATION)
+            link.autopilot.set_health("tracking")
+            assert wait_for(lambda: _last_state(ap) == m.MAV_STATE_ACTIVE)
+            with pytest.raises(DriverError, match="health 'lost'"):
+                link.autopilot.set_health("lost")
+
+
+def _last_state(ap: MockAutopilot) -> int | None:
+    hb = ap.messages("HEARTBEAT")
+    return hb[-1].msg.system_status if hb else None
+
+
+def test_vision_position_estimate_fallback() -> None:
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, message="vision_position_estimate") as link:
+            t = time.monotonic_ns()
+            link.autopilot.send_pose(pose_at(t, 1.0, 2.0, -0.5, yaw=0.3), 70, 4)
+            assert wait_for(lambda: len(ap.messages("VISION_POSITION_ESTIMATE")) == 1)
+            link.autopilot.send_pose(pose_at(t + 10**8, 1.1, 2.0, -0.5, yaw=0.3), -1, 4)  # lost: stream stops
+            time.sleep(0.3)
+            st = link.stats()
+    vpe = ap.messages("VISION_POSITION_ESTIMATE")
+    assert len(vpe) == 1 and st["poses_withheld"] == 1
+    v = vpe[0].msg
+    assert (v.x, v.y, v.z, v.reset_counter, v.usec) == (1.0, 2.0, -0.5, 4, t // 1000)
+    assert v.yaw == pytest.approx(0.3)
+    assert all(v.covariance[i] > 0 for i in DIAG_INDEX)
+    assert not ap.messages("ODOMETRY")
+
+
+def test_wheel_distance_wrap_and_wheel_yaw_rate() -> None:
+    # starts 0.1 m below the ±100 000 m wrap: it wraps after 0.2 s at 0.5 m/s
+    with MockAutopilot(wheel_start_m=99_999.9, speed_mps=0.5, yaw_rate_radps=-0.3, track_width_m=0.4) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4, yaw_rate_source="wheels") as link:
+            odo: list = []
+            assert wait_for(lambda: bool(odo.extend(link.drain())) or link.stats()["wheel_wraps"] >= 1, 3.0)
+            time.sleep(0.3)
+            odo += link.drain()
+    v = np.array([o.vel_R_mps[0] for o in odo])
+    w = np.array([o.rate_R_radps[2] for o in odo])
+    # every sample, including the one across the wrap (no ±200 km/interval spike); ms stamps jitter a little
+    assert np.all(np.abs(v - 0.5) < 0.1), v
+    assert np.median(w) == pytest.approx(-0.3, abs=0.02)  # right wheel faster: FRD left turn
+
+
+def test_local_position_ned_fallback_rotated_into_body_frame() -> None:
+    with MockAutopilot(send_wheels=False, speed_mps=0.5, yaw_rate_radps=0.8) as ap:
+        with open_vehicle(ap.url) as link:
+            odo: list = []
+            assert wait_for(lambda: bool(odo.extend(link.drain())) or len(odo) >= 2, 4.0)
+    # LOCAL_POSITION_NED's (vn, ve) along the heading becomes (0.5, 0, 0) in FRD
+    for o in odo:
+        assert o.vel_R_mps == pytest.approx([0.5, 0.0, 0.0], abs=0.05)
+        assert o.rate_R_radps[2] == pytest.approx(0.8)
+
+
+def _key_file(tmp_path: Path, key: bytes, mode: int = 0o600) -> str:
+    p = tmp_path / f"key{mode:o}-{key[:2].hex()}"
+    p.write_bytes(key)
+    os.chmod(p, mode)
+    return str(p)
+
+
+def test_signing_accepted_and_rejected(tmp_path: Path) -> None:
+    key = bytes(range(32))
+    # same key on both sides: accepted, and robotd's messages are signed
+    with MockAutopilot(signing_key=key) as ap:
+        with open_vehicle(ap.url, signing_key=_key_file(tmp_path, key)) as link:
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), 50, 0)
+            assert wait_for(lambda: link.link_up and len(ap.messages("ODOMETRY")) == 1, 3.0)
+    assert ap.messages("ODOMETRY")[0].msg._signed
+    # wrong key on the autopilot side: both sides drop each other's packets
+    with MockAutopilot(signing_key=bytes(32)) as ap:
+        with open_vehicle(ap.url, signing_key=_key_file(tmp_path, key)) as link:
+            link.autopilot.send_pose(pose_at(time.monotonic_ns()), 50, 0)
+            assert wait_for(lambda: ap.bad_data > 0, 3.0)
+            assert not ap.messages("ODOMETRY")
+    # unsigned autopilot, signed robotd: robotd rejects the unsigned traffic
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, signing_key=_key_file(tmp_path, key)) as link:
+            assert wait_for(lambda: link.stats()["bad_data"] > 3, 3.0)
+            assert not link.link_up and link.stats()["rx_messages"] == 0
+    with pytest.raises(DriverError, match="mode 0644, expected 0600"):
+        MavlinkVehicle("mavlink+udp://127.0.0.1:9", signing_key=_key_file(tmp_path, key, 0o644))
+    with pytest.raises(DriverError, match="expected 32 bytes, got 5"):
+        MavlinkVehicle("mavlink+udp://127.0.0.1:9", signing_key=_key_file(tmp_path, b"short"))
+
+
+def test_url_errors() -> None:
+    assert parse_mavlink_url("mavlink+udp://127.0.0.1:14550")[0] == "udpout:127.0.0.1:14550"
+    assert parse_mavlink_url("mavlink+udp://127.0.0.1:14550?mode=in")[0] == "udpin:127.0.0.1:14550"
+    dev, opts = parse_mavlink_url("mavlink+serial:///dev/ttyACM0?baud=57600")
+    assert (dev, opts.baud) == ("/dev/ttyACM0", 57600)
+    with pytest.raises(DriverError, match="refusing to listen on 0.0.0.0"):
+        parse_mavlink_url("mavlink+udp://0.0.0.0:14550?mode=in")
+    with pytest.raises(DriverError, match="unknown option 'bogus'"):
+        open_vehicle("mavlink+udp://127.0.0.1:14550?bogus=1")
+    with pytest.raises(DriverError, match="origin='1,2'"):
+        open_vehicle("mavlink+udp://127.0.0.1:14550", origin="1,2")
+    with pytest.raises(DriverError, match="message='odom'"):
+        open_vehicle("mavlink+udp://127.0.0.1:14550?message=odom")
+    with pytest.raises(DriverError, match="expected mavlink\\+udp://HOST:PORT"):
+        open_vehicle("mavlink+udp://127.0.0.1")
+    with pytest.raises(DriverError, match="unknown message 'NOPE'"):
+        open_vehicle("mavlink+udp://127.0.0.1:14550", rates_hz={"NOPE": 1})
+
+
+def test_odometry_iterator_ends_on_close() -> None:
+    import threading
+
+    got: list = []
+    with MockAutopilot(stream_hz=20) as ap:
+        link = MavlinkVehicle(ap.url)
+        link.open()
+        consumer = threading.Thread(target=lambda: got.extend(link.odometry(timeout_s=0.01)))
+        consumer.start()
+        assert wait_for(lambda: len(got) >= 5, 3.0)
+        assert consumer.is_alive()
+        link.close()
+        consumer.join(timeout=2.0)
+        assert not consumer.is_alive()
+
+
+def test_bad_input_values_are_counted_not_fatal() -> None:
+    with MockAutopilot(send_wheels=False) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            t_us = ap.boot_time_ns() // 1000
+            ap.conn.mav.wheel_distance_send(t_us, 2, [0.0, 0.0] + [0.0] * 14)
+            ap.conn.mav.wheel_distance_send(t_us + 20_000, 2, [float("nan"), 0.0] + [0.0] * 14)
+            ap.conn.mav.wheel_distance_send(t_us + 40_000, 1, [0.0] * 16)  # one wheel: indices 0, 1 impossible
+            assert wait_for(lambda: link.stats()["bad_values"] == 2, 2.0)
+            n0 = link.stats()["rx_messages"]
+            assert wait_for(lambda: link.stats()["rx_messages"] > n0 + 5, 2.0)  # the receiver lives on
+
+
+def test_mavlink_serial_missing_device() -> None:
+    with pytest.raises(DriverError, match="cannot open /nonexistent/ttyACM9"):
+        open_vehicle("mavlink+serial:///nonexistent/ttyACM9?baud=57600").open()

@@ -1,0 +1,1 @@
+"""Tests of ``robotd``; this directory mirrors robotd/."""

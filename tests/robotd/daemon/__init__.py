@@ -1,0 +1,1 @@
+"""Tests of ``robotd.daemon``; this directory mirrors robotd/daemon/."""

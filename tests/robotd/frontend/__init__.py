@@ -1,0 +1,1 @@
+"""Tests of ``robotd.frontend``; this directory mirrors robotd/frontend/."""

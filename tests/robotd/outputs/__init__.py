@@ -1,0 +1,1 @@
+"""Tests of ``robotd.outputs``; this directory mirrors robotd/outputs/."""

@@ -1,0 +1,1 @@
+"""Tests of ``robotd.research``; this directory mirrors robotd/research/."""

@@ -1,0 +1,1 @@
+"""Tests of ``robotd.research.datasets``; this directory mirrors robotd/research/datasets/."""

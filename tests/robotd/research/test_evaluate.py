@@ -1,0 +1,196 @@
+"""Evaluation metrics and trajectory files (robotd.research.evaluate, algorithms.md §11)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robotd.errors import DatasetError, InputError
+from robotd.geometry import pose6_to_T, rot_z, se3, so3_exp
+from robotd.research.evaluate import (
+    anees_band,
+    associate,
+    ate,
+    drift_pct,
+    evaluate_files,
+    map_rmse,
+    nees,
+    path_length,
+    plot_trajectory,
+    poses_to_T,
+    read_kitti_poses,
+    read_trajectory,
+    read_tum,
+    rpe,
+    write_tum,
+)
+from tests.support.tolerances import ANGLE_FROM_COSINE_FLOOR_DEG, CONDITIONED_ATOL
+
+# write_tum prints times with 9 decimals, but near t = 1.7e9 s float64 resolves only 2.4e-7 s
+TUM_TIME_ATOL_S = 1e-6
+# and poses with 9 significant digits: ≤ 5e-8 m on positions up to 10 m (measured 4.9e-9)
+TUM_POSE_ATOL = 1e-7
+
+
+def _wiggly(n: int = 200, rng: np.random.Generator | None = None) -> np.ndarray:
+    """(n, 4, 4) a non-planar, non-degenerate trajectory."""
+    t = np.linspace(0, 2 * np.pi, n)
+    x6 = np.column_stack(
+        [10 * np.cos(t), 6 * np.sin(t), 0.5 * np.sin(3 * t), 0.05 * np.sin(t), 0.03 * np.cos(2 * t), t]
+    )
+    return pose6_to_T(x6)
+
+
+def test_ate_zero_after_rigid_motion_of_the_whole_trajectory():
+    gt = _wiggly()
+    G = se3(so3_exp(np.array([0.3, -0.2, 1.1])), np.array([4.0, -3.0, 2.0]))
+    est = G @ gt
+    r = ate(est, gt)
+    assert r["ate_rmse_m"] < CONDITIONED_ATOL
+    # the heading error is an arccos of (tr E − 1)/2: for E = I up to round-off it reads as up to
+    # √(2·16 EPS) rad, not 0 (1.17e-6 deg on x86-64, so a 1e-6 deg bound held on one CPU only)
+    assert r["heading_rmse_deg"] < ANGLE_FROM_COSINE_FLOOR_DEG
+    # planar version of the same property
+    gt2 = poses_to_T(np.column_stack([np.cos(np.linspace(0, 3, 50)), np.linspace(0, 5, 50), np.linspace(0, 1, 50)]))
+    G2 = se3(rot_z(0.7), np.array([1.0, 2.0, 0.0]))
+    assert ate(G2 @ gt2, gt2, planar=True)["ate_rmse_m"] < CONDITIONED_ATOL
+
+
+def test_known_offset_gives_known_rmse():
+    """Errors ±d along z alternately cannot be aligned away: RMSE is exactly d."""
+    gt = _wiggly(100)
+    est = gt.copy()
+    d = 0.25
+    sign = np.where(np.arange(100) % 2 == 0, 1.0, -1.0)
+    # offsets along the world z axis, in alternate directions, mean zero
+    est[:, 2, 3] += d * sign
+    r = ate(est, gt, align=False)
+    assert r["ate_rmse_m"] == pytest.approx(d, abs=CONDITIONED_ATOL)
+    assert r["ate_max_m"] == pytest.approx(d, abs=CONDITIONED_ATOL)
+    assert r["ate_median_m"] == pytest.approx(d, abs=CONDITIONED_ATOL)
+    # a constant offset is removed by the alignment, but not without it
+    est2 = gt.copy()
+    est2[:, :3, 3] += np.array([0.3, 0.4, 0.0])
+    assert ate(est2, gt, align=False)["ate_rmse_m"] == pytest.approx(0.5, abs=CONDITIONED_ATOL)
+    assert ate(est2, gt)["ate_rmse_m"] < CONDITIONED_ATOL
+
+
+def test_rpe_of_a_constant_per_step_error():
+    n = 50
+    gt = poses_to_T(np.column_stack([np.arange(n) * 1.0, np.zeros(n), np.zeros(n)]))
+    est = poses_to_T(np.column_stack([np.arange(n) * 1.1, np.zeros(n), np.zeros(n)]))
+    r = rpe(est, gt, 1)
+    assert r["rpe_trans_m"] == pytest.approx(0.1, abs=CONDITIONED_ATOL)
+    assert r["rpe_rot_deg"] == pytest.approx(0.0, abs=ANGLE_FROM_COSINE_FLOOR_DEG)  # arccos near 1, as above
+    # a constant turn-rate error of 1° per step
+    est2 = poses_to_T(np.column_stack([np.arange(n) * 1.0, np.zeros(n), np.deg2rad(np.arange(n))]))
+    assert rpe(est2, gt, 1, planar=True)["rpe_rot_deg"] == pytest.approx(1.0, abs=CONDITIONED_ATOL)
+
+
+def test_drift_of_known_trajectory():
+    # 100 m straight along x; the estimate ends 2 m to the side after a first-pose alignment
+    n = 101
+    gt = poses_to_T(np.column_stack([np.linspace(0, 100, n), np.zeros(n), np.zeros(n)]))
+    est = poses_to_T(np.column_stack([np.linspace(0, 100, n), np.linspace(0, 2, n), np.zeros(n)]))
+    assert path_length(gt[:, :3, 3]) == pytest.approx(100.0)
+    assert drift_pct(est, gt) == pytest.approx(2.0, abs=CONDITIONED_ATOL)
+    # the estimate expressed in another start frame drifts the same (first-pose alignment)
+    G = se3(rot_z(1.0), np.array([5.0, 5.0, 0.0]))
+    assert drift_pct(G @ est, gt) == pytest.approx(2.0, abs=CONDITIONED_ATOL)
+
+
+def test_tum_round_trip(tmp_path):
+    T = _wiggly(30)
+    t = 1.7e9 + np.arange(30) * 0.1
+    p = tmp_path / "traj.tum"
+    write_tum(p, t, T)
+    tr = read_tum(p)
+    assert np.allclose(tr.t_s, t, atol=TUM_TIME_ATOL_S)
+    assert np.allclose(tr.T, T, atol=TUM_POSE_ATOL)
+    line = next(li for li in p.read_text().splitlines() if not li.startswith("#"))
+    assert len(line.split()) == 8
+
+
+def test_kitti_poses_parse(tmp_path):
+    T = _wiggly(5)
+    p = tmp_path / "poses.txt"
+    np.savetxt(p, T[:, :3, :].reshape(5, 12))
+    tr = read_kitti_poses(p)
+    assert np.allclose(tr.T, T)
+    assert np.allclose(tr.t_s, np.arange(5) * 0.1)
+    assert read_trajectory(p).T.shape == (5, 4, 4)
+
+
+def test_kitti_seq1_ground_truth_parses(shared_data):
+    tr = read_kitti_poses(shared_data("kitti-seq1", "poses.txt"))
+    assert len(tr) == 51
+    assert path_length(tr.xyz) == pytest.approx(59.9, abs=0.3)
+
+
+def test_bad_files_give_clear_errors(tmp_path):
+    p = tmp_path / "bad.txt"
+    p.write_text("0 1 2 3\n")
+    with pytest.raises(DatasetError, match="expected 8"):
+        read_trajectory(p)
+    p.write_text("0 1 2 3 0 0 0 2\n")
+    with pytest.raises(DatasetError, match="not unit"):
+        read_tum(p)
+    with pytest.raises(DatasetError, match="no such file"):
+        read_tum(tmp_path / "missing.tum")
+
+
+def test_association_nearest_within_half_period():
+    t_gt = np.arange(0.0, 10.0, 0.1)
+    t_est = np.array([0.01, 0.52, 0.56, 3.0, 20.0])
+    ie, ig = associate(t_est, t_gt)
+    assert ie.tolist() == [0, 1, 2, 3]
+    assert np.allclose(t_gt[ig], [0.0, 0.5, 0.6, 3.0])
+
+
+def test_evaluate_files_against_itself_and_with_noise(tmp_path):
+    gt = _wiggly(100)
+    t = np.arange(100) * 0.1
+    rng = np.random.default_rng(0)
+    est = gt.copy()
+    est[:, :3, 3] += 0.05 * rng.standard_normal((100, 3))
+    write_tum(tmp_path / "gt.tum", t, gt)
+    write_tum(tmp_path / "est.tum", t + 0.01, se3(rot_z(0.5), np.array([1.0, 2.0, 3.0])) @ est)
+    r = evaluate_files(tmp_path / "est.tum", tmp_path / "gt.tum")
+    for k in ("ate_rmse_m", "rpe_trans_m", "drift_pct", "path_length_m", "frames"):
+        assert k in r
+    assert r["frames"] == 100
+    assert 0.05 * np.sqrt(3) * 0.8 < r["ate_rmse_m"] < 0.05 * np.sqrt(3) * 1.2
+    write_tum(tmp_path / "far.tum", t + 100.0, est)
+    with pytest.raises(InputError, match="associate"):
+        evaluate_files(tmp_path / "far.tum", tmp_path / "gt.tum")
+
+
+def test_nees_and_anees_band():
+    rng = np.random.default_rng(3)
+    P = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.0], [0.0, 0.0, 0.01]])
+    L = np.linalg.cholesky(P)
+    e = rng.standard_normal((20000, 3)) @ L.T
+    eps = nees(e, np.broadcast_to(P, (20000, 3, 3)), angle_dims=[2])
+    assert eps.mean() == pytest.approx(3.0, rel=0.03)
+    lo, hi = anees_band(3, 20)
+    assert lo == pytest.approx(2.02, abs=0.01) and hi == pytest.approx(4.17, abs=0.01)
+    lo, hi = anees_band(6, 50)
+    assert lo == pytest.approx(5.08, abs=0.01) and hi == pytest.approx(7.00, abs=0.01)
+
+
+def test_map_rmse_after_alignment():
+    rng = np.random.default_rng(4)
+    gt = rng.uniform(-10, 10, (30, 3))
+    G = se3(so3_exp(np.array([0.0, 0.0, 0.8])), np.array([3.0, 1.0, 0.0]))
+    est = gt @ G[:3, :3].T + G[:3, 3]
+    assert map_rmse(est, gt)["map_rmse_m"] < CONDITIONED_ATOL
+    est[0] += np.array([0.0, 0.0, 1.0])
+    r = map_rmse(est, gt, T_align=np.linalg.inv(G))
+    assert r["per_landmark_m"][0] == pytest.approx(1.0)
+    assert r["map_rmse_m"] == pytest.approx(np.sqrt(1 / 30))
+
+
+def test_plot_writes_png(tmp_path):
+    gt = _wiggly(50)
+    out = plot_trajectory(gt, gt, np.zeros((3, 3)), tmp_path / "p.png", gt_landmarks=np.ones((3, 3)), title="t")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,1 @@
+"""Tests of ``robotd.slam``; this directory mirrors robotd/slam/."""

@@ -1,0 +1,107 @@
+"""Config: defaults in code, TOML overrides, errors with the dotted key path."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from robotd.cli import main
+from robotd.config import Config, config_from_dict, load_config, to_toml
+from robotd.errors import ConfigError
+from tests.support.paths import REPO
+
+
+def test_defaults_are_frozen_dataclasses() -> None:
+    cfg = Config()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.slam.n_particles = 5  # type: ignore[misc]
+
+
+def test_shipped_config_file_is_exactly_the_defaults() -> None:
+    assert load_config(REPO / "config" / "robotd.toml") == Config()
+
+
+def test_every_example_config_loads() -> None:
+    for path in sorted((REPO / "config").glob("*.toml")):
+        load_config(path)
+
+
+def test_override_only_changes_given_keys(tmp_path: Path) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text('[slam]\nn_particles = 42\nfilter = "ekf"\n[zenoh]\nlisten = ["tcp/127.0.0.1:7447"]\n')
+    cfg = load_config(p)
+    assert cfg.slam.n_particles == 42 and cfg.slam.filter == "ekf"
+    assert cfg.zenoh.listen == ["tcp/127.0.0.1:7447"]
+    assert cfg.frontend == Config().frontend
+
+
+def test_int_is_accepted_for_float() -> None:
+    assert config_from_dict({"budget": {"deadline_ms": 20}}).budget.deadline_ms == 20.0
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"slam": {"particles": 3}}, "slam.particles: unknown key"),
+        ({"slm": {}}, "slm: unknown key"),
+        ({"slam": {"n_particles": 0}}, "slam.n_particles: expected an integer >= 1, got 0"),
+        ({"slam": {"n_particles": "many"}}, "slam.n_particles: expected an integer, got str"),
+        ({"slam": {"n_particles": True}}, "slam.n_particles: expected an integer, got bool"),
+        ({"slam": {"filter": "ukf"}}, "slam.filter: expected one of ['ekf', 'fastslam1', 'fastslam2'], got 'ukf'"),
+        ({"slam": {"dim": 4}}, "slam.dim: expected one of [2, 3]"),
+        ({"frontend": {"sigma_x_px": -1.0}}, "frontend.sigma_x_px: expected a number >= 0.01"),
+        ({"zenoh": {"listen": "tcp/0.0.0.0:7447"}}, "zenoh.listen: expected a list"),
+        ({"zenoh": {"listen": [7447]}}, "zenoh.listen[0]: expected a string"),
+        ({"zenoh": {"enabled": "yes"}}, "zenoh.enabled: expected a boolean"),
+        ({"robot": {"id": "1robot"}}, "robot.id: expected a name matching"),
+        ({"slam": 3}, "slam: expected a table"),
+        ({"slam": {"fs2_weights": "joint"}}, "slam.fs2_weights"),
+        ({"frontend": {"cov_at": "pixels"}}, "frontend.cov_at"),
+        ({"slam": {"numba_threads": -1}}, "slam.numba_threads"),
+        ({"frontend": {"parallel_detect": "no"}}, "frontend.parallel_detect: expected a boolean"),
+        ({"slam": {"blas_threads": 0}}, "slam.blas_threads: expected an integer >= 1, got 0"),
+    ],
+)
+def test_bad_values_name_the_key(data: dict, message: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(data)
+    assert message in str(err.value)
+
+
+def test_parallel_detect_reaches_the_front_end() -> None:
+    from robotd.config_params import frontend_params_from_config
+
+    assert frontend_params_from_config(config_from_dict({})).parallel_detect is True
+    one = config_from_dict({"frontend": {"parallel_detect": False}})
+    assert frontend_params_from_config(one).parallel_detect is False
+
+
+def test_file_errors_name_the_file(tmp_path: Path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text("[slam]\nn_particles = -3\n")
+    with pytest.raises(ConfigError, match=r"slam.n_particles.*bad.toml"):
+        load_config(p)
+    p.write_text("[slam\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        load_config(tmp_path / "missing.toml")
+
+
+def test_to_toml_round_trips() -> None:
+    cfg = config_from_dict({"slam": {"n_particles": 7}, "mavlink": {"origin_lat_deg": 52.5}})
+    assert config_from_dict(tomllib.loads(to_toml(cfg, with_docs=True))) == cfg
+
+
+def test_print_config_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "c.toml"
+    p.write_text('[robot]\nid = "rover7"\n')
+    assert main(["print-config", "--config", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert 'id = "rover7"' in out and "[slam]" in out
+    p.write_text("[robot]\ncolour = 1\n")
+    assert main(["print-config", "--config", str(p)]) == 2
+    assert "robot.colour: unknown key" in capsys.readouterr().err

@@ -1,0 +1,122 @@
+"""Map persistence: atomic round trip, corrupt/foreign files moved aside, full disk keeps the old map."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robotd.codec import decode_map, encode_map
+from robotd.daemon.sdnotify import Notifier
+from robotd.errors import PersistenceError
+from robotd.msgs import LandmarkMap
+from robotd.persist import MapStore
+from tests.support.tolerances import FLOAT32_ROUNDING_TOL
+
+
+def _state(rng: np.random.Generator) -> dict:
+    return {
+        "filter": "fastslam2",
+        "pose": rng.normal(size=(100, 6)),
+        "lm_mean": rng.normal(size=(100, 50, 3)).astype(np.float32),
+        "ids": np.arange(50, dtype=np.int64),
+        "nested": {"desc": rng.integers(0, 255, (50, 32), dtype=np.uint8), "n": 3},
+    }
+
+
+def test_round_trip_is_exact(tmp_path: Path, rng: np.random.Generator) -> None:
+    store = MapStore(tmp_path, "r1")
+    st = _state(rng)
+    store.save(st, t_ns=123)
+    got = MapStore(tmp_path, "r1").load()
+    assert got["t_ns"] == 123
+    s = got["state"]
+    assert s["filter"] == "fastslam2" and s["nested"]["n"] == 3
+    for k in ("pose", "lm_mean", "ids"):
+        assert s[k].dtype == st[k].dtype and np.array_equal(s[k], st[k])
+    assert np.array_equal(s["nested"]["desc"], st["nested"]["desc"])
+    assert not list(tmp_path.glob(".*.tmp")), "temporary file left behind"
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda b: b"GARBAGE!" + b[8:], "not a robotd map"),
+        (lambda b: b[:-10], "truncated"),
+        (lambda b: b[:40] + bytes([b[40] ^ 0xFF]) + b[41:], "checksum mismatch"),
+    ],
+)
+def test_corrupt_file_is_moved_aside_never_overwritten(
+    tmp_path: Path, rng: np.random.Generator, mutate, message
+) -> None:
+    store = MapStore(tmp_path, "r1")
+    store.save(_state(rng), 1)
+    bad = mutate(store.path.read_bytes())
+    store.path.write_bytes(bad)
+    with pytest.raises(PersistenceError, match=message) as err:
+        store.load()
+    assert "moved aside" in str(err.value)
+    aside = list(tmp_path.glob("map.robotd.bad-*"))
+    assert len(aside) == 1 and aside[0].read_bytes() == bad
+    assert not store.path.exists()
+
+
+def test_foreign_robot_map_is_refused(tmp_path: Path, rng: np.random.Generator) -> None:
+    MapStore(tmp_path, "r1").save(_state(rng), 1)
+    with pytest.raises(PersistenceError, match="map of robot 'r1', this is 'r2'"):
+        MapStore(tmp_path, "r2").load()
+
+
+def test_full_disk_keeps_previous_map(tmp_path: Path, rng: np.random.Generator, monkeypatch) -> None:
+    store = MapStore(tmp_path, "r1")
+    store.save(_state(rng), 1)
+    before = store.path.read_bytes()
+    real_write = os.write
+
+    def full(fd: int, data) -> int:  # the disk fills up halfway through
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(PersistenceError, match="No space left on device.*previous map is kept"):
+        store.save(_state(rng), 2)
+    monkeypatch.setattr(os, "write", real_write)
+    assert store.path.read_bytes() == before
+    assert MapStore(tmp_path, "r1").load()["t_ns"] == 1
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_map_message_round_trip(rng: np.random.Generator) -> None:
+    A = rng.normal(size=(20, 3, 3))
+    lm = LandmarkMap(np.arange(20, dtype=np.int64) * 7, rng.normal(size=(20, 3)), A @ np.swapaxes(A, 1, 2))
+    meta, back = decode_map(encode_map("r1", 5, lm, seq=3))
+    assert meta["robot"] == "r1" and meta["seq"] == 3 and meta["n"] == 20
+    assert np.array_equal(back.ids, lm.ids)
+    # the map file stores float32
+    assert np.allclose(back.xyz_W_m, lm.xyz_W_m, atol=FLOAT32_ROUNDING_TOL)
+    assert np.allclose(back.cov_W, lm.cov_W, rtol=FLOAT32_ROUNDING_TOL, atol=FLOAT32_ROUNDING_TOL)
+    with pytest.raises(PersistenceError, match="expected schema"):
+        decode_map(b"\xa1aa\x01")
+
+
+def test_sd_notify_datagrams(tmp_path: Path) -> None:
+    import socket
+
+    path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(path)
+    srv.settimeout(1.0)
+    n = Notifier({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "4000000"})
+    assert n.enabled and n.watchdog_interval_s == pytest.approx(2.0)
+    n.ready("tracking")
+    assert srv.recv(1024) == b"READY=1\nSTATUS=tracking"
+    n.watchdog()
+    assert srv.recv(1024) == b"WATCHDOG=1"
+    n.stopping()
+    assert srv.recv(1024).startswith(b"STOPPING=1")
+    n.close()
+    srv.close()
+    off = Notifier({})
+    assert not off.enabled and off.ready() is False
