@@ -248,9 +248,11 @@ class Pipeline:
         return self.estimator.set_particles(int(n))
 
     # ---------------------------------------------------------------- start-up and persistence
-    def warmup(self) -> float:
+    @staticmethod
+    def warmup() -> float:
         """Compile or load every numba kernel a step uses, so the first frame is not delayed
-        (compiling takes ~15 s on a 2-core machine, loading the cache ~1–2 s). Returns seconds."""
+        (compiling takes ~15–20 s on a 2-core machine, loading the cache ~1–2 s). Returns seconds.
+        Needs no pipeline: the daemon calls it before it opens the devices."""
         import time
 
         from robotd import outliers

@@ -125,14 +125,17 @@ class Daemon:
             cfg.slam.filter,
             cfg.slam.dim,
         )
+        # the kernels first: compiling them (first run) takes ~20 s, and the devices are opened
+        # only then, so no camera streams into a queue nobody reads (and sim:// starts its path
+        # when the daemon can follow it)
+        logger.info("loading the filter and matcher kernels (the first run compiles them: ~20 s)")
+        logger.info("filter and matcher kernels ready in %.1f s", Pipeline.warmup())
         dev = open_devices(cfg, stack, self.stop_event, self.notifier)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
         rig = dev.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
-        warm_s = self.pipeline.warmup()
         self._limits = limit_threads(self.pipeline.frontend.params.parallel_detect, cfg.slam.blas_threads)
-        logger.info("filter and matcher kernels ready in %.1f s", warm_s)
         fps = dev.camera.fps or 30.0
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
         particles = cfg.slam.filter != "ekf"
