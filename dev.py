@@ -5,7 +5,13 @@
     python3 dev.py test   # create .venv, install robotd[dev], run ruff, mypy, the unit check and pytest
 
 Only the standard library is used here, so it works on a fresh machine with Python 3.11 and pip.
-The virtual environment is re-installed when pyproject.toml changes.
+``run`` installs what running needs; ``test`` adds the dev tools. The virtual environment is
+re-installed when pyproject.toml changes, and pip shows its progress (the first install takes
+about a minute).
+
+``dev.py run`` passes SIGINT and SIGTERM on to robotd and waits for it: a Ctrl-C in a terminal, a
+service manager, an IDE or ``timeout`` signalling this process alone all stop robotd cleanly (it
+saves its map), and this process exits with robotd's status.
 """
 
 from __future__ import annotations
@@ -13,10 +19,12 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import venv
 from pathlib import Path
+from types import FrameType
 
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
@@ -29,16 +37,20 @@ def _run(*cmd: str | os.PathLike[str], check: bool = True) -> int:
     return subprocess.run([str(c) for c in cmd], cwd=ROOT, check=check).returncode
 
 
-def ensure_venv() -> None:
-    want = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
-    if STAMP.exists() and STAMP.read_text().strip() == want:
+def ensure_venv(extras: str = "") -> None:
+    """Install robotd (with ``extras``, e.g. "dev") unless this pyproject.toml with these extras
+    is installed already; a venv that has "dev" also serves ``run``."""
+    digest = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
+    have = STAMP.read_text().split() if STAMP.exists() else []
+    if have and have[0] == digest and (not extras or extras in have[1:]):
         return
     if not (BIN / "python").exists():
         print(f"creating {VENV}", flush=True)
         venv.EnvBuilder(with_pip=True).create(VENV)
-    _run(BIN / "python", "-m", "pip", "install", "-q", "--upgrade", "pip")
-    _run(BIN / "python", "-m", "pip", "install", "-q", "-e", ".[dev]")
-    STAMP.write_text(want)
+    print("installing robotd and its dependencies (first time: about a minute)", flush=True)
+    _run(BIN / "python", "-m", "pip", "install", "--upgrade", "pip")
+    _run(BIN / "python", "-m", "pip", "install", "-e", f".[{extras}]" if extras else ".")
+    STAMP.write_text(" ".join([digest, *([extras] if extras else [])]))
 
 
 def cmd_run(args: list[str]) -> int:
@@ -46,16 +58,20 @@ def cmd_run(args: list[str]) -> int:
     cmd = [str(BIN / "robotd"), "run", *args]
     print("+", " ".join(cmd), flush=True)
     proc = subprocess.Popen(cmd, cwd=ROOT)
-    while True:
-        try:
-            return proc.wait()
-        except KeyboardInterrupt:
-            # Ctrl-C reaches robotd too; it shuts down gracefully (saving its map): wait for it
-            continue
+
+    def forward(signum: int, _frame: FrameType | None) -> None:
+        # robotd shuts down gracefully on either signal (saving its map); a terminal's Ctrl-C may
+        # already have reached it through the process group, and a second one changes nothing
+        if proc.poll() is None:
+            proc.send_signal(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, forward)
+    return proc.wait()
 
 
 def cmd_test(args: list[str]) -> int:
-    ensure_venv()
+    ensure_venv("dev")
     _run(BIN / "ruff", "check", ".")
     _run(BIN / "ruff", "format", "--check", ".")
     _run(BIN / "mypy")

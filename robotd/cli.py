@@ -40,6 +40,17 @@ def configure_logging(level: str = "INFO") -> None:
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, datefmt="%H:%M:%S")
 
 
+def _seconds(text: str) -> float:
+    """A ``--duration``: seconds >= 0 (0: until stopped)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not (v >= 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0 (0: until stopped), got {text}")
+    return v
+
+
 def _load(args: argparse.Namespace) -> Config:
     return load_config(getattr(args, "config", None))
 
@@ -178,7 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp = add("run", cmd_run, "run the daemon (default: on the simulated rover, sim://)")
     sp.add_argument("--camera", metavar="URL", help="override camera.url")
     sp.add_argument("--vehicle", metavar="URL", help="override vehicle.url")
-    sp.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until SIGTERM)")
+    sp.add_argument(
+        "--duration", type=_seconds, default=0.0, help="stop after this many seconds, in every state (0: until SIGTERM)"
+    )
 
     sp = add("replay", cmd_replay, "run a recording or dataset through the pipeline")
     sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
@@ -191,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.add_argument("out", help="OUT.mcap")
-    sp.add_argument("--duration", type=float, default=10.0, help="seconds to record (0: until SIGTERM)")
+    sp.add_argument("--duration", type=_seconds, default=10.0, help="seconds to record (0: until SIGTERM)")
     sp.add_argument("--json", action="store_true")
 
     sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)

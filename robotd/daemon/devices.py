@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -43,12 +45,19 @@ def link_options(cfg: Config, url: str) -> dict[str, Any]:
     return opts
 
 
-def open_devices(cfg: Config, stack: contextlib.ExitStack, stop: threading.Event, notifier: Notifier) -> Devices:
+def open_devices(
+    cfg: Config,
+    stack: contextlib.ExitStack,
+    stop: threading.Event,
+    notifier: Notifier,
+    give_up_at: float = math.inf,
+) -> Devices:
     """Open the camera and the vehicle link (and a separate autopilot link when ``mavlink.enabled``
-    and the vehicle link is not MAVLink); each is closed when ``stack`` unwinds."""
+    and the vehicle link is not MAVLink); each is closed when ``stack`` unwinds. Hardware that is
+    missing is retried until ``stop`` or the monotonic time ``give_up_at`` (``--duration``)."""
 
     def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str) -> D:
-        return open_with_retry(stack, kind, opener, url, stop, notifier, **link_options(cfg, url))
+        return open_with_retry(stack, kind, opener, url, stop, notifier, give_up_at, **link_options(cfg, url))
 
     camera = open_("camera", drivers.open_camera, cfg.camera.url)
     vehicle = open_("vehicle", drivers.open_vehicle, cfg.vehicle.url)
@@ -66,10 +75,13 @@ def open_with_retry(
     url: str,
     stop: threading.Event,
     notifier: Notifier,
+    give_up_at: float = math.inf,
     **options: Any,
 ) -> D:
-    """Open a driver; a missing hardware device is retried (backing off to 10 s) until ``stop``."""
+    """Open a driver; a missing hardware device is retried (backing off to 10 s) until ``stop``,
+    or until the monotonic time ``give_up_at``, when a DriverError says how long it waited."""
     delay = 0.5
+    t0 = time.monotonic()
     while True:
         try:
             return stack.enter_context(opener(url, **options))
@@ -78,8 +90,12 @@ def open_with_retry(
                 raise
             if url.split("://")[0] not in HARDWARE_SCHEMES:
                 raise  # a simulator or dataset that fails to open will not heal by waiting
-            logger.error("%s %s unavailable: %s; retrying in %.1f s", kind, url, exc, delay)
+            left = give_up_at - time.monotonic()
+            if left <= 0:
+                raise DriverError(f"{exc}; gave up after {time.monotonic() - t0:.1f} s (--duration)") from exc
+            wait = min(delay, left)
+            logger.error("%s %s unavailable: %s; retrying in %.1f s", kind, url, exc, wait)
             notifier.status(f"waiting for {kind}: {exc}")
-            if stop.wait(delay):
+            if stop.wait(wait):
                 raise
             delay = min(delay * 2, 10.0)

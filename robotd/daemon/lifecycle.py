@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from robotd.daemon.health import DaemonStats, HealthMonitor
 from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
-from robotd.errors import RobotdError
+from robotd.errors import ConfigError, RobotdError
 from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryIntegrator
 from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
@@ -69,9 +70,12 @@ class Daemon:
         environ: dict[str, str] | None = None,
         record_path: str | None = None,
     ) -> None:
+        if not (duration_s >= 0 and math.isfinite(duration_s)):
+            raise ConfigError(f"--duration: expected seconds >= 0 (0: until stopped), got {duration_s}")
         self.cfg = cfg
         self.record_path = record_path
         self.duration_s = duration_s
+        self._t_created = time.monotonic()
         self.stop_event = threading.Event()
         self.signals = StopSignals(self.stop_event)
         self._stop_reason = ""
@@ -130,7 +134,8 @@ class Daemon:
         # when the daemon can follow it)
         logger.info("loading the filter and matcher kernels (the first run compiles them: ~20 s)")
         logger.info("filter and matcher kernels ready in %.1f s", Pipeline.warmup())
-        dev = open_devices(cfg, stack, self.stop_event, self.notifier)
+        give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
+        dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
         rig = dev.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
