@@ -35,6 +35,7 @@ already finalised at ``PATH`` untouched.
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import logging
 import os
@@ -466,6 +467,19 @@ class SessionWriter:
         self._closed = True
         self.counts["bytes"] = self.path.stat().st_size
         logger.info("recording %s closed: %s", self.path, self.counts)
+
+    def discard(self) -> None:
+        """Close without publishing: the temporary file is removed and ``PATH`` is left as it was
+        (a run that recorded nothing leaves no empty recording behind). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(OSError, ValueError):
+            self._file.close()
+        try:
+            self.tmp_path.unlink(missing_ok=True)
+        except OSError as exc:
+            logger.warning("could not remove %s: %s", self.tmp_path, exc)
 
     def _fsync_dir(self) -> None:
         # the rename is durable only once the directory entry is on disk (power loss)

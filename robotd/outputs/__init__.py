@@ -58,10 +58,11 @@ def _autopilot(ctx: OutputContext) -> Output | None:
     return AutopilotOutput(ctx.autopilot)
 
 
-# (name, factory), in the order outputs are opened and called
+# (name, factory), in the order outputs are opened and called. The network session first: when
+# it cannot open (a second robotd holding the port), the start fails before a file is created.
 FACTORIES: tuple[tuple[str, Callable[[OutputContext], Output | None]], ...] = (
-    ("recorder", _recorder),  # robotd record OUT.mcap
     ("zenoh", _zenoh),  # [zenoh] enabled
+    ("recorder", _recorder),  # robotd record OUT.mcap
     ("autopilot", _autopilot),  # [mavlink] enabled, or a vehicle link with an autopilot role
 )
 

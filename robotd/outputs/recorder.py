@@ -3,6 +3,7 @@ consumed them, and every published pose, in one MCAP file (robotd.record, docs/r
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -11,6 +12,8 @@ from robotd.msgs import Odometry, StereoFrame
 from robotd.outputs.base import Output, StepReport
 from robotd.record import SessionWriter
 from robotd.stereo import RectifiedStereo
+
+logger = logging.getLogger(__name__)
 
 
 class RecorderOutput(Output):
@@ -43,4 +46,8 @@ class RecorderOutput(Output):
 
     def close(self) -> None:
         with self._lock:
-            self.writer.close()
+            if self.writer.counts["frames"] == 0:
+                logger.warning("no frame was recorded: %s not written", self.path)
+                self.writer.discard()
+            else:
+                self.writer.close()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 from collections.abc import Mapping
 from typing import Any
@@ -52,6 +53,22 @@ def make_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
     conf.insert_json5("scouting/multicast/enabled", "true" if cfg.multicast_scouting else "false")
     conf.insert_json5("scouting/gossip/enabled", "false" if not cfg.connect else "true")
     return conf
+
+
+def session_error(cfg: ZenohConfig, exc: Exception) -> str:
+    """One line for a session that would not open: which key to change, without zenoh's Rust
+    source locations. The usual case is a second robotd on the host holding the listen port."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc)).strip().rstrip("]")
+    busy = re.search(r"bound to (\S+?):? \[?.*Address already in use", text)
+    if busy is not None:
+        endpoint = busy.group(1)
+        return (
+            f"zenoh.listen: {endpoint} is already in use (another robotd on this host?); give this one "
+            f'another port in its config, e.g. [zenoh] listen = ["tcp/127.0.0.1:7448"], or set '
+            f"[zenoh] enabled = false"
+        )
+    where = f"zenoh.config_file {cfg.config_file}" if cfg.config_file else "zenoh.listen/zenoh.connect"
+    return f"zenoh: cannot open the session ({where}): {text}"
 
 
 def pose_payload(
@@ -96,7 +113,7 @@ class ZenohOutput(Output):
         try:
             self.session = zenoh.open(make_zenoh_config(cfg))
         except Exception as exc:
-            raise DriverError(f"zenoh: cannot open session ({exc})") from exc
+            raise DriverError(session_error(cfg, exc)) from exc
         s = self.session
         self._pose = s.declare_publisher(
             f"{self.prefix}/pose",
