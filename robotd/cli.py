@@ -32,12 +32,31 @@ from robotd.errors import RobotdError
 logger = logging.getLogger("robotd")
 
 
+# syslog priorities (RFC 5424) of the logging levels, for journald's "<N>" line prefix
+SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+
+
+class JournalFormatter(logging.Formatter):
+    """Prefixes each line with ``<N>``, its syslog priority: journald reads that prefix on a
+    service's stderr (SyslogLevelPrefix=, on by default), so ``journalctl -p err -u robotd``
+    shows the errors alone. journald stamps the time itself."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        prio = SYSLOG_PRIORITY.get(record.levelno, 6 if record.levelno < logging.WARNING else 3)
+        return f"<{prio}>{super().format(record)}"
+
+
 def configure_logging(level: str = "INFO") -> None:
-    """stderr logging; under systemd (JOURNAL_STREAM set) without timestamps, journald adds them."""
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if not os.environ.get("JOURNAL_STREAM"):
-        fmt = "%(asctime)s.%(msecs)03d " + fmt
-    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), format=fmt, datefmt="%H:%M:%S")
+    """stderr logging; under systemd (JOURNAL_STREAM set) with syslog priorities and without
+    timestamps, which journald adds."""
+    handler = logging.StreamHandler()
+    if os.environ.get("JOURNAL_STREAM"):
+        handler.setFormatter(JournalFormatter("%(levelname)s %(name)s: %(message)s"))
+    else:
+        handler.setFormatter(
+            logging.Formatter("%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+        )
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), handlers=[handler])
 
 
 def _seconds(text: str) -> float:
