@@ -149,6 +149,9 @@ class PersistenceConfig:
     state_dir: str = _f("", "map directory; empty: $STATE_DIRECTORY, else ~/.local/state/robotd")
     save_period_s: float = _f(30.0, "periodic map save; 0 disables periodic saves", min=0.0)
     resume: bool = _f(False, "start from the saved map when one exists")
+    keep_maps: int = _f(
+        5, "earlier maps kept (map.<time>.robotd) when a run that did not resume saves a new one", min=0, max=1000
+    )
 
 
 @dataclass(frozen=True)

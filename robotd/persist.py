@@ -93,6 +93,39 @@ class MapStore:
     def exists(self) -> bool:
         return self.path.exists()
 
+    def keep_previous(self, keep: int) -> Path | None:
+        """Before a run that did not resume from it overwrites the saved map: rename it to
+        ``map.<time>.robotd`` (the time it was last written) and delete the oldest such maps beyond
+        ``keep``, saying so in the log. Returns where the previous map went (None: there was none,
+        or ``keep`` is 0 and it will be overwritten, which is logged too)."""
+        if not self.path.exists():
+            return None
+        if keep <= 0:
+            logger.warning("the saved map %s will be overwritten (persistence.keep_maps = 0)", self.path)
+            return None
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(self.path.stat().st_mtime))
+        kept = self.path.with_name(f"map.{stamp}.robotd")
+        k = 1
+        while kept.exists():
+            kept = self.path.with_name(f"map.{stamp}-{k}.robotd")
+            k += 1
+        try:
+            os.replace(self.path, kept)
+        except OSError as exc:
+            raise PersistenceError(f"{self.path}: could not keep the previous map ({exc.strerror or exc})") from exc
+        logger.info("kept the previous map as %s (persistence.keep_maps = %d)", kept, keep)
+        for old in self.kept_maps()[:-keep]:
+            try:
+                old.unlink()
+                logger.info("removed the oldest kept map %s (persistence.keep_maps = %d)", old, keep)
+            except OSError as exc:
+                logger.warning("could not remove the old map %s: %s", old, exc.strerror or exc)
+        return kept
+
+    def kept_maps(self) -> list[Path]:
+        """The earlier maps kept by :meth:`keep_previous`, oldest first."""
+        return sorted(self.dir.glob("map.2*.robotd"))
+
     def load(self) -> dict[str, Any]:
         """The saved state. A corrupt or foreign file is moved aside and PersistenceError raised."""
         try:

@@ -31,6 +31,9 @@ class MapFileOutput(Output):
 
     def __init__(self, cfg: PersistenceConfig, robot_id: str) -> None:
         self.store = MapStore(default_state_dir(cfg.state_dir), robot_id)
+        self.keep_maps = cfg.keep_maps
+        self.resumed = False
+        self._first_save = True
         self.state_period_s = cfg.save_period_s if cfg.save_period_s > 0 else None
         self._queue: DropOldestQueue[tuple[int, Mapping[str, Any]]] = DropOldestQueue(1)
         self._thread = threading.Thread(target=self._writer, name="robotd-mapfile", daemon=True)
@@ -53,6 +56,7 @@ class MapFileOutput(Output):
             return False
         n = int(pipeline.estimator.landmark_ids().shape[0])
         logger.info("resumed from saved map %s: %d landmarks", self.store.path, n)
+        self.resumed = True
         return True
 
     def publish(self, report: StepReport) -> None:
@@ -66,7 +70,12 @@ class MapFileOutput(Output):
             self.save(state, t_ns)
 
     def save(self, state: Mapping[str, Any], t_ns: int) -> bool:
+        """Write ``state``. The first save of a run that did not resume from the saved map keeps
+        that map under a new name first (``persistence.keep_maps``): a map is never lost silently."""
         try:
+            if self._first_save and not self.resumed:
+                self.store.keep_previous(self.keep_maps)
+            self._first_save = False
             path = self.store.save(dict(state), t_ns)
         except PersistenceError as exc:
             logger.error("%s", exc)

@@ -1,0 +1,71 @@
+"""The map file output never destroys a map silently: a run that did not resume from the saved map
+keeps it under a new name before its first save, up to ``persistence.keep_maps`` of them."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robotd.config import PersistenceConfig
+from robotd.outputs.mapfile import MapFileOutput
+
+STATE = {"estimator_name": "fastslam2", "dim": 3, "estimator": {"x": np.zeros(3)}, "database": {}}
+
+
+def _output(tmp_path: Path, keep: int = 5) -> MapFileOutput:
+    return MapFileOutput(PersistenceConfig(state_dir=str(tmp_path), save_period_s=0.0, keep_maps=keep), "r1")
+
+
+def _age(path: Path, seconds_ago: float) -> None:
+    t = time.time() - seconds_ago
+    os.utime(path, (t, t))
+
+
+def test_a_new_run_keeps_the_previous_map_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    first = _output(tmp_path)
+    assert first.save(STATE, 1)
+    first.close()
+    _age(tmp_path / "map.robotd", 3600)
+    second = _output(tmp_path)
+    assert second.save(STATE, 2) and second.save(STATE, 3)  # the second save just overwrites its own map
+    second.close()
+    kept = sorted(tmp_path.glob("map.2*.robotd"))
+    assert len(kept) == 1 and (tmp_path / "map.robotd").exists()
+    assert f"kept the previous map as {kept[0]}" in caplog.text
+
+
+def test_only_keep_maps_are_kept_and_the_removal_is_logged(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    for k in range(4):
+        out = _output(tmp_path, keep=2)
+        assert out.save(STATE, k)
+        out.close()
+        _age(tmp_path / "map.robotd", 3600 * (10 - k))  # distinct, increasing times
+    assert len(sorted(tmp_path.glob("map.2*.robotd"))) == 2
+    assert caplog.text.count("removed the oldest kept map") == 1
+
+
+def test_a_resumed_run_continues_its_map_in_place(tmp_path: Path) -> None:
+    out = _output(tmp_path)
+    assert out.save(STATE, 1)
+    out.close()
+    again = _output(tmp_path)
+    again.resumed = True  # what resume() sets after loading the map into the pipeline
+    assert again.save(STATE, 2)
+    again.close()
+    assert not list(tmp_path.glob("map.2*.robotd"))
+
+
+def test_keep_maps_zero_overwrites_and_says_so(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    for k in range(2):
+        out = _output(tmp_path, keep=0)
+        assert out.save(STATE, k)
+        out.close()
+    assert not list(tmp_path.glob("map.2*.robotd"))
+    assert "will be overwritten (persistence.keep_maps = 0)" in caplog.text
