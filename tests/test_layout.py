@@ -16,7 +16,7 @@ from tests.support.paths import REPO
 PACKAGES = ("robotd", "drivers", "calib", "systemd")
 TESTS = REPO / "tests"
 # repository-wide tests that belong to no one module
-TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py"}
+TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py", "test_dev.py"}  # the last mirrors dev.py at the root
 NOT_MIRRORS = {"support", "__pycache__"}
 
 

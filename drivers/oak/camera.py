@@ -280,7 +280,10 @@ def find_device(device_id: str) -> Any:
 
     devices = dai.Device.getAllAvailableDevices()
     if not devices:
-        raise DriverError("no OAK device found (check USB/PoE and the udev rule, interfaces.md §2.5)")
+        raise DriverError(
+            "no OAK device found (check the USB cable or PoE link and the udev rule "
+            "systemd/60-robotd-oak.rules, README 'On the rover'; `robotd doctor` checks both)"
+        )
     if not device_id:
         return devices[0]
     for d in devices:

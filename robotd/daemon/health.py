@@ -138,12 +138,19 @@ class HealthMonitor:
         yaw = np.degrees(p.rpy_rad[2])
         err = h["error_vs_truth_m"]
         lat = h["latency_ms"]
+        b = h["budget"]
+        # frames the camera delivered that SLAM did not process: dropped from the queue (SLAM was
+        # busy) or skipped by the latency budget (its last rung processes one frame in k)
+        budget = f"budget L{b['level']}"
+        if b["level"] > 0:
+            budget += f" ({b['max_features']} feat, {b['n_particles']} particles"
+            budget += f", 1 frame in {b['skip_every']})" if b["skip_every"] > 1 else ")"
         return (
             f"pose x {p.xyz_W_m[0]:+7.2f} y {p.xyz_W_m[1]:+7.2f} z {p.xyz_W_m[2]:+6.2f} m yaw {yaw:+6.1f}° | "
             f"err {'n/a' if err is None else f'{err:.3f} m'} | "
             f"latency p50 {lat['p50'] or 0:.1f} p99 {lat['p99'] or 0:.1f} ms | "
-            f"{fps:.1f} fps, drops {h['frame_drops']} | lm {h['landmarks']} feat {h['features']} | "
-            f"q {last.quality} budget L{h['budget']['level']}"
+            f"{fps:.1f} fps, dropped {h['frame_drops']} skipped {b['skipped_frames']} | "
+            f"lm {h['landmarks']} feat {h['features']} | q {last.quality} {budget}"
         )
 
 
