@@ -152,9 +152,7 @@ def check_serial(cfg: Config) -> CheckResult:
     try:
         st = os.stat(device)
     except FileNotFoundError:
-        return CheckResult(
-            name, FAIL, f"{device} not found (vehicle.url): is the MCU plugged in? ls /dev/serial/by-id/"
-        )
+        return CheckResult(name, FAIL, f"{device} not found (vehicle.url): is it plugged in? ls /dev/serial/by-id/")
     except OSError as exc:
         return CheckResult(name, FAIL, f"{device}: cannot stat: {exc.strerror} (vehicle.url)")
     if not stat.S_ISCHR(st.st_mode):
@@ -190,6 +188,9 @@ def check_mavlink(cfg: Config, timeout_s: float = HEARTBEAT_TIMEOUT_S) -> CheckR
     if target is None:
         return CheckResult(name, SKIP, f"vehicle.url is {cfg.vehicle.url!r} and mavlink.enabled is false")
     url, key = target
+    device = _serial_device(url)
+    if device and not os.path.exists(device):
+        return CheckResult(name, SKIP, f"{device} is missing ({key}; see the serial check)")
     from drivers.mavlink_link import wait_heartbeat
 
     options: dict[str, Any] = {}

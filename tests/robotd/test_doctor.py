@@ -127,6 +127,10 @@ def test_mavlink_check_ok_silent_and_skipped() -> None:
         r = doctor.check_mavlink(cfg_with(vehicle={"url": url}), timeout_s=0.5)
     assert r.status == doctor.FAIL and "no autopilot HEARTBEAT" in r.message and "vehicle.url" in r.message
     assert doctor.check_mavlink(cfg_with()).status == doctor.SKIP
+    # a missing serial device is the serial check's failure, not a second one here
+    url = "mavlink+serial:///nonexistent/ttyACM0?baud=921600"
+    r = doctor.check_mavlink(cfg_with(vehicle={"url": url}))
+    assert r.status == doctor.SKIP and "see the serial check" in r.message
 
 
 # -- Zenoh ------------------------------------------------------------------------------------
