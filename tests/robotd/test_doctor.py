@@ -244,3 +244,12 @@ def test_cli_failing_check_exits_1_and_json(tmp_path: Path, capsys: pytest.Captu
 def test_cli_config_error_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["doctor", "--config", str(tmp_path / "missing.toml")]) == 2
     assert "missing.toml" in capsys.readouterr().err
+
+
+def test_warm_runs_the_pipeline_warmup_and_reports_seconds(monkeypatch: pytest.MonkeyPatch) -> None:
+    from robotd.pipeline import Pipeline
+
+    calls: list[int] = []
+    monkeypatch.setattr(Pipeline, "warmup", staticmethod(lambda: calls.append(1) or 1.5))
+    r = doctor.check_numba_cache(cfg_with(), warm=True)
+    assert calls == [1] and "warmed in 1.5 s" in r.message
