@@ -644,3 +644,54 @@ class MavlinkVehicle(QueuedVehicleLink):
 def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:
     """Factory for ``mavlink+udp://HOST:PORT`` and ``mavlink+serial:///dev/ttyX?baud=…``."""
     return MavlinkVehicle(url, **options)
+
+
+def wait_heartbeat(url: str, timeout_s: float = 3.0, **options: Any) -> tuple[int, str] | None:
+    """The first autopilot HEARTBEAT on ``url`` within ``timeout_s``: (system id, MAV_AUTOPILOT name), else None.
+
+    For ``robotd doctor``: opens the link alone (no threads, no rate requests, no pose), sends our
+    own heartbeat once a second as robotd does (with ``mode=out`` the autopilot learns our address
+    only from what we send, and ArduPilot streams nothing to a silent peer), and ignores heartbeats
+    of ground stations and other companions, like the link does. Options as for the URL
+    (``signing_key`` when the autopilot rejects unsigned messages). Raises DriverError when the
+    URL is bad or the device cannot be opened.
+    """
+    device, opts = parse_mavlink_url(url, **options)
+    m = _mav()
+    kw: dict[str, Any] = {"source_system": opts.sysid or 1, "source_component": opts.compid, "dialect": DIALECT}
+    if not device.startswith("udp"):
+        kw["baud"] = opts.baud
+    try:
+        conn = mavutil.mavlink_connection(device, **kw)
+    except Exception as exc:  # pymavlink raises OSError, SerialException, ValueError...
+        raise DriverError(f"{url!r}: cannot open {device}: {exc}") from exc
+    try:
+        if opts.signing_key:
+            conn.setup_signing(read_signing_key(opts.signing_key), sign_outgoing=True)
+        t_end = time.monotonic() + timeout_s
+        next_hb = 0.0
+        while (now := time.monotonic()) < t_end:
+            if now >= next_hb:
+                try:
+                    conn.mav.heartbeat_send(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                except OSError:
+                    pass  # nobody listening yet (ICMP unreachable): keep waiting until the timeout
+                next_hb = now + 1.0
+            try:
+                msg = conn.recv_match(type="HEARTBEAT", blocking=True, timeout=min(0.2, max(t_end - now, 0.01)))
+            except OSError:
+                msg = None
+            if msg is None:
+                continue
+            if msg.autopilot == m.MAV_AUTOPILOT_INVALID or msg.type in (m.MAV_TYPE_GCS, m.MAV_TYPE_ONBOARD_CONTROLLER):
+                continue
+            if opts.sysid and msg.get_srcSystem() != opts.sysid:
+                continue
+            entry = m.enums["MAV_AUTOPILOT"].get(msg.autopilot)
+            return int(msg.get_srcSystem()), (entry.name if entry is not None else str(msg.autopilot))
+        return None
+    finally:
+        try:
+            conn.close()
+        except OSError:
+            pass

@@ -183,6 +183,21 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return echo(args.key, connect=args.connect, count=args.count, timeout_s=args.timeout)
 
 
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from robotd import doctor
+
+    cfg = _load(args)
+    configure_logging(args.log_level or "WARNING")
+    results = doctor.run_checks(cfg, warm=args.warm)
+    if args.json:
+        print(json.dumps(doctor.to_json(results), sort_keys=True))
+    else:
+        for r in results:
+            print(doctor.format_line(r))
+        print(doctor.summary(results))
+    return 1 if any(r.status == doctor.FAIL for r in results) else 0
+
+
 def cmd_mcu_sim(args: argparse.Namespace) -> int:
     from drivers.mcu_sim import main as mcu_main
 
@@ -248,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
     add("print-config", cmd_print_config, "print the resolved configuration").add_argument(
         "--docs", action="store_true", help="with each key's documentation"
     )
+
+    sp = add("doctor", cmd_doctor, "check this machine for a rover install (devices, ports, cache, calibration)")
+    sp.add_argument("--json", action="store_true", help="print one JSON object with every result")
+    sp.add_argument("--warm", action="store_true", help="compile the numba kernels into their cache first")
 
     sp = add("mcu-sim", cmd_mcu_sim, "the reference vehicle MCU simulator (serial protocol)", config=False)
     sp.add_argument("rest", nargs=argparse.REMAINDER)
