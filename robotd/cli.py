@@ -1,4 +1,4 @@
-"""The ``robotd`` command: run | replay | record | eval | experiments | echo | print-config | mcu-sim.
+"""The ``robotd`` command: run | replay | record | eval | experiments | echo | doctor | print-config | mcu-sim.
 
 Logging is configured here and nowhere else. Every subcommand returns an exit code; a
 :class:`robotd.errors.RobotdError` becomes one clear line on stderr and exit status 2.
