@@ -70,7 +70,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from robotd.replay import replay
+    from robotd.replay import replay, summary_line
 
     cfg = _load(args)
     configure_logging(args.log_level or cfg.log.level)
@@ -83,6 +83,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         gt_odometry=args.gt_odometry,
     )
+    # always, terminal or not, --quiet or not: the one line a person reads at the end (stdout
+    # keeps only the JSON, for scripts)
+    print(summary_line(summary), file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     return 0
@@ -181,13 +184,19 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: until SIGTERM)")
 
     sp = add("replay", cmd_replay, "run a recording or dataset through the pipeline")
+    sp.epilog = """\
+Progress on stderr when it is a terminal; one summary line on stderr at the end. With --json,
+a JSON summary on stdout; when the source carries ground truth it holds the keys of
+`robotd eval` prefixed truth_ (truth_drift_m, truth_drift_pct, truth_ate_rmse_m, ...),
+truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
     sp.add_argument("--realtime", action="store_true", help="pace frames at their recorded rate")
     sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format)")
     sp.add_argument("--max-frames", type=int, default=0)
     sp.add_argument("--gt-odometry", action="store_true", help="EXPERIMENTS ONLY: odometry synthesised from truth")
     sp.add_argument("--json", action="store_true", help="print a JSON summary")
-    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar (the final summary line stays)")
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.add_argument("out", help="OUT.mcap")
