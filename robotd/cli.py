@@ -20,6 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 import argparse
 import json
 import logging
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -100,7 +101,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from robotd.replay import replay
+    from robotd.replay import replay, summary_line
 
     cfg = _load(args)
     configure_logging(args.log_level or cfg.log.level)
@@ -113,6 +114,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         gt_odometry=args.gt_odometry,
     )
+    # always, terminal or not, --quiet or not: the one line a person reads at the end (stdout
+    # keeps only the JSON, for scripts)
+    print(summary_line(summary), file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     return 0
@@ -137,6 +141,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from robotd.research.evaluate import Trajectory, evaluate_trajectories, plot_trajectory, read_trajectory
 
     configure_logging(args.log_level or "WARNING")
+    if args.no_plot:
+        logger.warning("eval: --no-plot is deprecated and does nothing: no plot is written unless --plot PNG is given")
     est = read_trajectory(args.traj)
     gt = read_trajectory(args.gt)
     if _is_kitti_poses(args.gt):
@@ -144,19 +150,37 @@ def cmd_eval(args: argparse.Namespace) -> int:
         gt = Trajectory(gt.t_s, np.stack([T_optical_to_robot(T) for T in gt.T]))
     result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar))
     result["frames"] = int(result["frames"])
-    plot = args.plot or (str(Path(args.traj).with_suffix(".png")) if not args.no_plot else None)
-    if plot:
+    if args.plot:
         from robotd.research.evaluate import associate
 
         ie, ig = associate(est.t_s, gt.t_s)
-        plot_trajectory(est.T[ie], gt.T[ig], None, plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
-        result["plot"] = plot
+        plot_trajectory(est.T[ie], gt.T[ig], None, args.plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
+        result["plot"] = args.plot
     if args.json:
-        print(json.dumps(result, sort_keys=True))
+        # full precision; NaN (an undefined figure, e.g. drift_pct on a stationary path) as null
+        print(json.dumps({k: _json_number(v) for k, v in result.items()}, sort_keys=True))
     else:
         for k in sorted(result):
-            print(f"{k:>22}: {result[k]}")
+            print(f"{k:>22}: {_human_number(k, result[k])}")
     return 0
+
+
+def _json_number(v: Any) -> Any:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def _human_number(key: str, v: Any) -> str:
+    """A figure as a person reads it: metres to 0.1 mm, degrees to 0.001°, percentages and ratios
+    to 3 significant digits, counts as integers; an undefined figure as "n/a" (see --help)."""
+    if not isinstance(v, float):
+        return str(v)
+    if not math.isfinite(v):
+        return "n/a"
+    if key.endswith("_m"):
+        return f"{v:.4f}"
+    if key.endswith("_deg"):
+        return f"{v:.3f}"
+    return f"{v:.3g}"
 
 
 def _is_kitti_poses(path: str) -> bool:
@@ -228,13 +252,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     sp = add("replay", cmd_replay, "run a recording or dataset through the pipeline")
+    sp.epilog = """\
+Progress on stderr when it is a terminal; one summary line on stderr at the end. With --json,
+a JSON summary on stdout; when the source carries ground truth it holds the keys of
+`robotd eval` prefixed truth_ (truth_drift_m, truth_drift_pct, truth_ate_rmse_m, ...),
+truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
     sp.add_argument("--realtime", action="store_true", help="pace frames at their recorded rate")
     sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format)")
     sp.add_argument("--max-frames", type=int, default=0)
     sp.add_argument("--gt-odometry", action="store_true", help="EXPERIMENTS ONLY: odometry synthesised from truth")
     sp.add_argument("--json", action="store_true", help="print a JSON summary")
-    sp.add_argument("--quiet", action="store_true", help="no progress bar")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar (the final summary line stays)")
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.add_argument("out", help="OUT.mcap")
@@ -242,10 +272,18 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true")
 
     sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)
+    sp.epilog = """\
+keys: frames (associated poses); ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, final_error_m
+(after a rigid alignment); heading_rmse_deg; rpe_trans_m, rpe_rot_deg (frame to frame);
+drift_m (end-point error after aligning the first poses only) and drift_pct (the same in % of
+path_length_m); similarity_scale (diagnostic). drift_pct and similarity_scale are undefined
+(n/a, JSON null) when the ground-truth path is shorter than 1 m (a stationary sequence)."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("traj", help="estimated trajectory (TUM)")
     sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")
-    sp.add_argument("--plot", metavar="PNG", help="plot file (default: TRAJ with .png)")
-    sp.add_argument("--no-plot", action="store_true", help="do not write a plot")
+    sp.add_argument("--plot", metavar="PNG", help="also write a plot of both trajectories to PNG (none by default)")
+    # kept so that old scripts still run: a plot is opt-in now, so there is nothing to turn off
+    sp.add_argument("--no-plot", action="store_true", help=argparse.SUPPRESS)
     sp.add_argument("--planar", action="store_true", help="SE(2) alignment (2D runs)")
     sp.add_argument("--json", action="store_true")
 

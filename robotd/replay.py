@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+import os
 import sys
 import time
 from typing import Any
@@ -32,30 +34,80 @@ from robotd.research.evaluate import write_tum
 logger = logging.getLogger(__name__)
 
 
-class Progress:
-    """A light progress line on stderr (only when it is a terminal, or when forced)."""
+def _progress_bar(total: int | None, enabled: bool) -> Any:
+    """The replay's progress bar (tqdm, on stderr): n/total, fps and ETA. Off with ``--quiet`` and
+    when stderr is not a terminal (a log file or CI gets the one summary line instead)."""
+    from tqdm import tqdm
 
-    def __init__(self, total: int | None, enabled: bool) -> None:
-        self.total = total
-        self.enabled = enabled and sys.stderr.isatty()
-        self.n = 0
-        self.t0 = time.monotonic()
-        self._last = 0.0
+    return tqdm(
+        total=total,
+        unit="frame",
+        desc="replay",
+        file=sys.stderr,
+        disable=not (enabled and sys.stderr.isatty()),
+        dynamic_ncols=True,
+        mininterval=0.2,
+    )
 
-    def update(self, extra: str = "") -> None:
-        self.n += 1
-        now = time.monotonic()
-        if not self.enabled or now - self._last < 0.2:
-            return
-        self._last = now
-        rate = self.n / max(now - self.t0, 1e-9)
-        tot = f"/{self.total}" if self.total else ""
-        sys.stderr.write(f"\r{self.n}{tot} frames, {rate:.1f} fps {extra}   ")
-        sys.stderr.flush()
 
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
+def _frame_total(camera: Any, max_frames: int) -> int | None:
+    """Frames the replay will process, when the source can tell without reading them (the bar's
+    total; None: the bar shows a count and a rate only)."""
+    total: int | None = getattr(camera, "n_frames", None)
+    if total is None and hasattr(camera, "entries"):  # KITTI / EuRoC: the selected frames, listed
+        total = len(camera.entries)
+    if total is None and hasattr(camera, "reader") and hasattr(camera, "replay"):  # a robotd recording
+        total = _mcap_frame_total(camera.reader.path, camera.replay)
+    if max_frames:
+        total = max_frames if total is None else min(total, max_frames)
+    return total
+
+
+def _mcap_frame_total(path: Any, sel: Any) -> int | None:
+    """Selected frames of a recording, from the MCAP summary's message counts (no message is read)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from robotd.record import TOPIC_FRAME
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except (McapError, OSError, ValueError):  # a nicety: an unindexed file still replays, without a total
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_FRAME]
+    n = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+    stop = n if sel.stop is None else min(sel.stop, n)
+    return len(range(sel.start, stop, sel.stride))
+
+
+def _opening_line(source: str) -> str:
+    """What replay is doing during its silent start: opening (indexing) a recording takes seconds."""
+    path = source.removeprefix("mcap://").split("?", 1)[0]
+    if "://" not in path and os.path.isfile(path):
+        return f"opening {path} ({os.path.getsize(path) / 1e6:.0f} MB)..."
+    return f"opening {source}..."
+
+
+def summary_line(summary: dict[str, Any]) -> str:
+    """One human line for the end of a replay: frames, wall time, fps, lost frames and, when the
+    source carried ground truth, the truth figures (drift in % of path, or in m on a short path)."""
+    n, wall = summary["frames"], summary["wall_s"]
+    line = f"replayed {n} frames in {wall:.1f} s ({n / max(wall, 1e-9):.0f} fps): {summary['lost_frames']} lost"
+    truth: list[str] = []
+    if summary.get("truth_drift_pct") is not None:
+        truth.append(f"drift {summary['truth_drift_pct']:.2f} %")
+    elif summary.get("truth_drift_m") is not None:
+        truth.append(f"drift {summary['truth_drift_m']:.3f} m (path {summary['truth_path_length_m']:.2f} m)")
+    if summary.get("truth_ate_rmse_m") is not None:
+        truth.append(f"ATE {summary['truth_ate_rmse_m']:.3f} m")
+    if truth:
+        line += "; " + ", ".join(truth)
+    if summary.get("gt_odometry"):
+        line += " [EXPERIMENT: odometry from ground truth]"
+    return line
 
 
 def _source_url(source: str, realtime: bool) -> str:
@@ -82,6 +134,9 @@ def replay(
     integ = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
     t_wall = time.monotonic()
     with contextlib.ExitStack() as stack:
+        if progress:
+            # opening a recording is seconds of silence otherwise (the MCAP index is read first)
+            print(_opening_line(source), file=sys.stderr, flush=True)
         camera = stack.enter_context(drivers.open_camera(url))
         vehicle = None
         if gt_odometry:
@@ -96,8 +151,12 @@ def replay(
         pending = None
         rig = camera.rectified_model()
         pipeline = Pipeline(cfg, rig, rng)
-        total = getattr(camera, "n_frames", None)
-        prog = Progress(total, progress)
+        prog = stack.enter_context(_progress_bar(_frame_total(camera, max_frames), progress))
+        if not prog.disable:
+            # log lines (a skipped frame) go above the bar instead of through it
+            from tqdm.contrib.logging import logging_redirect_tqdm
+
+            stack.enter_context(logging_redirect_tqdm())
         last_t: int | None = None
         for frame in camera.frames(timeout_s=1.0):
             if odo_iter is not None:
@@ -119,10 +178,10 @@ def replay(
             results.append(res)
             if frame.truth_T_world_robot is not None:
                 truths.append((frame.t_ns, frame.truth_T_world_robot))
-            prog.update(f"lm {res.counts.get('landmarks', 0)}")
+            prog.set_postfix_str(f"lm {res.counts.get('landmarks', 0)}", refresh=False)
+            prog.update(1)
             if max_frames and len(results) >= max_frames:
                 break
-        prog.close()
     if not results:
         raise RobotdError(f"{source}: no frame was processed")
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
@@ -157,8 +216,11 @@ def replay(
     return summary
 
 
-def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]]) -> dict[str, float]:
-    """ATE/drift against the ground truth the source carried (evaluation only)."""
+def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]]) -> dict[str, float | None]:
+    """ATE/drift against the ground truth the source carried (evaluation only); the keys of
+    :func:`robotd.research.evaluate.evaluate_trajectories` prefixed ``truth_``. Undefined figures
+    (drift % and similarity scale on a path shorter than ``MIN_PATH_FOR_RELATIVE_M``) are None,
+    JSON null, rather than NaN, which is not JSON."""
     from robotd.research.evaluate import Trajectory, evaluate_trajectories
 
     t_gt = np.array([t for t, _ in truths], dtype=np.int64)
@@ -169,7 +231,7 @@ def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np
     except RobotdError as exc:
         logger.warning("no truth metrics: %s", exc)
         return {}
-    return {f"truth_{k}": float(v) for k, v in m.items()}
+    return {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
 
 
 def _gt_odometry_url(source: str) -> str:

@@ -259,6 +259,22 @@ def rpe(est_T: np.ndarray, gt_T: np.ndarray, delta: int = 1, planar: bool = Fals
     }
 
 
+# Below this ground-truth path length [m] the relative figures are reported as NaN (null in JSON):
+# drift in % of the path length divides by a (nearly) zero length, and the similarity scale fits a
+# scale to positions that are mostly noise, so a stationary EuRoC cut read "drift 24 %, scale 0.28".
+# 1 m is well above a stationary platform's ground-truth jitter (mm) and below any real drive's path.
+MIN_PATH_FOR_RELATIVE_M = 1.0
+
+
+def drift_m(est_T: np.ndarray, gt_T: np.ndarray) -> float:
+    """End-point position error [m] after aligning the first poses only (the numerator of
+    :func:`drift_pct`); meaningful on any path, stationary included."""
+    P = np.asarray(est_T, dtype=float)
+    Q = np.asarray(gt_T, dtype=float)
+    P = Q[0] @ se3_inverse(P[0]) @ P
+    return float(np.linalg.norm(P[-1, :3, 3] - Q[-1, :3, 3]))
+
+
 def drift_pct(est_T: np.ndarray, gt_T: np.ndarray) -> float:
     """End-point drift in % of the ground-truth path length, first pose aligned only (§11)."""
     P = np.asarray(est_T, dtype=float)
@@ -413,8 +429,13 @@ def evaluate_trajectories(est: Trajectory, gt: Trajectory, planar: bool = False)
     out.update(ate(P, Q, planar=planar))
     out.update(rpe(P, Q, 1, planar=planar))
     out["drift_pct"] = drift_pct(P, Q)
+    out["drift_m"] = drift_m(P, Q)
     out["path_length_m"] = path_length(Q[:, :3, 3])
     out["similarity_scale"] = similarity_scale(P[:, :3, 3], Q[:, :3, 3]) if len(P) >= 3 else math.nan
+    if out["path_length_m"] < MIN_PATH_FOR_RELATIVE_M:
+        # undefined on a (nearly) stationary path: see MIN_PATH_FOR_RELATIVE_M; drift_m still says it
+        out["drift_pct"] = math.nan
+        out["similarity_scale"] = math.nan
     return out
 
 
@@ -422,8 +443,10 @@ def evaluate_files(traj_path: str | Path, gt_path: str | Path, planar: bool = Fa
     """Metrics of an estimated trajectory file against a ground-truth file (TUM or KITTI each).
 
     Keys: frames, ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, heading_rmse_deg,
-    final_error_m, rpe_trans_m, rpe_rot_deg (Δ = 1 frame), drift_pct, path_length_m,
-    similarity_scale. Both files must be in the same frame convention.
+    final_error_m, rpe_trans_m, rpe_rot_deg (Δ = 1 frame), drift_pct, drift_m, path_length_m,
+    similarity_scale. drift_pct and similarity_scale are NaN when the ground-truth path is shorter
+    than ``MIN_PATH_FOR_RELATIVE_M`` (undefined there); drift_m (the end-point error after aligning
+    the first poses) is always given. Both files must be in the same frame convention.
     """
     est = read_trajectory(traj_path)
     gt = read_trajectory(gt_path)

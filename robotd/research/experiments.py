@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -373,6 +373,17 @@ def _world_line(cfg: SimConfig, scen: list[Scenario]) -> str:
 # The campaign
 
 
+def campaign_runs(plan: ExperimentPlan, with_mrclam: bool) -> int:
+    """How many filter runs (a)–(d) and MRCLAM runs (e) a campaign makes: the progress bar's total."""
+    n_filters = len(plan.filters)
+    a = len(plan.seeds) * n_filters
+    b = len(plan.particle_counts) * len(plan.seeds[: plan.particle_seeds]) * 2
+    c = len(plan.seeds[: plan.mismatch_seeds]) * len(plan.mismatch_rates) * len(plan.mismatch_filters) * 2
+    d = len(plan.seeds) * n_filters
+    e = 2 if with_mrclam else 0  # labels 11/17 swapped and as labelled
+    return a + b + c + d + e
+
+
 def run_experiments(
     out_dir: str | Path,
     quick: bool = False,
@@ -382,6 +393,9 @@ def run_experiments(
 ) -> Path:
     """Run experiments (a)–(e) and write ``out_dir/report.md`` plus PNG plots; returns the report path.
 
+    A progress bar (runs done / total, ETA) goes to stderr when it is a terminal: the full campaign
+    takes about 25 minutes.
+
     Args:
         out_dir: created if missing.
         quick: a reduced campaign (< 60 s) for smoke tests.
@@ -390,10 +404,41 @@ def run_experiments(
             repository; skipped (and said so in the report) when absent.
         plan: an explicit campaign (overrides ``quick`` and ``seeds``).
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    import contextlib
+    import sys
+
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
     if plan is None:
         plan = ExperimentPlan.quick(seeds or 1) if quick else ExperimentPlan.full(seeds or 10)
+    mdir = Path(mrclam_dir) if mrclam_dir else _default_mrclam_dir()
+    total = campaign_runs(plan, mdir is not None and mdir.is_dir())
+    with contextlib.ExitStack() as stack:
+        bar = stack.enter_context(
+            tqdm(total=total, unit="run", desc="experiments", file=sys.stderr, disable=not sys.stderr.isatty())
+        )
+        if not bar.disable:
+            stack.enter_context(logging_redirect_tqdm())  # "experiment (a) done" above the bar
+        return _run_campaign(out_dir, quick, plan, mrclam_dir, tick=lambda: bar.update(1))
+
+
+def _run_campaign(
+    out_dir: str | Path,
+    quick: bool,
+    plan: ExperimentPlan,
+    mrclam_dir: str | Path | None,
+    tick: Callable[[], None],
+) -> Path:
+    """The campaign of :func:`run_experiments`; ``tick()`` after each filter or MRCLAM run."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def run(*args: Any, **kwargs: Any) -> FilterRun:
+        r = run_filter(*args, **kwargs)
+        tick()
+        return r
+
     t_all = time.perf_counter()
     rep: list[str] = ["# robotd simulation experiments (algorithms.md §12)", ""]
     rep.append(
@@ -410,7 +455,7 @@ def run_experiments(
     t0 = time.perf_counter()
     scen2 = [make_scenario(plan.world2d, s) for s in plan.seeds]
     runs_a = [
-        run_filter(sc.run, f, seed, plan.n_particles, batch_ate=sc.batch_ate)
+        run(sc.run, f, seed, plan.n_particles, batch_ate=sc.batch_ate)
         for seed, sc in zip(plan.seeds, scen2)
         for f in plan.filters
     ]
@@ -471,7 +516,7 @@ def run_experiments(
     for n in plan.particle_counts:
         for seed, sc in zip(pseeds, scen2):
             for f in ("fastslam1", "fastslam2"):
-                rows_b.append(run_filter(sc.run, f, seed, n, batch_ate=sc.batch_ate))
+                rows_b.append(run(sc.run, f, seed, n, batch_ate=sc.batch_ate))
     rep += ["## (b) Number of particles (§12.2)", ""]
     rep += [f"2D world of (a); {len(pseeds)} seeds per setting.", ""]
     rep += [
@@ -532,7 +577,7 @@ def run_experiments(
             mrun = inject_mismatches(sc.run, rate, np.random.default_rng([seed, int(1000 * rate), 17]))
             for f in plan.mismatch_filters:
                 for use_out in (False, True):
-                    rows_c.append(run_filter(mrun, f, seed, plan.n_particles, outliers=use_out, batch_ate=sc.batch_ate))
+                    rows_c.append(run(mrun, f, seed, plan.n_particles, outliers=use_out, batch_ate=sc.batch_ate))
     rep += ["## (c) Landmark identification under mismatches (§12.3)", ""]
     rep += [
         f"2D world of (a); {len(mseeds)} seeds per setting. Mismatches are injected into re-observations at the "
@@ -596,7 +641,7 @@ def run_experiments(
     t0 = time.perf_counter()
     scen3 = [make_scenario(plan.world3d, s) for s in plan.seeds]
     runs_d = [
-        run_filter(sc.run, f, seed, plan.n_particles, batch_ate=sc.batch_ate)
+        run(sc.run, f, seed, plan.n_particles, batch_ate=sc.batch_ate)
         for seed, sc in zip(plan.seeds, scen3)
         for f in plan.filters
     ]
@@ -647,6 +692,7 @@ def run_experiments(
             mres = run_mrclam(
                 mdir, out, plan.mrclam_particles, seed=0, duration_s=plan.mrclam_duration_s, swap_11_17=swap
             )
+            tick()
             rep += _mrclam_section(mres)
         rep += [f"_(e) took {time.perf_counter() - t0:.0f} s._", ""]
     else:

@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from robotd.errors import DatasetError, InputError
 from robotd.geometry import pose6_to_T, rot_z, se3, so3_exp
 from robotd.research.evaluate import (
+    MIN_PATH_FOR_RELATIVE_M,
+    Trajectory,
     anees_band,
     associate,
     ate,
     drift_pct,
     evaluate_files,
+    evaluate_trajectories,
     map_rmse,
     nees,
     path_length,
@@ -22,9 +27,10 @@ from robotd.research.evaluate import (
     read_trajectory,
     read_tum,
     rpe,
+    similarity_scale,
     write_tum,
 )
-from tests.support.tolerances import ANGLE_FROM_COSINE_FLOOR_DEG, CONDITIONED_ATOL
+from tests.support.tolerances import ANGLE_FROM_COSINE_FLOOR_DEG, CONDITIONED_ATOL, CONDITIONED_RTOL
 
 # write_tum prints times with 9 decimals, but near t = 1.7e9 s float64 resolves only 2.4e-7 s
 TUM_TIME_ATOL_S = 1e-6
@@ -194,3 +200,33 @@ def test_plot_writes_png(tmp_path):
     gt = _wiggly(50)
     out = plot_trajectory(gt, gt, np.zeros((3, 3)), tmp_path / "p.png", gt_landmarks=np.ones((3, 3)), title="t")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_short_path_leaves_relative_figures_undefined_and_gives_drift_m():
+    # a platform standing still with mm ground-truth jitter: % of a ~0 path and a fitted scale are
+    # meaningless (the EuRoC micro cut read "drift 24 %, scale 0.28"), the end-point error is not
+    rng = np.random.default_rng(1)
+    n = 50
+    gt = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    gt[:, :3, 3] = 0.001 * rng.standard_normal((n, 3))
+    est = gt.copy()
+    est[:, :3, 3] += np.linspace(0, 1, n)[:, None] * np.array([0.003, 0.004, 0.0])  # drifts 5 mm
+    t = np.arange(n) * 0.05
+    m = evaluate_trajectories(Trajectory(t, est), Trajectory(t, gt))
+    assert m["path_length_m"] < MIN_PATH_FOR_RELATIVE_M
+    assert math.isnan(m["drift_pct"]) and math.isnan(m["similarity_scale"])
+    assert m["drift_m"] == pytest.approx(0.005, abs=CONDITIONED_ATOL)
+
+
+def test_normal_path_figures_unchanged_and_drift_m_is_drift_pct_numerator():
+    gt = _wiggly(100)
+    est = gt.copy()
+    est[:, :3, 3] += np.linspace(0, 1, 100)[:, None] * np.array([0.3, -0.2, 0.1])
+    t = np.arange(100) * 0.1
+    m = evaluate_trajectories(Trajectory(t, est), Trajectory(t, gt))
+    assert m["path_length_m"] > MIN_PATH_FOR_RELATIVE_M
+    # exactly the values of the metric functions (nothing changed for a normal path)
+    assert m["drift_pct"] == drift_pct(est, gt)
+    assert m["similarity_scale"] == similarity_scale(est[:, :3, 3], gt[:, :3, 3])
+    assert m["drift_m"] == pytest.approx(np.linalg.norm([0.3, -0.2, 0.1]), abs=CONDITIONED_ATOL)
+    assert m["drift_pct"] == pytest.approx(100 * m["drift_m"] / m["path_length_m"], rel=CONDITIONED_RTOL)

@@ -2,20 +2,29 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
+import sys
 
 import numpy as np
 import pytest
 
-from robotd.research.experiments import make_scenario, run_experiments, run_filter
+from robotd.research.experiments import ExperimentPlan, campaign_runs, make_scenario, run_experiments, run_filter
 from robotd.research.landmark_sim import SimConfig
 
 
 @pytest.mark.timeout(120)
-def test_quick_run_writes_report_with_all_sections(tmp_path):
+def test_quick_run_writes_report_with_all_sections(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # capsys's stderr stands in for a terminal
     path = run_experiments(tmp_path, quick=True)
     text = path.read_text()
+    # the progress bar counts every filter run of results.json, plus the two MRCLAM runs when present
+    rows = json.loads((tmp_path / "results.json").read_text())
+    with_mrclam = "Skipped: MRCLAM" not in text
+    total = campaign_runs(ExperimentPlan.quick(1), with_mrclam)
+    assert total == len(rows) + (2 if with_mrclam else 0)
+    assert f"{total}/{total} [" in capsys.readouterr().err
     for section in (
         "## (a) 2D SLAM",
         "## (b) Number of particles",

@@ -1,0 +1,83 @@
+"""``robotd replay``'s human output (robotd/replay.py): the one summary line on stderr, the opening
+line, no progress bar when stderr is not a terminal, and truth figures that do not mislead on a
+stationary sequence (null drift %, small drift in metres)."""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+from robotd.cli import main
+from robotd.replay import summary_line
+
+# the EuRoC micro cut stands still (ground truth moves ≤ 3.3 mm, README); a visual-only estimate
+# that wandered more than this would be a regression, not noise
+STATIONARY_DRIFT_BOUND_M = 0.05
+
+
+def test_kitti_replay_prints_one_summary_line_with_the_truth_figures(
+    shared_data, capsys: pytest.CaptureFixture[str]
+) -> None:
+    root = shared_data("kitti-seq1")
+    assert main(["replay", f"kitti://{root}", "--max-frames", "6", "--json", "--log-level", "WARNING"]) == 0
+    cap = capsys.readouterr()
+    summary = json.loads(cap.out.strip().splitlines()[-1])  # stdout: the JSON only
+    lines = cap.err.strip().splitlines()
+    assert lines[0] == f"opening kitti://{root}..."
+    assert "\r" not in cap.err, "no progress bar when stderr is not a terminal"
+    done = [ln for ln in lines if ln.startswith("replayed ")]
+    assert len(done) == 1
+    m = re.fullmatch(r"replayed 6 frames in [\d.]+ s \(\d+ fps\): 0 lost; drift ([\d.]+) %, ATE ([\d.]+) m", done[0])
+    assert m, done[0]
+    assert float(m.group(1)) == pytest.approx(summary["truth_drift_pct"], abs=0.005)
+    assert float(m.group(2)) == pytest.approx(summary["truth_ate_rmse_m"], abs=0.0005)
+    assert summary["truth_drift_m"] is not None
+
+
+def test_quiet_keeps_the_summary_line_but_not_the_opening_line(shared_data, capsys: pytest.CaptureFixture[str]) -> None:
+    root = shared_data("kitti-seq1")
+    assert main(["replay", f"kitti://{root}", "--max-frames", "3", "--quiet", "--log-level", "WARNING"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == ""
+    lines = cap.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("replayed 3 frames in ")
+
+
+def test_progress_bar_on_a_terminal_shows_n_of_total_and_landmarks(
+    shared_data, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = shared_data("kitti-seq1")
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # capsys's stderr stands in for a terminal
+    assert main(["replay", f"kitti://{root}?stop=4", "--log-level", "WARNING"]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"4/4 \[[^]]*frame/s, lm \d+\]", err), err
+
+
+def test_stationary_euroc_has_no_drift_percentage(shared_data, capsys: pytest.CaptureFixture[str]) -> None:
+    root = shared_data("euroc-v101-micro")
+    assert main(["replay", f"euroc://{root}", "--json", "--quiet", "--log-level", "WARNING"]) == 0
+    cap = capsys.readouterr()
+    s = json.loads(cap.out.strip().splitlines()[-1])  # valid JSON: null, not NaN
+    assert s["truth_path_length_m"] < 1.0
+    assert s["truth_drift_pct"] is None and s["truth_similarity_scale"] is None
+    assert 0.0 <= s["truth_drift_m"] < STATIONARY_DRIFT_BOUND_M
+    assert s["truth_final_error_m"] < STATIONARY_DRIFT_BOUND_M
+    assert re.search(r"drift [\d.]+ m \(path [\d.]+ m\), ATE [\d.]+ m$", cap.err.strip().splitlines()[-1])
+
+
+def test_summary_line_without_truth() -> None:
+    s = {"frames": 40, "wall_s": 2.0, "lost_frames": 3, "gt_odometry": False}
+    assert summary_line(s) == "replayed 40 frames in 2.0 s (20 fps): 3 lost"
+
+
+def test_opening_line_names_a_recording_and_its_size(tmp_path: Path) -> None:
+    from robotd.replay import _opening_line
+
+    f = tmp_path / "run.mcap"
+    f.write_bytes(b"\0" * 3_000_000)
+    assert _opening_line(str(f)) == f"opening {f} (3 MB)..."
+    assert _opening_line(f"mcap://{f}") == f"opening {f} (3 MB)..."
