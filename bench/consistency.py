@@ -70,9 +70,44 @@ def _parse_options(spec: str) -> list[dict[str, Any]]:
     return out
 
 
+def _progress(total: int, unit: str, desc: str) -> Any:
+    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
+    at the end so the table (or the JSON object) on stdout is all that stays."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit=unit,
+        desc=desc,
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
 def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str], options: str) -> list[dict]:
     results = []
     lo1, hi1 = chi2.ppf(0.025, 3), chi2.ppf(0.975, 3)
+    n_cases = len(noises) * len(lengths) * (1 + len(particles) * len(_parse_options(options)))
+    # the bar counts filter runs (seeds per case) and moves after each case, outside its "seconds"
+    with _progress(n_cases * seeds, "run", "consistency") as bar:
+        _run_cases(results, bar, seeds, lengths, particles, noises, options, lo1, hi1)
+    return results
+
+
+def _run_cases(
+    results: list[dict],
+    bar: Any,
+    seeds: int,
+    lengths: list[float],
+    particles: list[int],
+    noises: list[str],
+    options: str,
+    lo1: float,
+    hi1: float,
+) -> None:
     for noise in noises:
         for L in lengths:
             cfg = SimConfig(dim=2, trajectory="loop", path_length_m=L, landmark_density_per_m2=0.5, noise_model=noise)
@@ -80,6 +115,7 @@ def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str
             cases: list[tuple[str, int, dict[str, Any]]] = [("ekf", 0, {})]
             cases += [("fastslam2", n, o) for n in particles for o in _parse_options(options)]
             for filt, n, opt in cases:
+                bar.set_postfix_str(f"{noise} {L:g} m {filt} {n or ''}".rstrip())
                 t0 = time.perf_counter()
                 slam_opt = {k: v for k, v in opt.items() if k not in STUDY_KEYS}
                 try:
@@ -124,8 +160,8 @@ def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str
                         "seconds": time.perf_counter() - t0,
                     }
                 )
-                print(f"  {results[-1]}", file=sys.stderr, flush=True)
-    return results
+                bar.write(f"  {results[-1]}", file=sys.stderr)  # above the bar (plain line when it is off)
+                bar.update(seeds)
 
 
 def table(results: list[dict], seeds: int) -> str:

@@ -292,25 +292,46 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     results = []
     nominal_deadline = 1000.0 / args.fps
-    for det in args.detectors.split(","):
-        cases = [c.strip() for c in args.cases.split(",")]
-        for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps)):
-            if label.split()[0] not in cases:
-                continue
-            for _ in range(max(1, args.repeat)):
-                before = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
-                r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
-                after = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
-                r["case"] = label
-                # the host's p99/p50 on two busy cores just before and after the case (≈ 1.1 quiet)
-                r["host_jitter_before"] = before["p99_over_p50"] if before else None
-                r["host_jitter_after"] = after["p99_over_p50"] if after else None
-                results.append(r)
-                print(
-                    f"# {det} {label}: p50 {r['latency_p50_ms']:.1f} p99 {r['latency_p99_ms']:.1f} ms, level "
-                    f"{r['budget_level_end']}, host jitter {r['host_jitter_before']} / {r['host_jitter_after']}",
-                    file=sys.stderr,
-                )
+    cases = [c.strip() for c in args.cases.split(",")]
+    plan = [
+        (det, label, fps, rep)
+        for det in args.detectors.split(",")
+        for label, fps in (("nominal", args.fps), ("overload 2x", 2 * args.fps))
+        if label.split()[0] in cases
+        for rep in range(max(1, args.repeat))
+    ]
+    # progress: one line per run on stderr before it starts (only when stderr is a terminal; the
+    # runs' timing is untouched: nothing runs beside the daemon)
+    show = sys.stderr.isatty()
+    per_run_s = args.seconds + (2 * args.probe_seconds if args.probe_seconds > 0 else 0.0)
+    t_start = time.monotonic()
+    for i, (det, label, fps, rep) in enumerate(plan):
+        if show:
+            elapsed = time.monotonic() - t_start
+            # the runs so far say how long one takes (start-up included); before the first, the nominal length
+            est = elapsed / i if i else per_run_s
+            again = f" (repeat {rep + 1}/{max(1, args.repeat)})" if args.repeat > 1 else ""
+            print(
+                f"[{i + 1}/{len(plan)}] {det} {label}{again}: ~{est:.0f} s; elapsed {elapsed:.0f} s, "
+                f"about {est * (len(plan) - i):.0f} s left",
+                file=sys.stderr,
+                flush=True,
+            )
+        before = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
+        r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
+        after = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
+        r["case"] = label
+        # the host's p99/p50 on two busy cores just before and after the case (≈ 1.1 quiet)
+        r["host_jitter_before"] = before["p99_over_p50"] if before else None
+        r["host_jitter_after"] = after["p99_over_p50"] if after else None
+        results.append(r)
+        print(
+            f"# {det} {label}: p50 {r['latency_p50_ms']:.1f} p99 {r['latency_p99_ms']:.1f} ms, level "
+            f"{r['budget_level_end']}, host jitter {r['host_jitter_before']} / {r['host_jitter_after']}",
+            file=sys.stderr,
+        )
+    if show:
+        print(f"done: {len(plan)} runs in {time.monotonic() - t_start:.0f} s", file=sys.stderr, flush=True)
     machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
     summary = _summary(results, nominal_deadline)
     if args.json:

@@ -21,7 +21,9 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 
 
-def _run(script: str, extra: list[str]) -> dict[str, Any]:
+def _run(script: str, extra: list[str], what: str) -> dict[str, Any]:
+    if sys.stderr.isatty():  # what runs and for how long, before the silent subprocess
+        print(f"running {script}: {what}", file=sys.stderr, flush=True)
     out = subprocess.run(
         [sys.executable, str(HERE / script), "--json", *extra],
         capture_output=True,
@@ -38,8 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    links = _run("drivers_links.py", [])
-    camera = _run("drivers_camera.py", [])
+    links = _run("drivers_links.py", [], "serial and MAVLink links, 3 s each (about 10 s)")
+    camera = _run("drivers_camera.py", [], "camera sources over 180 stereo pairs (about 15 s)")
     if args.json:
         print(json.dumps({"links": links, "camera": camera}, sort_keys=True))
         return 0

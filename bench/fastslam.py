@@ -214,6 +214,23 @@ def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
     }
 
 
+def _progress(total: int, unit: str, desc: str) -> Any:
+    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
+    at the end so the tables (or the JSON object) on stdout are all that stays."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit=unit,
+        desc=desc,
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="reduced grid, < 1 min")
@@ -232,48 +249,72 @@ def main(argv: list[str] | None = None) -> int:
         Ps, Ms, Ns, ekf_M = [10, 100, 1000], [100, 1000, 10000], [20, 100], [100, 300, 1000]
         budget = args.budget or 1.5
 
-    # compile / load the numba kernels once before any timing
-    time_filter("fastslam2", 4, 10, 5, 0.0, True, 1)
-    time_filter("fastslam1", 4, 10, 5, 0.0, True, 1)
+    # the bar counts cells (one time_filter or time_resample_copy call each) and moves between
+    # them, never inside a timed step
+    n_grid = 2 * len(Ps) * len(Ms) * len(Ns)
+    total = 2 + n_grid + 3 + len(Ms[1:]) + len(ekf_M) + len(Ps) * len(Ms) + max(0, args.target_repeats)
+    bar = _progress(total, "cell", "fastslam")
 
-    results: list[dict[str, Any]] = []
-    for filt in ("fastslam2", "fastslam1"):
+    def note(r: dict[str, Any]) -> None:
+        bar.write(f"# {r}", file=sys.stderr)  # above the bar (plain line when it is off)
+        bar.update(1)
+
+    with bar:
+        # compile / load the numba kernels once before any timing
+        bar.set_postfix_str("numba warm-up")
+        time_filter("fastslam2", 4, 10, 5, 0.0, True, 1)
+        bar.update(1)
+        time_filter("fastslam1", 4, 10, 5, 0.0, True, 1)
+        bar.update(1)
+
+        results: list[dict[str, Any]] = []
+        for filt in ("fastslam2", "fastslam1"):
+            for P in Ps:
+                for M in Ms:
+                    for N in Ns:
+                        bar.set_postfix_str(f"{filt} P={P} M={M} N={N}")
+                        results.append(time_filter(filt, P, M, N, budget, True, 1))
+                        note(results[-1])
+        # the target cell with 2 threads, with the numpy path, and with observations spread over the map
+        bar.set_postfix_str("target cell variants")
+        for kw in ({"use_numba": True, "threads": 2}, {"use_numba": False, "threads": 0}):
+            results.append(time_filter("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
+            note(results[-1])
+        results.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
+        note(results[-1])
+        # the daemon's default: landmark pruning on (one O(M) visibility pass over the best particle's map)
+        for M in Ms[1:]:
+            bar.set_postfix_str(f"pruning M={M}")
+            results.append(time_filter("fastslam2", 100, M, 100, budget, True, 1, prune=True))
+            note(results[-1])
+        for M in ekf_M:
+            bar.set_postfix_str(f"ekf M={M}")
+            results.append(time_filter("ekf", 0, M, 20, budget, False, 0))
+            note(results[-1])
+        copies = []
         for P in Ps:
             for M in Ms:
-                for N in Ns:
-                    results.append(time_filter(filt, P, M, N, budget, True, 1))
-                    print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    # the target cell with 2 threads, with the numpy path, and with observations spread over the map
-    for kw in ({"use_numba": True, "threads": 2}, {"use_numba": False, "threads": 0}):
-        results.append(time_filter("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
-        print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    results.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
-    print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    # the daemon's default: landmark pruning on (one O(M) visibility pass over the best particle's map)
-    for M in Ms[1:]:
-        results.append(time_filter("fastslam2", 100, M, 100, budget, True, 1, prune=True))
-        print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    for M in ekf_M:
-        results.append(time_filter("ekf", 0, M, 20, budget, False, 0))
-        print(f"# {results[-1]}", file=sys.stderr, flush=True)
-    copies = [time_resample_copy(P, M) for P in Ps for M in Ms]
+                bar.set_postfix_str(f"resample copy P={P} M={M}")
+                copies.append(time_resample_copy(P, M))
+                bar.update(1)
 
-    target = next(
-        r
-        for r in results
-        if r["filter"] == "fastslam2"
-        and r["particles"] == 100
-        and r["map_size"] == 1000
-        and r["observations"] == 100
-        and r["path"] == "numba1"
-        and not r["obs_spread"]
-        and not r["prune"]
-    )
-    # the target cell again, several times: on a shared machine one cell's median is noisy
-    repeats = [
-        time_filter("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"]
-        for i in range(max(0, args.target_repeats))
-    ]
+        target = next(
+            r
+            for r in results
+            if r["filter"] == "fastslam2"
+            and r["particles"] == 100
+            and r["map_size"] == 1000
+            and r["observations"] == 100
+            and r["path"] == "numba1"
+            and not r["obs_spread"]
+            and not r["prune"]
+        )
+        # the target cell again, several times: on a shared machine one cell's median is noisy
+        repeats = []
+        for i in range(max(0, args.target_repeats)):
+            bar.set_postfix_str(f"target repeat {i + 1}")
+            repeats.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"])
+            bar.update(1)
     medians = [target["median_ms"], *repeats]
     conditions = {
         "machine": platform.machine(),

@@ -19,7 +19,9 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -77,6 +79,23 @@ def prepare(img: np.ndarray, s: float, top: int, width: int, height: int) -> np.
     return out
 
 
+def _progress(total: int, unit: str, desc: str) -> Any:
+    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
+    at the end so the table (or the JSON object) on stdout is all that stays."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit=unit,
+        desc=desc,
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
 def run_one(
     name: str,
     rig0: RectifiedStereo,
@@ -86,7 +105,10 @@ def run_one(
     n_frames: int,
     size: tuple[int, int] | None,
     seed: int,
+    tick: Callable[[], None] = lambda: None,
 ) -> dict:
+    """One detector at one resolution over the sequence; ``tick()`` after each frame (outside
+    ``Frontend.process``, whose stage times are the figures)."""
     if size is None:
         rig, s, top = rig0, 1.0, 0
         label = f"{rig0.width}x{rig0.height}"
@@ -101,6 +123,7 @@ def run_one(
         L = prepare(cv2.imread(str(left[k]), cv2.IMREAD_GRAYSCALE), s, top, rig.width, rig.height)
         R = prepare(cv2.imread(str(right[k]), cv2.IMREAD_GRAYSCALE), s, top, rig.width, rig.height)
         r = fe.process(L, R, k * 100_000_000)
+        tick()
         feats.append(r.counts["features_left"])
         stereo.append(r.counts["stereo_matches"])
         for st in STAGES:
@@ -157,9 +180,14 @@ def main(argv: list[str] | None = None) -> int:
         skipped.append("surf (robotd.frontend.surf not importable)")
     t0 = time.perf_counter()
     results = []
-    for name in names:
-        for size in (None, (640, 400)):
-            results.append(run_one(name, rig, T_gt, left, right, args.frames, size, args.seed))
+    n_frames = min(args.frames, len(left))
+    with _progress(len(names) * 2 * n_frames, "frame", "frontend") as bar:
+        for name in names:
+            for size in (None, (640, 400)):
+                bar.set_postfix_str(f"{name} {'full' if size is None else f'{size[0]}x{size[1]}'}")
+                results.append(
+                    run_one(name, rig, T_gt, left, right, args.frames, size, args.seed, lambda: bar.update(1))
+                )
     wall = time.perf_counter() - t0
     full = f"{rig.width}x{rig.height}"
     summary = {r["detector"]: r["median_rel_translation_error"] for r in results if r["resolution"] == full}

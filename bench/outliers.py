@@ -20,6 +20,8 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +32,25 @@ RATES = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5)
 DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental")
 
 
-def run(seeds: int, n: int, rates: tuple[float, ...]) -> list[dict]:
+def _progress(total: int, unit: str, desc: str) -> Any:
+    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
+    at the end so the table (or the JSON object) on stdout is all that stays."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit=unit,
+        desc=desc,
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
+def run(seeds: int, n: int, rates: tuple[float, ...], tick: Callable[[], None] = lambda: None) -> list[dict]:
+    """``tick()`` after each (rate, seed) frame, outside the timed detector calls."""
     results = []
     for rate in rates:
         acc: dict[str, dict[str, list[float]]] = {
@@ -53,6 +73,7 @@ def run(seeds: int, n: int, rates: tuple[float, ...]) -> list[dict]:
                 a["fr"].append(float(np.sum(rejected & ~data.is_mismatch)))
                 a["good"].append(float(np.sum(~data.is_mismatch)))
                 a["ms"].append(ms)
+            tick()
         for det in DETECTORS:
             a = acc[det]
             bad, good = sum(a["bad"]), sum(a["good"])
@@ -76,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    results = run(args.seeds, args.n, RATES)
+    with _progress(len(RATES) * args.seeds, "frame", "outliers") as bar:
+        results = run(args.seeds, args.n, RATES, lambda: bar.update(1))
     wall = time.perf_counter() - t0
     if args.json:
         out = {

@@ -61,6 +61,23 @@ def load_sets(data: Path, frames: int) -> dict[str, list[np.ndarray]]:
     return sets
 
 
+def _progress(total: int, unit: str, desc: str) -> Any:
+    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
+    at the end so the table (or the JSON object) on stdout is all that stays."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        unit=unit,
+        desc=desc,
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
 def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
     cv2.setNumThreads(1)
     sets = load_sets(data, frames)
@@ -71,8 +88,11 @@ def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
     surf.detect_and_compute(first_img)
     first_call_ms = (time.perf_counter() - t0) * 1e3
     rows = []
+    # the bar counts images × parameter sets and moves after each image's repeats, outside the timing
+    bar = _progress(sum(len(v) for v in sets.values()) * len(PARAMS), "img", "surf")
     for set_name, imgs in sets.items():
         for p_name, params in PARAMS.items():
+            bar.set_postfix_str(f"{set_name}, {p_name}")
             total, detect, counts = [], [], []
             for img in imgs:
                 best_total, best_detect = np.inf, np.inf
@@ -87,6 +107,7 @@ def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
                 total.append(best_total * 1e3)
                 detect.append(best_detect * 1e3)
                 counts.append(f.n)
+                bar.update(1)
             rows.append(
                 {
                     "images": set_name,
@@ -98,6 +119,7 @@ def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
                     "detect_ms_median": float(np.median(detect)),
                 }
             )
+    bar.close()
     return {
         "benchmark": "surf",
         "cpu_count": os.cpu_count(),
