@@ -15,6 +15,7 @@ from robotd.daemon import Daemon
 from robotd.daemon.devices import open_with_retry
 from robotd.daemon.sdnotify import Notifier
 from robotd.errors import ConfigError, DriverError
+from robotd.pipeline import Pipeline
 
 
 def _never(url: str, **options: object) -> contextlib.AbstractContextManager[object]:
@@ -36,6 +37,7 @@ def test_a_simulator_that_fails_to_open_is_not_retried() -> None:
 
 
 def test_run_without_its_camera_stops_at_duration(caplog: pytest.LogCaptureFixture) -> None:
+    Pipeline.warmup()  # a cold numba cache compiles for ~15 s first; that is not what is timed here
     t0 = time.monotonic()
     cfg = load_config(None, {"camera": {"url": "oak://no-such-device"}, "zenoh": {"enabled": False}})
     assert Daemon(cfg, duration_s=1.0, environ={}).run() == 2
