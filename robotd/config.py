@@ -53,6 +53,10 @@ class VehicleConfig:
     url: str = _f("sim://", "vehicle link: sim://, none://, serial:///dev/ttyX?baud=…, mavlink+udp://HOST:PORT")
     queue_size: int = _f(256, "odometry samples buffered (drop-oldest)", min=1, max=100000)
     max_gap_s: float = _f(0.5, "odometry older than this at a frame's time counts as missing", min=0.0)
+    max_speed_mps: float = _f(30.0, "odometry faster than this is refused (counted, never integrated)", min=0.1)
+    max_accel_mps2: float = _f(50.0, "odometry whose speed changes faster than this is refused", min=0.1)
+    max_rate_radps: float = _f(10.0, "odometry turning faster than this is refused", min=0.01)
+    max_future_s: float = _f(0.5, "odometry stamped this far after the host's clock is refused", min=0.0)
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from robotd.config import Config
 from robotd.frontend.detectors import DetectorParams
 from robotd.frontend.frontend import FrontendParams
 from robotd.frontend.stereo_match import StereoMatchParams
+from robotd.odometry import OdometryLimits
 from robotd.outliers import OutlierParams
 from robotd.slam.params import SlamParams
 from robotd.stereo import RectifiedStereo
@@ -66,3 +67,9 @@ def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> 
         kw["min_range_m"] = cfg.frontend.depth_min_m
         kw["max_range_m"] = max(cfg.frontend.depth_min_m * 1.01, rig.fb / cfg.frontend.disparity_min_px)
     return SlamParams(**kw)
+
+
+def odometry_limits_from_config(cfg: Config) -> OdometryLimits:
+    """``vehicle.max_*``: what a vehicle sample may be before it is refused."""
+    v = cfg.vehicle
+    return OdometryLimits(v.max_speed_mps, v.max_accel_mps2, v.max_rate_radps, v.max_future_s)

@@ -1,6 +1,12 @@
-"""Odometry integration: velocity samples -> the motion increment between two frame times.
+"""Odometry: plausibility gates on the vehicle's samples, and their integration into the motion
+increment between two frame times.
 
 Samples (robotd.msgs.Odometry) are body-frame velocities and rates on the host monotonic clock.
+:class:`OdometryGate` refuses a sample no vehicle could have produced (a speed, an acceleration or
+an angular rate beyond the configured limits, a timestamp going backwards or into the future):
+one wheel-tick counter that jumps, or one corrupt MAVLink field, must not throw the pose hundreds
+of kilometres away. A refused sample is counted and never integrated.
+
 Between two capture times the body motion is integrated with a zero-order hold of each sample
 (the latest sample at or before a time holds until the next one), composing rotations exactly
 (SO(3) exponential), so the increment is expressed in the robot frame at the earlier frame.
@@ -8,12 +14,87 @@ Between two capture times the body motion is integrated with a zero-order hold o
 
 from __future__ import annotations
 
+import logging
+import math
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
 from robotd.geometry import so3_exp, so3_log
 from robotd.msgs import MotionIncrement, Odometry
+
+logger = logging.getLogger(__name__)
+
+# Acceleration is judged over at least this interval: two samples a millisecond apart differ by
+# their noise, not by a physical acceleration (the sim rover's 50 Hz odometry reaches 14 m/s² of
+# apparent acceleration from its noise alone over 20 ms).
+MIN_ACCEL_DT_S = 0.02
+REJECT_REASONS = ("speed", "acceleration", "rate", "clock")
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryLimits:
+    """What a vehicle sample may be (config ``vehicle.max_*``; defaults bound any ground vehicle
+    robotd is meant for, including a car on public roads)."""
+
+    max_speed_mps: float = 30.0
+    max_accel_mps2: float = 50.0
+    max_rate_radps: float = 10.0
+    max_future_s: float = 0.5  # a sample stamped this far after "now" (the host clock) is refused
+
+
+class OdometryGate:
+    """Refuses implausible samples (module docstring) and counts them per reason."""
+
+    def __init__(self, limits: OdometryLimits | None = None) -> None:
+        self.limits = limits or OdometryLimits()
+        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
+        self.accepted = 0
+        self._last: Odometry | None = None
+
+    def check(self, odo: Odometry, now_ns: int | None = None) -> str | None:
+        """Why ``odo`` is refused ("speed", "acceleration", "rate", "clock"), or None when it is
+        plausible. ``now_ns``: the host's monotonic time (live); None in a replay."""
+        lim = self.limits
+        last = self._last
+        if (last is not None and odo.t_ns <= last.t_ns) or (
+            now_ns is not None and odo.t_ns > now_ns + lim.max_future_s * 1e9
+        ):
+            return "clock"
+        if float(np.linalg.norm(odo.vel_R_mps)) > lim.max_speed_mps:
+            return "speed"
+        if float(np.linalg.norm(odo.rate_R_radps)) > lim.max_rate_radps:
+            return "rate"
+        if last is not None:
+            dt = (odo.t_ns - last.t_ns) * 1e-9
+            dv = float(np.linalg.norm(np.asarray(odo.vel_R_mps) - np.asarray(last.vel_R_mps)))
+            if dt < 1.0 and dv / max(dt, MIN_ACCEL_DT_S) > lim.max_accel_mps2:
+                return "acceleration"
+        return None
+
+    def accept(self, odo: Odometry, now_ns: int | None = None) -> bool:
+        """True when ``odo`` may be integrated; a refusal is counted (and logged, sparingly)."""
+        why = self.check(odo, now_ns)
+        if why is None:
+            self._last = odo
+            self.accepted += 1
+            return True
+        self.rejected[why] += 1
+        n = self.rejected[why]
+        if n == 1 or math.log10(n).is_integer():  # the 1st, 10th, 100th ... of each kind
+            logger.warning(
+                "odometry sample refused (%s; %d so far): v %s m/s, rate %s rad/s at t %d ns (vehicle.max_*)",
+                why,
+                n,
+                np.round(odo.vel_R_mps, 3).tolist(),
+                np.round(odo.rate_R_radps, 3).tolist(),
+                odo.t_ns,
+            )
+        return False
+
+    def stats(self) -> dict[str, int]:
+        return {"accepted": self.accepted, **{f"rejected_{k}": v for k, v in self.rejected.items()}}
 
 
 class OdometryIntegrator:

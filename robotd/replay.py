@@ -25,9 +25,10 @@ import numpy as np
 
 import drivers
 from robotd.config import Config
+from robotd.config_params import odometry_limits_from_config
 from robotd.errors import RobotdError
 from robotd.msgs import StepResult
-from robotd.odometry import OdometryIntegrator
+from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
 from robotd.research.evaluate import write_tum
 
@@ -132,6 +133,7 @@ def replay(
     results: list[StepResult] = []
     truths: list[tuple[int, np.ndarray]] = []
     integ = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
+    gate = OdometryGate(odometry_limits_from_config(cfg))
     t_wall = time.monotonic()
     with contextlib.ExitStack() as stack:
         if progress:
@@ -166,7 +168,8 @@ def replay(
                         pending = next(odo_iter, None)
                     if pending is None or pending.t_ns > frame.t_ns:
                         break
-                    integ.add(pending)
+                    if gate.accept(pending):  # as the daemon does: an implausible sample is never integrated
+                        integ.add(pending)
                     pending = None
             inc = integ.integrate(last_t, frame.t_ns) if (last_t is not None and odo_iter is not None) else None
             try:
@@ -206,6 +209,7 @@ def replay(
         "lost_frames": int(sum(not r.tracking for r in results)),
         "visual_priors": pipeline.counters.visual_priors,
         "odometry_priors": pipeline.counters.odometry_priors,
+        "odometry_rejected": sum(gate.rejected.values()),
     }
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}

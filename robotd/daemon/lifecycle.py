@@ -29,6 +29,7 @@ import numpy as np
 import drivers
 from robotd.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.config import Config
+from robotd.config_params import odometry_limits_from_config
 from robotd.daemon.budget import LatencyBudget, StageTimer
 from robotd.daemon.devices import open_devices
 from robotd.daemon.health import DaemonStats, HealthMonitor
@@ -37,7 +38,7 @@ from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
 from robotd.errors import ConfigError, RobotdError
 from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
-from robotd.odometry import OdometryIntegrator
+from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
 from robotd.outputs.base import shortest_period
 from robotd.outputs.mapfile import MapFileOutput
@@ -85,6 +86,7 @@ class Daemon:
         self.odo_q: DropOldestQueue[Odometry] = DropOldestQueue(cfg.vehicle.queue_size)
         self.pub_q: DropOldestQueue[_Stepped] = DropOldestQueue(64)
         self.integrator = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
+        self.odometry_gate = OdometryGate(odometry_limits_from_config(cfg))
         self.camera: drivers.StereoCamera | None = None
         self.vehicle: drivers.VehicleLink | None = None
         self.autopilot_link: drivers.VehicleLink | None = None  # a MAVLink link opened only for the pose
@@ -213,8 +215,10 @@ class Daemon:
             odometry = self.odo_q.drain()
             for out in self.outputs:  # what is recorded is exactly what SLAM consumes
                 out.record_inputs(frame, odometry)
+            now_ns = time.monotonic_ns()
             for odo in odometry:
-                self.integrator.add(odo)
+                if self.odometry_gate.accept(odo, now_ns):  # an implausible sample is never integrated
+                    self.integrator.add(odo)
             if last_seq is not None and frame.seq > last_seq + 1:
                 self.stats.seq_gaps += 1
             last_seq = frame.seq
@@ -293,7 +297,9 @@ class Daemon:
     def health_doc(self) -> dict[str, Any]:
         assert self.budget is not None
         devices = {"camera": self.camera, "vehicle": self.vehicle}
-        return self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
+        doc = self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
+        doc["odometry"] = self.odometry_gate.stats()
+        return doc
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
