@@ -21,6 +21,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,6 +34,7 @@ from robotd.config_params import odometry_limits_from_config
 from robotd.daemon.budget import LatencyBudget, StageTimer
 from robotd.daemon.devices import open_devices
 from robotd.daemon.health import DaemonStats, HealthMonitor
+from robotd.daemon.inputs import pump_frames, pump_odometry
 from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
@@ -100,6 +102,7 @@ class Daemon:
         self._ready = False
         self.resumed = False
         self.exit_code = 0
+        self.failed: list[str] = []  # threads that stopped the daemon (see _fail)
         self._limits = ThreadLimits()
 
     @property
@@ -168,36 +171,6 @@ class Daemon:
         logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
 
     # ------------------------------------------------------------------ threads
-    def _camera_loop(self) -> None:
-        assert self.camera is not None
-        try:
-            for frame in self.camera.frames(timeout_s=0.5):
-                if self.stop_event.is_set():
-                    break
-                self.stats.frames_in += 1
-                self.frame_q.put(frame)
-        except RobotdError as exc:
-            logger.error("camera thread stopped: %s", exc)
-        except Exception:
-            logger.exception("camera thread crashed")
-        finally:
-            if not self.stop_event.is_set() and self.duration_s == 0.0:
-                logger.info("camera source ended")
-            self.frame_q.close()
-
-    def _vehicle_loop(self) -> None:
-        assert self.vehicle is not None
-        try:
-            for odo in self.vehicle.odometry(timeout_s=0.5):
-                if self.stop_event.is_set():
-                    break
-                self.stats.odometry_in += 1
-                self.odo_q.put(odo)
-        except RobotdError as exc:
-            logger.error("vehicle thread stopped: %s", exc)
-        except Exception:
-            logger.exception("vehicle thread crashed")
-
     def _slam_loop(self) -> None:
         assert self.pipeline is not None and self.budget is not None
         pipeline, budget = self.pipeline, self.budget
@@ -325,15 +298,34 @@ class Daemon:
             self.signals.restore()
 
     def _start_threads(self) -> None:
+        assert self.camera is not None and self.vehicle is not None
+        camera, vehicle, stop, stats = self.camera, self.vehicle, self.stop_event, self.stats
         for name, fn in (
-            ("camera", self._camera_loop),
-            ("vehicle", self._vehicle_loop),
+            ("camera", lambda: pump_frames(camera, self.frame_q, stop, stats, self._fail, self.duration_s == 0.0)),
+            ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats)),
             ("slam", self._slam_loop),
             ("publisher", self._publisher_loop),
         ):
-            t = threading.Thread(target=fn, name=f"robotd-{name}", daemon=True)
+            t = threading.Thread(target=self._guarded, args=(name, fn), name=f"robotd-{name}", daemon=True)
             t.start()
             self.threads.append(t)
+
+    def _guarded(self, name: str, loop: Callable[[], None]) -> None:
+        """Run a thread's loop; an exception nobody expected stops the daemon with exit status 1
+        (systemd's Restart=on-failure then restarts it), never a quiet "source ended"."""
+        try:
+            loop()
+        except Exception as exc:
+            logger.exception("%s thread crashed", name)
+            self._fail(name, f"{name} thread crashed: {type(exc).__name__}: {exc}")
+
+    def _fail(self, thread: str, why: str) -> None:
+        """Stop the daemon with a non-zero exit status; a crashed SLAM thread's state is not saved."""
+        logger.error("stopping: %s", why)
+        self.failed.append(thread)
+        self.stop_reason = why
+        self.exit_code = 1
+        self.stop_event.set()
 
     def _supervise(self) -> None:
         cfg = self.cfg
@@ -383,6 +375,9 @@ class Daemon:
         """The pipeline's state at shutdown, once the SLAM thread has stopped (nothing else touches
         the estimator); None when no step ran or the thread is still running."""
         if self.pipeline is None or self.stats.steps == 0:
+            return None
+        if "slam" in self.failed:
+            logger.error("map not saved at shutdown: the SLAM thread crashed mid-step (the last saved map is kept)")
             return None
         if any(t.name == "robotd-slam" and t.is_alive() for t in self.threads):
             logger.error("map not saved at shutdown: the SLAM thread is still running")

@@ -1,0 +1,86 @@
+"""A thread that dies unexpectedly stops the daemon with a non-zero exit status (systemd's
+Restart=on-failure restarts it), never a quiet "source ended" with status 0; a SLAM thread that
+crashed mid-step does not overwrite the saved map with its half-updated state."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import robotd.outputs as outputs_mod
+from robotd.config import load_config
+from robotd.daemon import Daemon
+from robotd.outputs import Output, StepReport
+from robotd.pipeline import Pipeline
+
+
+def _daemon(tmp_path: Path, camera: str = "sim://?fps=20", duration_s: float = 6.0) -> Daemon:
+    cfg = load_config(
+        None,
+        {
+            "camera": {"url": camera},
+            "vehicle": {"url": "sim://?fps=20"},
+            "zenoh": {"enabled": False},
+            "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
+        },
+    )
+    return Daemon(cfg, duration_s=duration_s, environ={})
+
+
+def test_a_crash_in_the_slam_step_exits_1_and_keeps_the_saved_map(tmp_path, monkeypatch, caplog) -> None:
+    real_step = Pipeline.step
+    calls = {"n": 0}
+
+    def step(self: Pipeline, frame, inc=None):
+        calls["n"] += 1
+        if calls["n"] == 10:
+            raise ZeroDivisionError("a bug in a stage")
+        return real_step(self, frame, inc)
+
+    monkeypatch.setattr(Pipeline, "step", step)
+    d = _daemon(tmp_path)
+    assert d.run() == 1
+    assert d.failed == ["slam"] and "slam thread crashed: ZeroDivisionError" in d.stop_reason
+    assert "map not saved at shutdown: the SLAM thread crashed" in caplog.text
+    assert not (tmp_path / "map.robotd").exists()
+
+
+def test_an_output_that_raises_something_unexpected_exits_1(tmp_path, monkeypatch, caplog) -> None:
+    class Broken(Output):
+        name = "broken"
+
+        def publish(self, report: StepReport) -> None:
+            if report.seq == 5:
+                raise ValueError("not a RobotdError")
+
+    monkeypatch.setattr(outputs_mod, "FACTORIES", (*outputs_mod.FACTORIES, ("broken", lambda ctx: Broken())))
+    d = _daemon(tmp_path)
+    assert d.run() == 1
+    assert d.failed == ["publisher"] and "publisher thread crashed: ValueError" in caplog.text
+    assert (tmp_path / "map.robotd").exists()  # the SLAM state is whole: it is saved
+
+
+def test_a_source_that_ends_normally_exits_0(tmp_path) -> None:
+    d = _daemon(tmp_path, camera="sim://?fps=20&duration=1.5", duration_s=0.0)
+    assert d.run() == 0
+    assert d.stop_reason == "source ended" and not d.failed
+
+
+@pytest.mark.parametrize("err", [RuntimeError("usb stack bug"), OSError(5, "Input/output error")])
+def test_a_camera_that_fails_mid_stream_exits_1(tmp_path, monkeypatch, err) -> None:
+    import drivers.sim
+
+    real_frames = drivers.sim.SimCamera.frames
+
+    def frames(self, timeout_s: float = 1.0):
+        for k, frame in enumerate(real_frames(self, timeout_s)):
+            if k == 15:
+                raise err
+            yield frame
+
+    monkeypatch.setattr(drivers.sim.SimCamera, "frames", frames)
+    d = _daemon(tmp_path)
+    assert d.run() == 1
+    assert d.failed == ["camera"]
+    assert (tmp_path / "map.robotd").exists()
