@@ -93,6 +93,25 @@ class MapStore:
     def exists(self) -> bool:
         return self.path.exists()
 
+    def remove_orphans(self) -> list[Path]:
+        """Delete the temporary files of saves that never finished (a process killed mid-save
+        leaves ``.map.robotd.<pid>.tmp``; repeated watchdog restarts would fill the disk). A file
+        whose process still runs (another robotd saving into this directory) is left alone."""
+        removed: list[Path] = []
+        for tmp in self.dir.glob(f".{MAP_FILENAME}.*.tmp"):
+            pid_text = tmp.name[len(MAP_FILENAME) + 2 : -len(".tmp")]
+            if pid_text.isdigit() and int(pid_text) != os.getpid() and _alive(int(pid_text)):
+                continue
+            try:
+                size = tmp.stat().st_size
+                tmp.unlink()
+            except OSError as exc:
+                logger.warning("could not remove the unfinished save %s: %s", tmp, exc.strerror or exc)
+                continue
+            removed.append(tmp)
+            logger.info("removed %s, an unfinished save (%.1f MB) of a process that is gone", tmp, size / 1e6)
+        return removed
+
     def keep_previous(self, keep: int) -> Path | None:
         """Before a run that did not resume from it overwrites the saved map: rename it to
         ``map.<time>.robotd`` (the time it was last written) and delete the oldest such maps beyond
@@ -177,3 +196,14 @@ class MapStore:
         os.replace(self.path, aside)
         logger.error("moved the unreadable map %s aside to %s", self.path, aside)
         return aside
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this pid exists (signal 0 probes without signalling)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # it exists, under another user
+    return True

@@ -31,6 +31,8 @@ class MapFileOutput(Output):
 
     def __init__(self, cfg: PersistenceConfig, robot_id: str) -> None:
         self.store = MapStore(default_state_dir(cfg.state_dir), robot_id)
+        if self.store.dir.is_dir():
+            self.store.remove_orphans()
         self.keep_maps = cfg.keep_maps
         self.resumed = False
         self._first_save = True

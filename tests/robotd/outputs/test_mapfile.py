@@ -69,3 +69,20 @@ def test_keep_maps_zero_overwrites_and_says_so(tmp_path: Path, caplog: pytest.Lo
         out.close()
     assert not list(tmp_path.glob("map.2*.robotd"))
     assert "will be overwritten (persistence.keep_maps = 0)" in caplog.text
+
+
+def test_unfinished_saves_of_dead_processes_are_removed_at_start(tmp_path: Path, caplog) -> None:
+    import subprocess
+    import sys
+
+    caplog.set_level(logging.INFO)
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(gone.stdout)  # a process that has exited
+    orphan = tmp_path / f".map.robotd.{dead_pid}.tmp"
+    orphan.write_bytes(b"x" * 1000)
+    live = tmp_path / f".map.robotd.{os.getppid()}.tmp"  # a running process's save in progress
+    live.write_bytes(b"y")
+    out = _output(tmp_path)
+    out.close()
+    assert not orphan.exists() and live.exists()
+    assert "an unfinished save" in caplog.text
