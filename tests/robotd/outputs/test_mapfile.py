@@ -86,3 +86,22 @@ def test_unfinished_saves_of_dead_processes_are_removed_at_start(tmp_path: Path,
     out.close()
     assert not orphan.exists() and live.exists()
     assert "an unfinished save" in caplog.text
+
+
+def test_a_map_that_failed_to_resume_is_kept_not_overwritten(tmp_path: Path) -> None:
+    from robotd.errors import PersistenceError
+
+    class OtherFilter:  # a run whose config no longer matches the saved map (slam.dim 3 -> 2, say)
+        def load_state_dict(self, state: object) -> None:
+            raise PersistenceError("saved map is from 'fastslam2' in 3D, this run uses 'fastslam2' in 2D")
+
+    first = _output(tmp_path)
+    assert first.save(STATE, 1)
+    first.close()
+    saved = (tmp_path / "map.robotd").read_bytes()
+    second = _output(tmp_path)
+    assert not second.resume(OtherFilter())  # type: ignore[arg-type]
+    assert second.save(STATE, 2)
+    second.close()
+    kept = sorted(tmp_path.glob("map.2*.robotd"))
+    assert len(kept) == 1 and kept[0].read_bytes() == saved
