@@ -7,6 +7,8 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robotd.cli import main
 from robotd.config import Config, config_from_dict, load_config, to_toml
@@ -105,3 +107,30 @@ def test_print_config_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     p.write_text("[robot]\ncolour = 1\n")
     assert main(["print-config", "--config", str(p)]) == 2
     assert "robot.colour: unknown key" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# print-config round-trips anything the loader accepts; hostile files fail in one line
+
+
+@settings(max_examples=200, deadline=None)
+@given(text=st.text(max_size=40))
+def test_print_config_round_trips_any_string(text: str, tmp_path_factory: pytest.TempPathFactory) -> None:
+    cfg = load_config(None, {"camera": {"url": text}, "persistence": {"state_dir": text[::-1]}})
+    path = tmp_path_factory.mktemp("rt") / "c.toml"
+    path.write_text(to_toml(cfg, with_docs=True), encoding="utf-8")
+    assert load_config(path) == cfg
+
+
+def test_a_config_file_that_is_not_utf8_fails_in_one_line(tmp_path: Path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_bytes(b'[camera]\nurl = "sim://\xff\xfe"\n')
+    with pytest.raises(ConfigError, match=r"bad.toml: not UTF-8 text \(byte 22: invalid start byte\)"):
+        load_config(p)
+
+
+def test_a_config_nested_too_deep_fails_in_one_line(tmp_path: Path) -> None:
+    p = tmp_path / "deep.toml"
+    p.write_text("x = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ConfigError, match="nested too deep|not valid TOML"):
+        load_config(p)
