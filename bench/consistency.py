@@ -43,6 +43,14 @@ from robotd.research.landmark_sim import SimConfig, SimRun
 STUDY_KEYS = ("q_scale", "m_scale")  # option keys applied to the data given to the filter
 
 
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
+
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
+
+
 def inflated(run: SimRun, q_scale: float, m_scale: float) -> SimRun:
     """The run with every observation covariance × ``q_scale`` and motion covariance × ``m_scale``."""
     if q_scale == 1.0 and m_scale == 1.0:
@@ -70,29 +78,12 @@ def _parse_options(spec: str) -> list[dict[str, Any]]:
     return out
 
 
-def _progress(total: int, unit: str, desc: str) -> Any:
-    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
-    at the end so the table (or the JSON object) on stdout is all that stays."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        unit=unit,
-        desc=desc,
-        file=sys.stderr,
-        disable=not sys.stderr.isatty(),
-        leave=False,
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
-
-
 def run(seeds: int, lengths: list[float], particles: list[int], noises: list[str], options: str) -> list[dict]:
     results = []
     lo1, hi1 = chi2.ppf(0.025, 3), chi2.ppf(0.975, 3)
     n_cases = len(noises) * len(lengths) * (1 + len(particles) * len(_parse_options(options)))
     # the bar counts filter runs (seeds per case) and moves after each case, outside its "seconds"
-    with _progress(n_cases * seeds, "run", "consistency") as bar:
+    with _bar(n_cases * seeds, "run", "consistency") as bar:
         _run_cases(results, bar, seeds, lengths, particles, noises, options, lo1, hi1)
     return results
 

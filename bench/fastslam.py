@@ -44,6 +44,14 @@ from robotd.slam.params import SlamParams
 SIGMA_Z = 0.03  # measurement noise [m]
 
 
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
+
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
+
+
 def _world(M: int, rng: np.random.Generator) -> np.ndarray:
     L = rng.uniform(-5.0, 5.0, (M, 3))
     L[:, 0] = np.abs(L[:, 0]) + 1.0  # in front of the robot
@@ -214,23 +222,6 @@ def time_resample_copy(P: int, M: int, reps: int = 5) -> dict[str, Any]:
     }
 
 
-def _progress(total: int, unit: str, desc: str) -> Any:
-    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
-    at the end so the tables (or the JSON object) on stdout are all that stays."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        unit=unit,
-        desc=desc,
-        file=sys.stderr,
-        disable=not sys.stderr.isatty(),
-        leave=False,
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="reduced grid, < 1 min")
@@ -253,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     # them, never inside a timed step
     n_grid = 2 * len(Ps) * len(Ms) * len(Ns)
     total = 2 + n_grid + 3 + len(Ms[1:]) + len(ekf_M) + len(Ps) * len(Ms) + max(0, args.target_repeats)
-    bar = _progress(total, "cell", "fastslam")
+    bar = _bar(total, "cell", "fastslam")
 
     def note(r: dict[str, Any]) -> None:
         bar.write(f"# {r}", file=sys.stderr)  # above the bar (plain line when it is off)

@@ -34,6 +34,14 @@ from robotd.stereo import RectifiedStereo
 STAGES = ("detect", "stereo", "identify", "outliers", "motion", "total")
 
 
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
+
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
+
+
 def load_kitti(root: Path) -> tuple[RectifiedStereo, np.ndarray, list[Path], list[Path]]:
     """Rig (calib.txt P0/P1), robot-frame ground truth T_R0_Rk (N, 4, 4) and the image paths."""
     rows = []
@@ -77,23 +85,6 @@ def prepare(img: np.ndarray, s: float, top: int, width: int, height: int) -> np.
     out = np.zeros((height, width), np.uint8)
     out[top : top + small.shape[0]] = small
     return out
-
-
-def _progress(total: int, unit: str, desc: str) -> Any:
-    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
-    at the end so the table (or the JSON object) on stdout is all that stays."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        unit=unit,
-        desc=desc,
-        file=sys.stderr,
-        disable=not sys.stderr.isatty(),
-        leave=False,
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
 
 
 def run_one(
@@ -181,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     results = []
     n_frames = min(args.frames, len(left))
-    with _progress(len(names) * 2 * n_frames, "frame", "frontend") as bar:
+    with _bar(len(names) * 2 * n_frames, "frame", "frontend") as bar:
         for name in names:
             for size in (None, (640, 400)):
                 bar.set_postfix_str(f"{name} {'full' if size is None else f'{size[0]}x{size[1]}'}")

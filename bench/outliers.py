@@ -32,21 +32,12 @@ RATES = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5)
 DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental")
 
 
-def _progress(total: int, unit: str, desc: str) -> Any:
-    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
-    at the end so the table (or the JSON object) on stdout is all that stays."""
-    from tqdm import tqdm
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
 
-    return tqdm(
-        total=total,
-        unit=unit,
-        desc=desc,
-        file=sys.stderr,
-        disable=not sys.stderr.isatty(),
-        leave=False,
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 
 
 def run(seeds: int, n: int, rates: tuple[float, ...], tick: Callable[[], None] = lambda: None) -> list[dict]:
@@ -97,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    with _progress(len(RATES) * args.seeds, "frame", "outliers") as bar:
+    with _bar(len(RATES) * args.seeds, "frame", "outliers") as bar:
         results = run(args.seeds, args.n, RATES, lambda: bar.update(1))
     wall = time.perf_counter() - t0
     if args.json:

@@ -43,6 +43,14 @@ PARAMS: dict[str, surf.SurfParams] = {
 }
 
 
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
+
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
+
+
 def load_sets(data: Path, frames: int) -> dict[str, list[np.ndarray]]:
     sets: dict[str, list[np.ndarray]] = {}
     kitti = sorted((data / "kitti-seq1" / "image_l").glob("*.png"))[:frames]
@@ -61,23 +69,6 @@ def load_sets(data: Path, frames: int) -> dict[str, list[np.ndarray]]:
     return sets
 
 
-def _progress(total: int, unit: str, desc: str) -> Any:
-    """A progress bar on stderr (n/total, ETA), only when stderr is a terminal; it clears itself
-    at the end so the table (or the JSON object) on stdout is all that stays."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        unit=unit,
-        desc=desc,
-        file=sys.stderr,
-        disable=not sys.stderr.isatty(),
-        leave=False,
-        dynamic_ncols=True,
-        mininterval=0.5,
-    )
-
-
 def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
     cv2.setNumThreads(1)
     sets = load_sets(data, frames)
@@ -89,7 +80,7 @@ def run(data: Path, frames: int, repeat: int) -> dict[str, Any]:
     first_call_ms = (time.perf_counter() - t0) * 1e3
     rows = []
     # the bar counts images × parameter sets and moves after each image's repeats, outside the timing
-    bar = _progress(sum(len(v) for v in sets.values()) * len(PARAMS), "img", "surf")
+    bar = _bar(sum(len(v) for v in sets.values()) * len(PARAMS), "img", "surf")
     for set_name, imgs in sets.items():
         for p_name, params in PARAMS.items():
             bar.set_postfix_str(f"{set_name}, {p_name}")

@@ -30,6 +30,7 @@ from robotd.errors import RobotdError
 from robotd.msgs import StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
+from robotd.progress import progress_bar
 from robotd.research.evaluate import write_tum
 
 logger = logging.getLogger(__name__)
@@ -38,17 +39,7 @@ logger = logging.getLogger(__name__)
 def _progress_bar(total: int | None, enabled: bool) -> Any:
     """The replay's progress bar (tqdm, on stderr): n/total, fps and ETA. Off with ``--quiet`` and
     when stderr is not a terminal (a log file or CI gets the one summary line instead)."""
-    from tqdm import tqdm
-
-    return tqdm(
-        total=total,
-        unit="frame",
-        desc="replay",
-        file=sys.stderr,
-        disable=not (enabled and sys.stderr.isatty()),
-        dynamic_ncols=True,
-        mininterval=0.2,
-    )
+    return progress_bar(total, "frame", "replay", enabled=enabled)
 
 
 def _frame_total(camera: Any, max_frames: int) -> int | None:

@@ -405,19 +405,17 @@ def run_experiments(
         plan: an explicit campaign (overrides ``quick`` and ``seeds``).
     """
     import contextlib
-    import sys
 
-    from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
+
+    from robotd.progress import progress_bar
 
     if plan is None:
         plan = ExperimentPlan.quick(seeds or 1) if quick else ExperimentPlan.full(seeds or 10)
     mdir = Path(mrclam_dir) if mrclam_dir else _default_mrclam_dir()
     total = campaign_runs(plan, mdir is not None and mdir.is_dir())
     with contextlib.ExitStack() as stack:
-        bar = stack.enter_context(
-            tqdm(total=total, unit="run", desc="experiments", file=sys.stderr, disable=not sys.stderr.isatty())
-        )
+        bar = stack.enter_context(progress_bar(total, "run", "experiments"))
         if not bar.disable:
             stack.enter_context(logging_redirect_tqdm())  # "experiment (a) done" above the bar
         return _run_campaign(out_dir, quick, plan, mrclam_dir, tick=lambda: bar.update(1))
