@@ -85,6 +85,16 @@ class FrontendConfig:
     ransac_max_iterations: int = _f(500, "RANSAC iteration cap", min=1, max=100000)
     min_inliers: int = _f(6, "fewer inliers: no correspondence accepted this frame", min=3)
     restrict_to_fov: bool = _f(True, "match only landmarks predicted inside the field of view")
+    guided_matching: bool = _f(
+        True, "search each map landmark near its projection from the predicted pose (needs restrict_to_fov)"
+    )
+    guided_radius_px: float = _f(15.0, "guided matching: search radius around the prediction", min=1.0, max=500.0)
+    motion: str = _f(
+        "pnp",
+        "visual-only motion prior: stereo PnP on pixel residuals, or the thesis's similarity RANSAC on 3-D points",
+        choices=("pnp", "similarity"),
+    )
+    pnp_inlier_px: float = _f(2.0, "stereo PnP: reprojection error of an inlier", min=0.1, max=50.0)
     parallel_detect: bool = _f(
         True, "detect the left and right images on two threads (one thread: a steadier tail on a busy 2-core host)"
     )

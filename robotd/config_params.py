@@ -11,8 +11,10 @@ from typing import Any
 import numpy as np
 
 from robotd.config import Config
+from robotd.frontend.association import AssociationParams
 from robotd.frontend.detectors import DetectorParams
 from robotd.frontend.frontend import FrontendParams
+from robotd.frontend.pnp import PnpParams
 from robotd.frontend.stereo_match import StereoMatchParams
 from robotd.odometry import OdometryLimits
 from robotd.outliers import OutlierParams
@@ -45,7 +47,18 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         max_iterations=f.ransac_max_iterations,
         min_inliers=f.min_inliers,
     )
-    return FrontendParams(detector=det, stereo=stereo, outliers=outl, parallel_detect=f.parallel_detect)
+    assoc = AssociationParams(guided_radius_px=f.guided_radius_px)
+    return FrontendParams(
+        detector=det,
+        stereo=stereo,
+        association=assoc,
+        outliers=outl,
+        parallel_detect=f.parallel_detect,
+        motion_method=f.motion,
+        pnp=PnpParams(inlier_px=f.pnp_inlier_px, sigma_px=f.sigma_x_px),
+        guided=f.guided_matching,
+        planar_map=cfg.slam.dim == 2,
+    )
 
 
 def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:

@@ -29,6 +29,7 @@ from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening
 from robotd.frontend.stereo_match import StereoMatches
+from robotd.geometry import se3, so3_exp
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import Relocaliser
 from robotd.slam.estimator import Estimator
@@ -39,7 +40,7 @@ from robotd.timing import StageClock
 
 logger = logging.getLogger(__name__)
 
-LOST_AFTER_FRAMES = 5  # frames without accepted correspondences before tracking is declared lost
+LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
 
 
@@ -56,16 +57,18 @@ class PipelineCounters:
 
 
 class TrackingMonitor:
-    """Tracking is lost after ``LOST_AFTER_FRAMES`` frames with a map but no accepted
-    correspondence, or when the pose covariance is no longer finite."""
+    """Tracking is lost after ``LOST_AFTER_FRAMES`` frames with a map in which nothing constrained
+    the pose (no accepted map correspondence, no visual motion, no odometry), or when the pose
+    covariance is no longer finite. While the stereo matches hold, the visual motion or the map
+    constrain every frame, so tracking holds; it returns with the first constrained frame."""
 
     def __init__(self, counters: PipelineCounters) -> None:
         self.counters = counters
         self.tracking = True
         self._no_corr = 0
 
-    def update(self, has_map: bool, n_identified: int, pose: PoseEstimate) -> bool:
-        if has_map and n_identified == 0:
+    def update(self, has_map: bool, constrained: bool, pose: PoseEstimate) -> bool:
+        if has_map and not constrained:
             self._no_corr += 1
             self.counters.frames_without_correspondences += 1
         else:
@@ -74,7 +77,7 @@ class TrackingMonitor:
         self.tracking = self._no_corr < LOST_AFTER_FRAMES and bool(np.all(np.isfinite(pose.cov)))
         if was and not self.tracking:
             self.counters.lost_events += 1
-            logger.warning("tracking lost: no accepted correspondences for %d frames", self._no_corr)
+            logger.warning("tracking lost: nothing constrained the pose for %d frames", self._no_corr)
         return self.tracking
 
     def suspend(self) -> bool:
@@ -114,30 +117,37 @@ class Pipeline:
         # measure: features in both images, stereo matches triangulated with their covariance
         feats = clock.run("detect", fe.detect, frame.left, frame.right)
         meas = clock.run("stereo", fe.match_stereo, feats, frame.left, frame.right)
-        # identify against the map (the landmarks predicted in view), then screen out the outliers
-        view = None if relocalising else self._view_prior(landmarks)
+        # the motion prior: odometry, else the visual motion from the previous frame, else constant velocity
+        visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None)
+        inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
+        # identify against the map (guided by the predicted pose), then screen out the outliers
+        view = None if relocalising else self._view_prior(landmarks, inc)
         ident = clock.run("identify", fe.identify, meas, landmarks, view)
         screen = clock.run("outliers", fe.screen, meas, ident)
-        visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None)
         counts = fe.counts(feats, meas, ident, screen, visual)
         if relocalising and not clock.run("relocalise", self._relocalise, screen):
             fe.commit(meas, ident, frame.t_ns, NO_NEW)  # not found in the map yet: leave the map as it is
             return self._result(frame, clock, counts, UpdateReport(), est.estimate(), self.tracker.suspend(), 0)
         obs = clock.run("select", self._select, meas, ident, frame.t_ns)
         # predict with the motion prior, then fuse the frame's observations
-        clock.run("predict", self._predict, increment, visual.increment, frame.t_ns, relocalising)
+        clock.run("predict", self._predict, inc)
         report = clock.run("update", self._update, obs, landmarks)
         pose = est.estimate()
         n_identified = int(np.count_nonzero(~obs.is_new))
-        tracking = self.tracker.update(landmarks.n > 0, n_identified, pose)
+        constrained = n_identified > 0 or visual.increment is not None or increment is not None
+        tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising)
 
     # ---------------------------------------------------------------- the stages
-    def _view_prior(self, landmarks: LandmarkMap) -> np.ndarray | None:
-        """The pose prior that restricts identification to landmarks predicted in view."""
+    def _view_prior(self, landmarks: LandmarkMap, inc: MotionIncrement | None) -> np.ndarray | None:
+        """The predicted pose (the last estimate moved by the motion prior) that restricts
+        identification to the landmarks predicted in view and guides the search for them."""
         if not self.cfg.frontend.restrict_to_fov or landmarks.n == 0:
             return None
-        return self.estimator.estimate().T_world_robot
+        T = self.estimator.estimate().T_world_robot
+        if inc is not None:
+            T = T @ se3(so3_exp(inc.drot_R_rad), inc.dp_R_m)
+        return T
 
     def _relocalise(self, screen: Screening) -> bool:
         fixed = self.relocaliser.attempt(screen.result, screen.similarity, self.estimator)
@@ -164,12 +174,7 @@ class Pipeline:
         self.frontend.commit(meas, ident, t_ns, new)
         return self.frontend.observations(meas, ident, t_ns, np.sort(np.concatenate([old, new])))
 
-    def _predict(
-        self, odometry: MotionIncrement | None, visual: MotionIncrement | None, t_ns: int, relocalised: bool
-    ) -> None:
-        if self._last_t_ns is None or relocalised:
-            return
-        inc = self._choose_increment(odometry, visual, t_ns)
+    def _predict(self, inc: MotionIncrement | None) -> None:
         if inc is not None:
             self.estimator.predict(inc)
             self._last_inc = inc
@@ -203,7 +208,8 @@ class Pipeline:
     def _choose_increment(
         self, odo: MotionIncrement | None, vis: MotionIncrement | None, t_ns: int
     ) -> MotionIncrement | None:
-        assert self._last_t_ns is not None
+        if self._last_t_ns is None:
+            return None
         if odo is not None:
             self.counters.odometry_priors += 1
             return odo

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from robotd.errors import ConfigError, InputError, PersistenceError
-from robotd.frontend.stereo_match import distance_matrix, ratio_and_cross_check
+from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +39,10 @@ class AssociationParams:
       cross-check the match is ambiguous: REJECTED when ``ambiguous_is_rejected`` (no duplicate
       landmark is made for something the map may already hold), else NEW.
     cross_check: keep mutual best matches only.
+    guided_radius_px: guided matching (:meth:`LandmarkDescriptors.identify_guided`) searches this
+      far from a landmark's predicted pixels (left column, row and disparity).
+    guided_ratio: the ratio test inside the search window (a landmark's two nearest candidates
+      there must differ by this much).
     """
 
     ratio: float | None = None
@@ -46,10 +50,17 @@ class AssociationParams:
     max_dist_binary: float = 60.0
     cross_check: bool = True
     ambiguous_is_rejected: bool = True
+    guided_radius_px: float = 15.0
+    guided_ratio: float = 0.9
 
     def __post_init__(self) -> None:
         if self.ratio is not None and not 0.0 < self.ratio <= 1.0:
             raise ConfigError(f"frontend.association.ratio: expected in (0, 1], got {self.ratio}")
+        if self.guided_radius_px <= 0 or not 0.0 < self.guided_ratio <= 1.0:
+            raise ConfigError(
+                "frontend.association: expected guided_radius_px > 0 and guided_ratio in (0, 1], got "
+                f"{self.guided_radius_px}, {self.guided_ratio}"
+            )
         if self.max_dist_float <= 0 or self.max_dist_binary <= 0:
             raise ConfigError(
                 "frontend.association.max_dist_float/max_dist_binary: expected > 0, got "
@@ -143,6 +154,74 @@ class LandmarkDescriptors:
         if len(ids):
             keep = ~np.isin(self.ids, np.asarray(ids, dtype=np.int64))
             self.ids, self.desc = self.ids[keep], self.desc[keep]
+
+    def identify_guided(
+        self,
+        desc: np.ndarray,
+        pixels: np.ndarray,
+        candidate_ids: np.ndarray,
+        predicted: np.ndarray,
+        params: AssociationParams | None = None,
+        rows_known: bool = True,
+    ) -> Correspondences:
+        """Guided matching: each landmark is searched only near where the predicted pose projects it.
+
+        ``desc`` (N, D), ``pixels`` (N, 3) = (x_l, x_r, y) of the frame's measurements;
+        ``candidate_ids`` (K,) landmarks and ``predicted`` (K, 3) their predicted pixels. A pair
+        is a candidate when the left column, the row and the disparity all lie within
+        ``guided_radius_px`` of the prediction and the descriptor distance is under the absolute
+        limit; the nearest descriptor wins, if it passes the ratio test against the second
+        nearest inside the window and the match is mutual. Geometry, not the descriptor alone,
+        decides: repeated texture elsewhere in the image cannot steal a match, and a landmark
+        seen from a new scale or angle is still found where it must be. Measurements without a
+        match are NEW (the outlier stage still screens the IDENTIFIED ones). ``rows_known``
+        False: the predictions' rows are meaningless (a planar map has no heights) and not tested.
+        """
+        params = params or AssociationParams()
+        n = int(np.shape(desc)[0])
+        status = np.full(n, NEW, np.int8)
+        ids = np.full(n, -1, np.int64)
+        dist = np.full(n, np.inf, np.float32)
+        cand = np.asarray(candidate_ids, dtype=np.int64)
+        known = self.contains(cand)
+        cand, predicted = cand[known], np.asarray(predicted, float)[known]
+        stats = {"candidates": int(cand.size), "matched": 0, "ambiguous": 0, "new": n, "guided": 1}
+        if n == 0 or cand.size == 0:
+            return Correspondences(status, ids, dist, stats)
+        rows = self.rows(cand)
+        r = params.guided_radius_px
+        px = np.asarray(pixels, float)
+        near = np.abs(px[:, None, 0] - predicted[None, :, 0]) <= r
+        if rows_known:
+            near &= np.abs(px[:, None, 2] - predicted[None, :, 2]) <= r
+        disp_m, disp_p = px[:, 0] - px[:, 1], predicted[:, 0] - predicted[:, 1]
+        near &= np.abs(disp_m[:, None] - disp_p[None, :]) <= r
+        ii, jj = np.nonzero(near)  # grouped by measurement (row-major)
+        if ii.size == 0:
+            return Correspondences(status, ids, dist, stats)
+        d = pair_distances(np.asarray(desc)[ii], self.desc[rows[jj]], self.binary)
+        max_d = params.max_dist_binary if self.binary else params.max_dist_float
+        ok = d <= max_d
+        ii, jj, d = ii[ok], jj[ok], d[ok]
+        # the ratio test per landmark: its nearest measurement in the window against the second
+        order = np.lexsort((d, jj))
+        j_s, d_s = jj[order], d[order]
+        first = np.r_[True, j_s[1:] != j_s[:-1]]
+        start = np.flatnonzero(first)
+        second = np.full(cand.size, np.inf)
+        has2 = np.r_[start[1:], j_s.size] - start > 1
+        second[j_s[start[has2]]] = d_s[start[has2] + 1]
+        passes = np.zeros(cand.size, bool)
+        passes[j_s[start]] = d_s[start] < params.guided_ratio * second[j_s[start]]
+        keep = passes[jj]
+        ii, jj, d = ii[keep], jj[keep], d[keep]
+        sel, _ = ratio_and_cross_check(ii, jj, d, cand.size, 1.0, max_d, True)
+        i_sel, j_sel = ii[sel], jj[sel]
+        status[i_sel] = IDENTIFIED
+        ids[i_sel] = cand[j_sel]
+        dist[i_sel] = d[sel]
+        stats.update(matched=int(i_sel.size), new=int(np.sum(status == NEW)))
+        return Correspondences(status, ids, dist, stats)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume: numpy arrays and scalars only (robotd.persist)."""

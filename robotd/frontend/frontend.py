@@ -41,6 +41,7 @@ from robotd.frontend.association import (
 )
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
 from robotd.frontend.features import Features
+from robotd.frontend.pnp import PnpParams, stereo_pnp
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
@@ -73,6 +74,12 @@ class FrontendParams:
     motion: estimate the frame-to-frame motion (T_prev_curr) from the previous frame's measurements.
     motion_outliers: outlier stage of that estimate (default: similarity + Mahalanobis, §5).
     motion_gn_iterations: Gauss–Newton steps of the rigid Mahalanobis refinement of that motion.
+    motion_method: "pnp" (default): stereo PnP RANSAC on pixel residuals (robotd.frontend.pnp);
+      "similarity": the thesis's similarity/Mahalanobis RANSAC on triangulated points (§5).
+    pnp: the stereo PnP settings.
+    guided: identify map landmarks by guided matching around their projections from the
+      predicted pose (falls back to descriptors alone when that finds too few).
+    planar_map: the map has no heights (a 2-D filter): guided matching ignores the image row.
     fov_margin_px: a map landmark is predicted visible if it projects this far inside the image.
     parallel_detect: detect the left and right images on two threads (OpenCV and SURF release the GIL).
     """
@@ -84,6 +91,10 @@ class FrontendParams:
     motion: bool = True
     motion_outliers: OutlierParams = field(default_factory=OutlierParams)
     motion_gn_iterations: int = 5
+    motion_method: str = "pnp"
+    guided: bool = True
+    planar_map: bool = False
+    pnp: PnpParams = field(default_factory=PnpParams)
     fov_margin_px: float = 0.0
     parallel_detect: bool = True
 
@@ -308,8 +319,37 @@ class Frontend:
             assert T_world_robot_prior is not None
             p = self.params
             cand = ref_ids[predicted_visible(self.rig, ref_xyz, T_world_robot_prior, p.stereo, p.fov_margin_px)]
-        corr = self.descriptors.identify(meas.desc, cand, self.params.association)
+        corr = None
+        if predicted and self.params.guided and cand.size:
+            assert T_world_robot_prior is not None
+            corr = self._identify_guided(meas, cand, ref_ids, ref_xyz, T_world_robot_prior)
+        if corr is None:
+            corr = self.descriptors.identify(meas.desc, cand, self.params.association)
         return Identification(corr, ref_ids, ref_xyz, ref_cov, ref_is_map, cand, predicted)
+
+    def _identify_guided(
+        self, meas: StereoMatches, cand: np.ndarray, ref_ids: np.ndarray, ref_xyz: np.ndarray, T_world_robot: np.ndarray
+    ) -> Correspondences | None:
+        """Guided matching around the landmarks' projections from the predicted pose; None when it
+        finds too few matches for the outlier stage (the prior is likely wrong: fall back to the
+        descriptors alone)."""
+        assert self.descriptors is not None
+        order = np.argsort(ref_ids, kind="stable")
+        rows = order[np.searchsorted(ref_ids, cand, sorter=order)]
+        T_rw = se3_inverse(T_world_robot)
+        q = ref_xyz[rows] @ T_rw[:3, :3].T + T_rw[:3, 3]
+        xl, xr, y = project(q, self.rig.f_px, self.rig.px, self.rig.py, self.rig.baseline_m)
+        corr = self.descriptors.identify_guided(
+            meas.desc,
+            np.c_[meas.xl, meas.xr, meas.y],
+            cand,
+            np.c_[xl, xr, y],
+            self.params.association,
+            rows_known=not self.params.planar_map,
+        )
+        if int(np.count_nonzero(corr.status == IDENTIFIED)) < self.params.outliers.min_inliers:
+            return None
+        return corr
 
     def screen(self, meas: StereoMatches, ident: Identification) -> Screening:
         """The outlier stage on the IDENTIFIED candidates; the failures become REJECTED."""
@@ -364,27 +404,48 @@ class Frontend:
             ok = D[ic, ip] < ratio * second[ic]
             ic, ip = ic[ok], ip[ok]
         counts["motion_matches"] = int(ic.size)
+        if p.motion_method == "pnp":
+            z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]
+            zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
+            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng)
+            if pnp is None:
+                return VisualMotion(None, None, counts)
+            counts["motion_inliers"] = int(pnp.inliers.sum())
+            R, t, cov_tr = pnp.R, pnp.t, pnp.cov
+        else:
+            fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)
+            if fit is None:
+                return VisualMotion(None, None, counts)
+            R, t, cov_tr = fit
+        return VisualMotion(se3(R, t), MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr), counts)
+
+    def _similarity_motion(
+        self, meas: StereoMatches, prev: StereoMatches, ic: np.ndarray, ip: np.ndarray, counts: dict[str, int]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The thesis's frame-to-frame motion: similarity/Mahalanobis RANSAC on the triangulated
+        points, then a rigid Mahalanobis-weighted re-fit on the inliers."""
+        p = self.params
         # b = s R a + t with a in R(t), b in R(t−1): the fitted transform is T_prev_curr
         res = ransac_similarity(
-            meas.xyz_R[ic], pv.meas.xyz_R[ip], meas.cov_R[ic], pv.meas.cov_R[ip], p.motion_outliers, self.rng
+            meas.xyz_R[ic], prev.xyz_R[ip], meas.cov_R[ic], prev.cov_R[ip], p.motion_outliers, self.rng
         )
         if not res.accepted or res.R is None or res.t is None:
-            return VisualMotion(None, None, counts)
+            return None
         inl = res.inliers
         counts["motion_inliers"] = int(inl.sum())
         # rigid (stereo fixes the scale), Mahalanobis-weighted re-fit on the inliers
         _, R, t, cov_tr = fit_similarity_mahalanobis(
             meas.xyz_R[ic][inl],
-            pv.meas.xyz_R[ip][inl],
+            prev.xyz_R[ip][inl],
             meas.cov_R[ic][inl],
-            pv.meas.cov_R[ip][inl],
+            prev.cov_R[ip][inl],
             1.0,
             res.R,
             res.t,
             with_scale=False,
             iterations=p.motion_gn_iterations,
         )
-        return VisualMotion(se3(R, t), MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr), counts)
+        return R, t, cov_tr
 
     def commit(self, meas: StereoMatches, ident: Identification, t_ns: int, new: np.ndarray | None = None) -> None:
         """The frame's decisions: identified landmarks take the new descriptors, the NEW

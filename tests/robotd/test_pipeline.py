@@ -54,9 +54,9 @@ def test_step_times_every_stage_in_data_flow_order(sim_frames):
     assert list(r.timings_ms) == [
         "detect",
         "stereo",
+        "motion",
         "identify",
         "outliers",
-        "motion",
         "select",
         "predict",
         "update",

@@ -1,0 +1,308 @@
+"""Stereo PnP: the rigid motion that best reprojects known 3-D points into a rectified pair.
+
+The visual-only motion prior of issue 13: the previous frame's triangulated points P_i (robot
+frame R(t−1), FRD at the baseline centre) are matched to the current frame's stereo pixels
+z_i = (x_l, x_r, y); the motion T_prev_curr = [R t] is the one whose reprojection
+
+    ẑ_i = π(Rᵀ (P_i − t)),     π(X, Y, Z) = (p_x + f (Y + b/2)/X, p_x + f (Y − b/2)/X, p_y + f Z/X)
+
+is closest to z_i **in pixels**, where the stereo noise is what the sensor actually has (a far
+point's depth is uncertain, its pixels are not). Three stages:
+
+1. RANSAC: a hypothesis from three pairs by the closed-form rigid fit of the current frame's
+   own triangulated points onto P (Umeyama, no scale); every hypothesis of a batch is scored on
+   every pair at once by its stereo reprojection error. The score is the number of image cells
+   (a grid over the left image) holding an inlier, then the number of inliers: a moving vehicle
+   filling part of the view rarely covers more of the image than the static background does, so
+   it loses the consensus even when it carries more features.
+2. Gauss–Newton on the inliers, minimising the squared pixel residuals over a right
+   perturbation of the pose (δp in R(t), δθ); the inliers are chosen again after each pass.
+3. The covariance (6×6 over (t, rotation vector)) from the Gauss–Newton information with the
+   residual variance the fit actually left (never below the configured pixel noise).
+
+Pure numpy, vectorised over hypotheses and pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robotd.errors import ConfigError
+from robotd.geometry import skew, so3_exp, umeyama_batch
+from robotd.outliers import iteration_budget, sample_indices
+from robotd.stereo import RectifiedStereo
+
+
+@dataclass(frozen=True, slots=True)
+class PnpParams:
+    """Stereo PnP RANSAC settings (config ``frontend.pnp_*``).
+
+    inlier_px: a pair is an inlier when its reprojection error (norm over x_l, x_r, y) is below it.
+    sigma_px: pixel noise floor of the covariance.
+    max_iterations, batch, p_success: RANSAC budget (hypotheses scored per numpy call).
+    min_iterations: hypotheses scored at least: the adaptive budget follows the best hypothesis's
+      inlier ratio, and a moving vehicle's large early consensus must not end the search before
+      samples of the static background were drawn.
+    min_inliers: fewer inliers: no motion.
+    grid_rows, grid_cols: the image cells of the consensus score.
+    gn_iterations: Gauss–Newton passes on the inliers.
+    lo_hypotheses, lo_gn_iterations: local optimisation: the best hypotheses of each batch are
+      re-fitted on their inliers (this many Gauss–Newton passes) before they compete.
+    min_sample_dist_m: a sample whose points are closer than this to each other is degenerate.
+    """
+
+    inlier_px: float = 2.0
+    sigma_px: float = 0.5
+    max_iterations: int = 300
+    min_iterations: int = 128
+    batch: int = 64
+    p_success: float = 0.999
+    min_inliers: int = 8
+    grid_rows: int = 4
+    grid_cols: int = 8
+    gn_iterations: int = 6
+    lo_hypotheses: int = 2
+    lo_gn_iterations: int = 2
+    min_sample_dist_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not (self.inlier_px > 0 and self.sigma_px > 0):
+            raise ConfigError(f"pnp: expected inlier_px, sigma_px > 0, got {self.inlier_px}, {self.sigma_px}")
+        if min(self.max_iterations, self.batch, self.min_inliers, self.grid_rows, self.grid_cols) < 1:
+            raise ConfigError("pnp: expected max_iterations, batch, min_inliers, grid_rows, grid_cols >= 1")
+        if not 0.0 < self.p_success < 1.0:
+            raise ConfigError(f"pnp: expected p_success in (0, 1), got {self.p_success}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PnpResult:
+    """R (3, 3), t (3,): T_prev_curr (points of R(t) map into R(t−1) as R q + t); inliers (N,)
+    bool; cov (6, 6) over (t, rotation vector) [m², rad²]; rms_px of the inliers' residuals;
+    iterations: hypotheses scored; cells: image cells with an inlier."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: np.ndarray
+    cov: np.ndarray
+    rms_px: float
+    iterations: int
+    cells: int
+
+
+def project_stereo(q: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
+    """Points (..., 3) in the robot frame -> (..., 3) pixels (x_l, x_r, y); NaN behind the rig."""
+    X = q[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(X > 1e-6, 1.0 / X, np.nan)
+    f, hb = rig.f_px, rig.baseline_m / 2.0
+    out = np.empty(q.shape)
+    out[..., 0] = rig.px + f * (q[..., 1] + hb) * inv
+    out[..., 1] = rig.px + f * (q[..., 1] - hb) * inv
+    out[..., 2] = rig.py + f * q[..., 2] * inv
+    return out
+
+
+def projection_jacobian(q: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
+    """∂π/∂q (N, 3, 3) of :func:`project_stereo` at points q (N, 3) with X > 0."""
+    X, Y, Z = q[:, 0], q[:, 1], q[:, 2]
+    f, hb = rig.f_px, rig.baseline_m / 2.0
+    iX = 1.0 / X
+    J = np.zeros((q.shape[0], 3, 3))
+    J[:, 0, 0] = -f * (Y + hb) * iX * iX
+    J[:, 0, 1] = f * iX
+    J[:, 1, 0] = -f * (Y - hb) * iX * iX
+    J[:, 1, 1] = f * iX
+    J[:, 2, 0] = -f * Z * iX * iX
+    J[:, 2, 2] = f * iX
+    return J
+
+
+def reprojection_residuals(
+    R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, rig: RectifiedStereo
+) -> np.ndarray:
+    """Residuals z − π(Rᵀ(P − t)) for K hypotheses: R (K, 3, 3), t (K, 3) -> (K, N, 3); NaN behind."""
+    q = np.einsum("kji,knj->kni", R, P[None] - t[:, None, :])  # Rᵀ (P − t)
+    return z[None] - project_stereo(q, rig)
+
+
+def _cells(z: np.ndarray, rig: RectifiedStereo, p: PnpParams) -> np.ndarray:
+    col = np.clip((z[:, 0] * p.grid_cols / max(rig.width, 1)).astype(np.int64), 0, p.grid_cols - 1)
+    row = np.clip((z[:, 2] * p.grid_rows / max(rig.height, 1)).astype(np.int64), 0, p.grid_rows - 1)
+    return row * p.grid_cols + col
+
+
+def _coverage(inl: np.ndarray, cell: np.ndarray, n_cells: int) -> np.ndarray:
+    """(K,) number of distinct cells holding an inlier, for inlier masks (K, N)."""
+    k = inl.shape[0]
+    occ = np.zeros((k, n_cells), bool)
+    kk, nn = np.nonzero(inl)
+    occ[kk, cell[nn]] = True
+    return occ.sum(axis=1)
+
+
+def _residuals_jacobian(
+    R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, Q: np.ndarray, zp: np.ndarray, rig: RectifiedStereo
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked residuals (n, 6) and their Jacobian (n, 6, 6) wrt the right perturbation (δp, δθ).
+
+    Both directions: the previous points into the current pair, z − π(Rᵀ(P − t)), and the current
+    points into the previous pair, z_prev − π(R Q + t). Each direction alone is biased by the depth
+    errors of the points it moves (a far point triangulated 1 % too far stretches the motion by
+    1 % of its depth); the two biases have opposite signs and cancel to first order.
+    """
+    q = (P - t) @ R  # Rᵀ (P − t) row-wise
+    b = Q @ R.T + t  # R Q + t
+    r = np.concatenate([z - project_stereo(q, rig), zp - project_stereo(b, rig)], axis=1)
+    Jq = projection_jacobian(q, rig)
+    Jb = projection_jacobian(b, rig)
+    J = np.empty((P.shape[0], 6, 6))
+    # q = Exp(−δθ) Rᵀ (P − t − R δp): ∂q/∂δp = −I, ∂q/∂δθ = [q]×
+    J[:, :3, :3] = -Jq
+    J[:, :3, 3:] = Jq @ skew(q)
+    # b = R Exp(δθ) Q + t + R δp: ∂b/∂δp = R, ∂b/∂δθ = −R [Q]×
+    J[:, 3:, :3] = Jb @ R
+    J[:, 3:, 3:] = -(Jb @ R) @ skew(Q)
+    return r, J
+
+
+def _sq_errors(
+    R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, Q: np.ndarray, zp: np.ndarray, rig: RectifiedStereo
+) -> np.ndarray:
+    """(N,) the larger of the two directions' squared reprojection errors (NaN behind the rig)."""
+    r1 = z - project_stereo((P - t) @ R, rig)
+    r2 = zp - project_stereo(Q @ R.T + t, rig)
+    return np.maximum(np.einsum("ni,ni->n", r1, r1), np.einsum("ni,ni->n", r2, r2))
+
+
+def refine(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    zp: np.ndarray,
+    rig: RectifiedStereo,
+    p: PnpParams,
+    inliers: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Gauss–Newton on the pixel residuals of the inliers (both directions), the inliers re-chosen
+    after each pass. Returns R, t, inliers, cov (6, 6) over (t, rotation vector), rms [px]."""
+    thr2 = p.inlier_px**2
+    H = np.eye(6)
+    for _ in range(p.gn_iterations):
+        idx = np.flatnonzero(inliers)
+        if idx.size < 3:
+            break
+        r, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
+        ok = np.all(np.isfinite(r), axis=1)
+        r, J = r[ok], J[ok]
+        H = np.einsum("nki,nkj->ij", J, J)
+        g = np.einsum("nki,nk->i", J, r)
+        try:
+            # ẑ(δ) ≈ ẑ + J δ and r = z − ẑ: least squares J δ = r
+            d = np.linalg.solve(H + 1e-9 * np.eye(6), g)
+        except np.linalg.LinAlgError:
+            break
+        t = t + R @ d[:3]
+        R = R @ so3_exp(d[3:])
+        e2 = _sq_errors(R, t, P, z, Q, zp, rig)
+        inliers = np.isfinite(e2) & (e2 < thr2)
+        if float(np.linalg.norm(d)) < 1e-9:
+            break
+    idx = np.flatnonzero(inliers)
+    r_in, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
+    H = np.einsum("nki,nkj->ij", J, J)
+    rss = float(np.sum(r_in * r_in))
+    rms = math.sqrt(rss / max(r_in.size, 1)) if idx.size else math.inf
+    # a residual carries the noise of both frames' pixels (2σ² per coordinate); the inliers' own
+    # spread underestimates it (the gate truncates the tails), so it is only used when larger.
+    # Each pair is counted twice (both directions share its noise): information halved.
+    s2 = max(rss / max(r_in.size - 6, 1), 2.0 * p.sigma_px**2)
+    try:
+        cov_d = 2.0 * s2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov_d = np.full((6, 6), np.nan)
+    # δp is in R(t): the translation t moves by R δp; the rotation vector by δθ to first order
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = np.eye(3)
+    return R, t, inliers, A @ cov_d @ A.T, rms
+
+
+def stereo_pnp(
+    P: np.ndarray,
+    z: np.ndarray,
+    q_curr: np.ndarray,
+    z_prev: np.ndarray,
+    rig: RectifiedStereo,
+    p: PnpParams,
+    rng: np.random.Generator,
+) -> PnpResult | None:
+    """The motion T_prev_curr from pairs (P_i in R(t−1), z_i pixels of frame t), or None.
+
+    P (N, 3) [m]: the previous frame's points; z (N, 3) [px] = (x_l, x_r, y) of frame t; q_curr
+    (N, 3) [m]: the current frame's own triangulation of z; z_prev (N, 3) [px]: the pixels P came
+    from. Hypotheses are scored, and refined, on the reprojection errors both ways.
+    """
+    n = P.shape[0]
+    if n < max(p.min_inliers, 3):
+        return None
+    thr2 = p.inlier_px**2
+    cell = _cells(z, rig, p)
+    n_cells = p.grid_rows * p.grid_cols
+    best = (-1, -1, 0.0)  # (cells, inliers, −cost)
+    best_Rt: tuple[np.ndarray, np.ndarray] | None = None
+    budget, done = p.max_iterations, 0
+    lo = dataclasses.replace(p, gn_iterations=p.lo_gn_iterations)
+    while done < budget:
+        k = min(p.batch, budget - done)
+        s = sample_indices(rng, n, 3, k)
+        a, b = q_curr[s], P[s]
+        d01 = np.linalg.norm(a[:, 1] - a[:, 0], axis=1)
+        d02 = np.linalg.norm(a[:, 2] - a[:, 0], axis=1)
+        d12 = np.linalg.norm(a[:, 2] - a[:, 1], axis=1)
+        ok = np.minimum(np.minimum(d01, d02), d12) >= p.min_sample_dist_m
+        done += k
+        if not np.any(ok):
+            continue
+        _, R, t = umeyama_batch(a[ok], b[ok], with_scale=False)
+        res = reprojection_residuals(R, t, P, z, rig)
+        # the reverse direction: current points into the previous pair, R Q + t
+        rev = z_prev[None] - project_stereo(np.einsum("kij,nj->kni", R, q_curr) + t[:, None, :], rig)
+        e2 = np.maximum(np.einsum("kni,kni->kn", res, res), np.einsum("kni,kni->kn", rev, rev))
+        inl = np.isfinite(e2) & (e2 < thr2)
+        cnt = inl.sum(axis=1)
+        cov = _coverage(inl, cell, n_cells)
+        cost = np.where(inl, e2, thr2).sum(axis=1)
+        # lexicographic: cells, then inliers, then the smaller truncated cost
+        key = cov.astype(np.float64) * (n + 1) * (thr2 * n + 1) + cnt * (thr2 * n + 1) - cost
+        # local optimisation: the batch's leading hypotheses re-fitted on their inliers (a
+        # three-point fit from noisy far points is rarely good enough to gather its whole consensus)
+        for j in np.argsort(-key)[: p.lo_hypotheses]:
+            if cnt[j] < 3:
+                continue
+            Rj, tj, inl_j, _, _ = refine(R[j], t[j], P, z, q_curr, z_prev, rig, lo, inl[j])
+            e2j = _sq_errors(Rj, tj, P, z, q_curr, z_prev, rig)
+            inl_j = np.isfinite(e2j) & (e2j < thr2)
+            cand = (
+                int(np.unique(cell[inl_j]).size),
+                int(inl_j.sum()),
+                -float(np.where(inl_j, e2j, thr2).sum()),
+            )
+            if cand > best:
+                best, best_Rt = cand, (Rj, tj)
+        if best_Rt is not None:
+            need = max(p.min_iterations, iteration_budget(best[1] / n, 3, p.p_success, p.max_iterations))
+            budget = min(budget, max(done, need))
+    if best_Rt is None or best[1] < p.min_inliers:
+        return None
+    R0, t0 = best_Rt
+    e0 = _sq_errors(R0, t0, P, z, q_curr, z_prev, rig)
+    R1, t1, inl, cov6, rms = refine(R0, t0, P, z, q_curr, z_prev, rig, p, np.isfinite(e0) & (e0 < thr2))
+    if int(inl.sum()) < p.min_inliers or not np.all(np.isfinite(cov6)):
+        return None
+    return PnpResult(R1, t1, inl, cov6, rms, done, int(np.unique(cell[inl]).size))

@@ -1,0 +1,129 @@
+"""Stereo PnP (robotd/frontend/pnp.py): Jacobians, recovery of a known motion, robustness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robotd.errors import ConfigError
+from robotd.frontend.pnp import (
+    PnpParams,
+    _residuals_jacobian,
+    project_stereo,
+    projection_jacobian,
+    stereo_pnp,
+)
+from robotd.geometry import numerical_jacobian, so3_exp, so3_log
+from robotd.stereo import RectifiedStereo, triangulate
+
+RIG = RectifiedStereo(f_px=700.0, px=620.0, py=180.0, baseline_m=0.54, width=1240, height=370)
+
+
+def _scene(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Static points in R(t−1) that stay in view: X 4–40 m, spread over the image."""
+    X = rng.uniform(4.0, 40.0, n)
+    u = rng.uniform(50, RIG.width - 50, n)
+    v = rng.uniform(40, RIG.height - 40, n)
+    return np.c_[X, (u - RIG.px) * X / RIG.f_px, (v - RIG.py) * X / RIG.f_px]
+
+
+def _observe(P: np.ndarray, R: np.ndarray, t: np.ndarray, rng: np.random.Generator, sigma: float) -> tuple:
+    """Pixels of the points P (R(t−1)) in both frames with noise, and their triangulations."""
+    zp = project_stereo(P, RIG) + rng.normal(0, sigma, P.shape)
+    z = project_stereo((P - t) @ R, RIG) + rng.normal(0, sigma, P.shape)
+    tri = lambda w: triangulate(w[:, 0], w[:, 1], w[:, 2], RIG.f_px, RIG.px, RIG.py, RIG.baseline_m)  # noqa: E731
+    return tri(zp), z, tri(z), zp
+
+
+def test_projection_jacobian_matches_central_differences():
+    rng = np.random.default_rng(0)
+    q = _scene(rng, 5)
+    J = projection_jacobian(q, RIG)
+    for k in range(5):
+        Jn = numerical_jacobian(lambda x: project_stereo(x[None], RIG)[0], q[k])
+        np.testing.assert_allclose(J[k], Jn, rtol=1e-6, atol=1e-6)
+
+
+def test_residual_jacobian_matches_central_differences_of_the_perturbation():
+    rng = np.random.default_rng(1)
+    P = _scene(rng, 4)
+    R, t = so3_exp(np.array([0.01, -0.05, 0.02])), np.array([1.0, 0.1, -0.05])
+    Pp, z, Q, zp = _observe(P, R, t, rng, 0.3)
+    _, J = _residuals_jacobian(R, t, Pp, z, Q, zp, RIG)
+
+    def res(d: np.ndarray) -> np.ndarray:
+        R2, t2 = R @ so3_exp(d[3:]), t + R @ d[:3]
+        r, _ = _residuals_jacobian(R2, t2, Pp, z, Q, zp, RIG)
+        return r.ravel()
+
+    Jn = numerical_jacobian(res, np.zeros(6))
+    # r = z − ẑ(δ): the Jacobian of the residual is −∂ẑ/∂δ
+    np.testing.assert_allclose(-J.reshape(-1, 6), Jn, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_recovers_a_known_motion_within_the_noise(seed):
+    rng = np.random.default_rng(seed)
+    P = _scene(rng, 200)
+    R = so3_exp(rng.normal(0, 0.03, 3))
+    t = np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.1, 3)
+    Pp, z, Q, zp = _observe(P, R, t, rng, 0.5)
+    res = stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng)
+    assert res is not None
+    assert np.linalg.norm(res.t - t) < 0.02  # 2 cm on a 1 m step
+    assert np.degrees(np.linalg.norm(so3_log(R.T @ res.R))) < 0.05
+    # noise in both frames: a 2 px gate on the larger direction's error keeps most pairs
+    assert res.inliers.mean() > 0.5
+
+
+def test_covariance_is_within_a_factor_of_three_of_the_real_error():
+    """Mean NEES over 20 motions: 6 would be exact. The first-order covariance is optimistic
+    (the triangulation bias of far points is not in it); issue 14 calibrates it. This bounds how
+    far off it may be."""
+    nees = []
+    for seed in range(20):
+        rng = np.random.default_rng(100 + seed)
+        P = _scene(rng, 200)
+        R, t = so3_exp(rng.normal(0, 0.03, 3)), np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.1, 3)
+        res = stereo_pnp(*_observe(P, R, t, rng, 0.5), RIG, PnpParams(), rng)
+        assert res is not None
+        e = np.r_[res.t - t, so3_log(R.T @ res.R)]
+        nees.append(float(e @ np.linalg.solve(res.cov, e)))
+    assert 6.0 / 3.0 < np.mean(nees) < 6.0 * 3.0, np.round(nees, 1)
+
+
+def test_outliers_and_a_moving_vehicle_lose_the_consensus_to_the_static_background():
+    """A vehicle filling one part of the image, carrying more features than the background and
+    moving with the rover (appears static), must not win: the consensus counts image cells."""
+    rng = np.random.default_rng(7)
+    R, t = so3_exp(np.array([0.0, 0.0, 0.02])), np.array([1.0, 0.05, 0.0])
+    bg = _scene(rng, 120)
+    # the vehicle: 200 points in a compact box ahead (8–10 m, centre of the image), moving with us
+    veh = np.c_[rng.uniform(8, 10, 200), rng.uniform(-1.0, 1.0, 200), rng.uniform(-0.8, 0.5, 200)]
+    Pb, zb, Qb, zpb = _observe(bg, R, t, rng, 0.5)
+    # its points keep their pixels (relative motion zero): current = previous observation + noise
+    zpv = project_stereo(veh, RIG) + rng.normal(0, 0.5, veh.shape)
+    zv = project_stereo(veh, RIG) + rng.normal(0, 0.5, veh.shape)
+    tri = lambda w: triangulate(w[:, 0], w[:, 1], w[:, 2], RIG.f_px, RIG.px, RIG.py, RIG.baseline_m)  # noqa: E731
+    # and gross outliers: random pixels
+    n_out = 40
+    Po = _scene(rng, n_out)
+    zo = np.c_[rng.uniform(0, RIG.width, n_out), np.zeros(n_out), rng.uniform(0, RIG.height, n_out)]
+    zo[:, 1] = zo[:, 0] - rng.uniform(5, 60, n_out)
+    P = np.r_[Pb, tri(zpv), Po]
+    z = np.r_[zb, zv, zo]
+    Q = np.r_[Qb, tri(zv), tri(zo)]
+    zp = np.r_[zpb, zpv, project_stereo(Po, RIG)]
+    res = stereo_pnp(P, z, Q, zp, RIG, PnpParams(), rng)
+    assert res is not None
+    assert np.linalg.norm(res.t - t) < 0.05
+    assert res.inliers[: len(bg)].mean() > 0.5 and res.inliers[len(bg) :].mean() < 0.05
+
+
+def test_too_few_pairs_give_no_motion_and_bad_settings_are_refused():
+    rng = np.random.default_rng(3)
+    P = _scene(rng, 5)
+    Pp, z, Q, zp = _observe(P, np.eye(3), np.array([1.0, 0, 0]), rng, 0.5)
+    assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng) is None
+    with pytest.raises(ConfigError, match="inlier_px"):
+        PnpParams(inlier_px=0.0)
