@@ -115,3 +115,52 @@ def test_bad_inputs(rng):
         AssociationParams(ratio=1.5)
     empty = db.identify(np.zeros((0, 64), np.float32))
     assert isinstance(empty, Correspondences) and empty.n == 0
+
+
+# ------------------------------------------------------------------ guided matching
+
+
+def _guided_store(rng: np.random.Generator, k: int) -> tuple[LandmarkDescriptors, np.ndarray, np.ndarray]:
+    store = LandmarkDescriptors(32, True)
+    desc = rng.integers(0, 256, (k, 32), dtype=np.uint8)
+    ids = store.add(desc)
+    return store, ids, desc
+
+
+def test_guided_matching_finds_each_landmark_near_its_prediction_only():
+    rng = np.random.default_rng(4)
+    store, ids, desc = _guided_store(rng, 30)
+    pred = np.c_[rng.uniform(50, 600, 30), np.zeros(30), rng.uniform(50, 350, 30)]
+    pred[:, 1] = pred[:, 0] - rng.uniform(5, 40, 30)
+    # the measurements: the landmarks 3 px from their predictions, then a decoy with the
+    # descriptor of landmark 0 (repeated texture) 200 px away from it
+    meas_px = pred + np.array([3.0, 3.0, -2.0])
+    decoy = pred[0] + np.array([200.0, 200.0, 0.0])
+    px = np.r_[meas_px, decoy[None]]
+    d = np.r_[desc, desc[:1]]
+    corr = store.identify_guided(d, px, ids, pred, AssociationParams(guided_radius_px=10.0))
+    assert np.all(corr.status[:30] == IDENTIFIED)
+    np.testing.assert_array_equal(corr.ids[:30], ids)
+    assert corr.status[30] == NEW
+    # the plain descriptor search cannot tell the decoy from the landmark
+    plain = store.identify(d, ids)
+    assert plain.status[0] != IDENTIFIED or plain.status[30] != NEW
+
+
+def test_guided_matching_ignores_rows_on_a_planar_map_and_rejects_far_disparities():
+    rng = np.random.default_rng(5)
+    store, ids, desc = _guided_store(rng, 5)
+    pred = np.array([[100.0, 80.0, 50.0]] * 5) + np.arange(5)[:, None] * np.array([100.0, 100.0, 0.0])
+    px = pred.copy()
+    px[:, 2] += 120.0  # every row off by 120 px
+    p = AssociationParams(guided_radius_px=10.0)
+    assert np.all(store.identify_guided(desc, px, ids, pred, p).status == NEW)
+    assert np.all(store.identify_guided(desc, px, ids, pred, p, rows_known=False).status == IDENTIFIED)
+    px2 = pred.copy()
+    px2[:, 1] -= 30.0  # disparity 30 px larger than predicted: a different depth
+    assert np.all(store.identify_guided(desc, px2, ids, pred, p).status == NEW)
+
+
+def test_guided_matching_settings_are_checked():
+    with pytest.raises(ConfigError, match="guided"):
+        AssociationParams(guided_radius_px=0.0)
