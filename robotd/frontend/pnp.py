@@ -58,7 +58,7 @@ class PnpParams:
     inlier_px: float = 2.0
     sigma_px: float = 0.5
     max_iterations: int = 300
-    min_iterations: int = 128
+    min_iterations: int = 64
     batch: int = 64
     p_success: float = 0.999
     min_inliers: int = 8
@@ -125,7 +125,7 @@ def reprojection_residuals(
     R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, rig: RectifiedStereo
 ) -> np.ndarray:
     """Residuals z − π(Rᵀ(P − t)) for K hypotheses: R (K, 3, 3), t (K, 3) -> (K, N, 3); NaN behind."""
-    q = np.einsum("kji,knj->kni", R, P[None] - t[:, None, :])  # Rᵀ (P − t)
+    q = (P[None] - t[:, None, :]) @ R  # rows of Rᵀ (P − t)
     return z[None] - project_stereo(q, rig)
 
 
@@ -200,8 +200,9 @@ def refine(
         r, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
         ok = np.all(np.isfinite(r), axis=1)
         r, J = r[ok], J[ok]
-        H = np.einsum("nki,nkj->ij", J, J)
-        g = np.einsum("nki,nk->i", J, r)
+        Jf = J.reshape(-1, 6)
+        H = Jf.T @ Jf
+        g = Jf.T @ r.ravel()
         try:
             # ẑ(δ) ≈ ẑ + J δ and r = z − ẑ: least squares J δ = r
             d = np.linalg.solve(H + 1e-9 * np.eye(6), g)
@@ -215,7 +216,8 @@ def refine(
             break
     idx = np.flatnonzero(inliers)
     r_in, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
-    H = np.einsum("nki,nkj->ij", J, J)
+    Jf = J.reshape(-1, 6)
+    H = Jf.T @ Jf
     rss = float(np.sum(r_in * r_in))
     rms = math.sqrt(rss / max(r_in.size, 1)) if idx.size else math.inf
     # a residual carries the noise of both frames' pixels (2σ² per coordinate); the inliers' own
@@ -270,10 +272,10 @@ def stereo_pnp(
         if not np.any(ok):
             continue
         _, R, t = umeyama_batch(a[ok], b[ok], with_scale=False)
+        # hypotheses are scored one way (the previous points into the current pair); the local
+        # optimisation and the final fit use both
         res = reprojection_residuals(R, t, P, z, rig)
-        # the reverse direction: current points into the previous pair, R Q + t
-        rev = z_prev[None] - project_stereo(np.einsum("kij,nj->kni", R, q_curr) + t[:, None, :], rig)
-        e2 = np.maximum(np.einsum("kni,kni->kn", res, res), np.einsum("kni,kni->kn", rev, rev))
+        e2 = np.sum(res * res, axis=2)
         inl = np.isfinite(e2) & (e2 < thr2)
         cnt = inl.sum(axis=1)
         cov = _coverage(inl, cell, n_cells)
