@@ -115,7 +115,9 @@ class SlamConfig:
         80, "identified measurements fused per frame at most (the filter's cost grows with it)", min=3, max=10000
     )
     max_new_per_frame: int = _f(40, "landmarks initialised per frame at most (nearest first)", min=0, max=10000)
-    motion_noise_scale: float = _f(1.0, "multiplier on the odometry covariance", min=0.01, max=100.0)
+    motion_noise_scale: float = _f(
+        1.0, "multiplier on the motion prior's covariance (odometry or visual motion)", min=0.01, max=100.0
+    )
     numba_threads: int = _f(0, "threads of the FastSLAM kernel; 0: one per core", min=0, max=256)
     blas_threads: int = _f(
         1,

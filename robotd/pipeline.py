@@ -176,6 +176,9 @@ class Pipeline:
 
     def _predict(self, inc: MotionIncrement | None) -> None:
         if inc is not None:
+            k = self.cfg.slam.motion_noise_scale
+            if k != 1.0:
+                inc = MotionIncrement(inc.t0_ns, inc.t1_ns, inc.dp_R_m, inc.drot_R_rad, inc.cov * k)
             self.estimator.predict(inc)
             self._last_inc = inc
 

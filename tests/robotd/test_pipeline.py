@@ -79,3 +79,33 @@ def test_a_failed_update_leaves_no_orphan_descriptors(sim_frames, monkeypatch):
     with pytest.raises(InputError, match="refused"):
         p.step(frames[1], None)
     np.testing.assert_array_equal(p.frontend.descriptors.ids, before)
+
+
+def test_motion_noise_scale_multiplies_the_prior_covariance_the_filter_gets(sim_frames):
+    frames, rig = sim_frames
+    got = {}
+    for k in (1.0, 4.0):
+        p = _pipeline(rig, motion_noise_scale=k)
+        seen = []
+        real = p.estimator.predict
+        p.estimator.predict = lambda inc, real=real, seen=seen: (seen.append(inc.cov.copy()), real(inc))[1]
+        for f in frames[:4]:
+            p.step(f, None)
+        got[k] = seen
+    assert len(got[1.0]) == len(got[4.0]) >= 2
+    for a, b in zip(got[1.0], got[4.0], strict=True):
+        np.testing.assert_allclose(b, 4.0 * a)
+
+
+def test_tracking_holds_while_the_visual_motion_constrains_the_pose(sim_frames):
+    """The map is wiped each frame (nothing can be identified), but the stereo matches and the
+    visual motion remain: tracking must not be declared lost."""
+    frames, rig = sim_frames
+    p = _pipeline(rig)
+    for f in frames[:12]:
+        r = p.step(f, None)
+        # forget every landmark's descriptor so that identification finds nothing
+        assert p.frontend.descriptors is not None
+        p.frontend.descriptors.forget(p.frontend.descriptors.ids.copy())
+        assert r.tracking
+    assert p.counters.lost_events == 0 and p.counters.visual_priors >= 10
