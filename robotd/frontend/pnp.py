@@ -77,7 +77,8 @@ class PnpParams:
     def __post_init__(self) -> None:
         if not (self.inlier_px > 0 and self.sigma_px > 0 and self.cov_scale > 0):
             raise ConfigError(
-                f"pnp: expected inlier_px, sigma_px, cov_scale > 0, got {self.inlier_px}, {self.sigma_px}, {self.cov_scale}"
+                "pnp: expected inlier_px, sigma_px, cov_scale > 0, got "
+                f"{self.inlier_px}, {self.sigma_px}, {self.cov_scale}"
             )
         if min(self.max_iterations, self.batch, self.min_inliers, self.grid_rows, self.grid_cols) < 1:
             raise ConfigError("pnp: expected max_iterations, batch, min_inliers, grid_rows, grid_cols >= 1")
