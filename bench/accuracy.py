@@ -1,0 +1,371 @@
+"""Accuracy of the default configuration on every real KITTI folder and on the simulated rover (issue 13).
+
+For each KITTI folder in ../shared/data (a folder with ``calib.txt`` and ``image_0/`` or ``image_l/``)
+and each ``sim://`` case, every detector × filter runs ``robotd.replay.replay`` with the default
+configuration (or ``--config FILE``, loaded as ``robotd replay --config`` does) and only
+``frontend.detector`` and ``slam.filter`` changed. The plain OpenCV stereo PnP odometry
+(robotd/research/pnp_baseline.py) runs on the same frames in the same invocation, as a row of its
+own per place. Per run: drift in % of the path (first pose aligned), ATE after a rigid alignment,
+RPE over one frame (translation), lost frames, milliseconds per frame (p50 of the step's total;
+only meaningful with --jobs 1 on an otherwise idle machine), and ATE / PnP ATE.
+
+Verdicts (KITTI rows; issue 13's targets): 0 lost frames, ATE < 0.10 m, ATE at most half the PnP
+baseline's on the same folder, and drift < 1.0 % where the truth is the KITTI odometry benchmark's.
+A folder converted from KITTI raw (it has a ``raw/`` folder: truth computed from the GPS/INS
+through a calibration chain good to about 1°) has its drift reported, not judged. ``target`` marks
+the rows the issue's targets name (ORB and SIFT with the default filter). Sim rows are reported,
+not judged; robotd fuses the simulated rover's wheel odometry there ("input" column), the PnP
+baseline never does.
+
+Sim cases: ``--sim`` takes world names (``yard`` becomes ``sim://?world=yard&duration=D&realtime=0``)
+or full ``sim://`` URLs; by default every world in ``drivers.simworld.WORLDS`` at run time plus
+``SIM_EXTRA``.
+
+    python bench/accuracy.py [--json] [--quick] [--folders kitti-seq1,...] [--detectors orb,sift,surf]
+        [--filters fastslam2,fastslam1,ekf] [--sim yard ...] [--max-frames N] [--jobs N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, NamedTuple
+from urllib.parse import parse_qsl, urlsplit
+
+# as the robotd command does (robotd.cli), before numpy loads: one BLAS thread, sleeping OpenMP workers
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from robotd.choices import DETECTORS, FILTERS  # noqa: E402
+
+DEFAULT_DATA = Path(os.environ.get("ROBOTD_SHARED_DATA", REPO.parent / "shared" / "data"))
+SIM_DURATION_S = 10.0  # a world name's default run: 300 frames at the sim's 30 fps
+SIM_EXTRA = ("sim://?world=yard&tilt=5",)  # existing worlds under harder settings, run besides WORLDS
+# issue 13's targets
+MAX_ATE_M = 0.10
+MAX_DRIFT_PCT = 1.0
+MAX_ATE_RATIO = 0.5  # beat the PnP baseline's ATE by at least 2x
+TARGET_DETECTORS = ("orb", "sift")
+
+
+class Place(NamedTuple):
+    name: str  # "kitti-seq1", "sim:yard"
+    kind: str  # "kitti" | "sim"
+    source: str  # the URL both robotd and the baseline read
+    judge_drift: bool = False  # drift judged (KITTI odometry truth) or reported only
+
+
+def _bar(total: int, unit: str, desc: str) -> Any:
+    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    JSON object on stdout is all that stays."""
+    from robotd.progress import progress_bar
+
+    return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
+
+
+# --------------------------------------------------------------------------------------------
+# What to run
+
+
+def is_kitti_folder(p: Path) -> bool:
+    return (p / "calib.txt").is_file() and ((p / "image_0").is_dir() or (p / "image_l").is_dir())
+
+
+def kitti_places(root: Path, names: list[str] | None) -> list[Place]:
+    """Every KITTI folder under ``root`` (sorted), or the named ones (names under root, or paths)."""
+    if names is None:
+        folders = sorted(p for p in root.iterdir() if p.is_dir() and is_kitti_folder(p)) if root.is_dir() else []
+    else:
+        folders = [Path(n) if Path(n).is_dir() else root / n for n in names]
+        bad = [str(f) for f in folders if not is_kitti_folder(f)]
+        if bad:
+            raise SystemExit(f"not a KITTI folder (expected calib.txt and image_0/ or image_l/): {', '.join(bad)}")
+    return [Place(f.name, "kitti", f"kitti://{f.resolve()}", judge_drift=not (f / "raw").is_dir()) for f in folders]
+
+
+def default_sim_items() -> list[str]:
+    from drivers.simworld import WORLDS
+
+    return [*WORLDS, *SIM_EXTRA]
+
+
+def sim_place(item: str, duration_s: float) -> Place:
+    """A world name or a ``sim://`` URL -> a Place; frames as fast as pulled (realtime=0) and a
+    finite duration unless the URL sets them."""
+    if not item.startswith("sim://"):
+        item = f"sim://?world={item}"
+    parts = urlsplit(item)
+    q = dict(parse_qsl(parts.query))
+    world = parts.netloc or q.get("world", "yard")
+    extra = [f"{k}={v}" for k, v in q.items() if k not in ("world", "duration", "realtime")]
+    sep = "&" if parts.query else "?"
+    if "realtime" not in q:
+        item, sep = f"{item}{sep}realtime=0", "&"
+    if "duration" not in q:
+        item = f"{item}{sep}duration={duration_s:g}"
+    return Place(f"sim:{world}" + (f" ({', '.join(extra)})" if extra else ""), "sim", item)
+
+
+# --------------------------------------------------------------------------------------------
+# One run (a process-pool task: plain arguments in, a plain dict out)
+
+
+def run_task(
+    method: str, place: Place, detector: str | None, filt: str | None, cfg_path: str | None, max_frames: int
+) -> dict[str, Any]:
+    row: dict[str, Any] = {
+        "place": place.name,
+        "kind": place.kind,
+        "source": place.source,
+        "method": method,
+        "detector": detector,
+        "filter": filt,
+    }
+    try:
+        if method == "pnp":
+            from robotd.research.pnp_baseline import run_pnp
+
+            s = run_pnp(place.source, max_frames=max_frames)
+        else:
+            from robotd.config import load_config
+            from robotd.replay import replay
+
+            cfg = load_config(cfg_path, {"frontend": {"detector": detector}, "slam": {"filter": filt}})
+            s = replay(cfg, place.source, max_frames=max_frames, progress=False)
+    except Exception as exc:  # one failed run is a row saying so, not the end of the benchmark
+        row["error"] = f"{type(exc).__name__}: {exc}"
+        return row
+    row.update(
+        frames=s["frames"],
+        lost_frames=s["lost_frames"],
+        drift_pct=s.get("truth_drift_pct"),
+        drift_m=s.get("truth_drift_m"),
+        ate_m=s.get("truth_ate_rmse_m"),
+        rpe_m=s.get("truth_rpe_trans_m"),
+        rpe_rot_deg=s.get("truth_rpe_rot_deg"),
+        path_length_m=s.get("truth_path_length_m"),
+        ms_per_frame=s["step_ms_p50"],
+        ms_per_frame_p95=s["step_ms_p95"],
+        wall_s=s["wall_s"],
+        odometry=bool(s.get("odometry_priors", 0)),
+    )
+    return row
+
+
+def judge(rows: list[dict[str, Any]], places: list[Place], default_filter: str) -> None:
+    """Adds ate_vs_pnp, checks, verdict and target to each robotd row (in place)."""
+    by_name = {p.name: p for p in places}
+    pnp_ate = {r["place"]: r.get("ate_m") for r in rows if r["method"] == "pnp"}
+    for r in rows:
+        if r["method"] != "robotd":
+            continue
+        ref = pnp_ate.get(r["place"])
+        ate = r.get("ate_m")
+        r["ate_vs_pnp"] = ate / ref if (ate is not None and ref) else None
+        place = by_name[r["place"]]
+        r["target"] = place.kind == "kitti" and r["detector"] in TARGET_DETECTORS and r["filter"] == default_filter
+        if place.kind != "kitti":
+            r["verdict"] = None
+            continue
+        if "error" in r:
+            r["checks"], r["verdict"] = {}, "fail"
+            continue
+        checks: dict[str, bool | None] = {
+            "no_lost_frames": r["lost_frames"] == 0,
+            "ate": ate is not None and ate < MAX_ATE_M,
+            "beats_pnp_2x": r["ate_vs_pnp"] is not None and r["ate_vs_pnp"] <= MAX_ATE_RATIO,
+            "drift": (r["drift_pct"] is not None and r["drift_pct"] < MAX_DRIFT_PCT) if place.judge_drift else None,
+        }
+        r["checks"] = checks
+        r["verdict"] = "pass" if all(v is not False for v in checks.values()) else "fail"
+
+
+# --------------------------------------------------------------------------------------------
+# Output
+
+
+def _f(v: Any, fmt: str) -> str:
+    return "–" if v is None else format(v, fmt)
+
+
+def _verdict(r: dict[str, Any]) -> str:
+    if r.get("verdict") is None:
+        return ""
+    if r["verdict"] == "pass":
+        return "pass"
+    failed = [k for k, v in r.get("checks", {}).items() if v is False]
+    return "**fail**" + (f" ({', '.join(failed)})" if failed else "")
+
+
+def print_table(out: dict[str, Any]) -> None:
+    print(f"Accuracy, default configuration ({out['config']}), commit {out['commit']}, {out['host']}\n")
+    print(
+        "| place | method | detector | filter | input | frames | lost | drift % | ATE m | RPE m "
+        "| ms/frame p50 | ATE / PnP ATE | target | verdict |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in out["rows"]:
+        if "error" in r:
+            print(
+                f"| {r['place']} | {r['method']} | {r['detector'] or ''} | {r['filter'] or ''} | | | | | | | | | "
+                f"{'yes' if r.get('target') else ''} | error: {r['error']} |"
+            )
+            continue
+        name = "PnP baseline" if r["method"] == "pnp" else "robotd"
+        drift = _f(r["drift_pct"], ".2f") if r["drift_pct"] is not None else f"({_f(r['drift_m'], '.3f')} m)"
+        print(
+            f"| {r['place']} | {name} | {r['detector'] or 'orb (cv2)'} | {r['filter'] or '–'} "
+            f"| {'vision+odometry' if r['odometry'] else 'vision'} | {r['frames']} | {r['lost_frames']} | {drift} "
+            f"| {_f(r['ate_m'], '.3f')} | {_f(r['rpe_m'], '.4f')} | {r['ms_per_frame']:.1f} "
+            f"| {_f(r.get('ate_vs_pnp'), '.2f')} | {'yes' if r.get('target') else ''} | {_verdict(r)} |"
+        )
+    t = [r for r in out["rows"] if r.get("target")]
+    print(
+        f"\ntargets (ORB and SIFT, default filter, KITTI): {sum(r['verdict'] == 'pass' for r in t)}/{len(t)} pass; "
+        f"all judged rows: {sum(r.get('verdict') == 'pass' for r in out['rows'])}"
+        f"/{sum(r.get('verdict') is not None for r in out['rows'])} pass"
+    )
+    print(
+        f"criteria: 0 lost, ATE < {MAX_ATE_M} m, ATE / PnP ATE <= {MAX_ATE_RATIO}, drift < {MAX_DRIFT_PCT} % "
+        "(KITTI odometry truth only; raw-derived truth: reported)"
+    )
+    if out["skipped"]:
+        print(f"skipped: {'; '.join(out['skipped'])}")
+    jobs = out["jobs"]
+    print(
+        f"wall time {out['wall_s']:.0f} s, --jobs {jobs}"
+        + (" (ms/frame disturbed by parallel runs)" if jobs > 1 else "")
+    )
+
+
+def _commit() -> str:
+    try:
+        rev = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain"], capture_output=True, text=True)
+    except OSError:
+        return "unknown"
+    return rev.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "") if rev.returncode == 0 else "unknown"
+
+
+def _host() -> str:
+    model = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model or platform.processor() or platform.machine()}, {os.cpu_count()} CPUs"
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _names(text: str, known: tuple[str, ...], what: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise SystemExit(f"--{what}: unknown {bad}; known: {', '.join(known)}")
+    return names
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding the KITTI folders (../shared/data)")
+    ap.add_argument(
+        "--folders", help="comma-separated KITTI folders (names under --data, or paths); default: all found"
+    )
+    ap.add_argument("--detectors", default=",".join(("orb", "sift", "surf")))
+    ap.add_argument("--filters", default=",".join(("fastslam2", "fastslam1", "ekf")))
+    ap.add_argument("--sim", nargs="*", metavar="WORLD|URL", help="sim cases (world names or sim:// URLs); default: "
+                    "every world of drivers.simworld.WORLDS and SIM_EXTRA; --sim with none: no sim runs")  # fmt: skip
+    ap.add_argument("--sim-duration", type=float, default=SIM_DURATION_S, help="simulated seconds of a world name")
+    ap.add_argument("--config", metavar="FILE", help="TOML file overriding the built-in defaults (as robotd replay)")
+    ap.add_argument("--max-frames", type=int, default=0, help="frames per run at most (0: all)")
+    ap.add_argument("--jobs", type=int, default=1, help="runs in parallel (ms/frame is only meaningful with 1)")
+    ap.add_argument(
+        "--quick", action="store_true", help="one KITTI folder x orb x fastslam2 + PnP; sim only with --sim"
+    )
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+
+    from robotd.config import load_config
+    from robotd.frontend.detectors import surf_available
+
+    default_filter = load_config(args.config).slam.filter
+    skipped: list[str] = []
+    detectors = _names(args.detectors, DETECTORS, "detectors")
+    filters = _names(args.filters, FILTERS, "filters")
+    places = kitti_places(args.data, args.folders.split(",") if args.folders else None)
+    if not places:
+        skipped.append(f"KITTI: no folder with calib.txt and image_0/ or image_l/ under {args.data}")
+    sim_items = args.sim if args.sim is not None else ([] if args.quick else default_sim_items())
+    if args.quick:
+        seq1 = [p for p in places if p.name == "kitti-seq1"]
+        places = (seq1 or places)[:1]
+        detectors, filters = ["orb"], [default_filter]
+    places += [sim_place(s, args.sim_duration) for s in sim_items]
+    if "surf" in detectors and not surf_available():
+        detectors.remove("surf")
+        skipped.append("surf (robotd.frontend.surf not importable)")
+    if not places:
+        print("nothing to run: " + "; ".join(skipped), file=sys.stderr)
+        return 2
+
+    tasks: list[tuple[str, Place, str | None, str | None]] = []
+    for p in places:  # the baseline first, so a --jobs 1 run shows each place's reference early
+        tasks.append(("pnp", p, None, None))
+        tasks += [("robotd", p, d, f) for d in detectors for f in filters]
+    t0 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    with _bar(len(tasks), "run", "accuracy") as bar:
+        if args.jobs <= 1:
+            for method, p, d, f in tasks:
+                bar.set_postfix_str(f"{p.name} {d or 'pnp'} {f or ''}")
+                rows.append(run_task(method, p, d, f, args.config, args.max_frames))
+                bar.update(1)
+        else:
+            import multiprocessing
+
+            ctx = multiprocessing.get_context("spawn")  # no fork of a process with numba/OpenCV threads
+            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
+                futs = [pool.submit(run_task, m, p, d, f, args.config, args.max_frames) for m, p, d, f in tasks]
+                for fut in futs:
+                    rows.append(fut.result())
+                    bar.update(1)
+    judge(rows, places, default_filter)
+    out = {
+        "benchmark": "accuracy",
+        "commit": _commit(),
+        "host": _host(),
+        "config": args.config or "built-in defaults",
+        "default_filter": default_filter,
+        "max_frames": args.max_frames,
+        "jobs": args.jobs,
+        "criteria": {"max_ate_m": MAX_ATE_M, "max_drift_pct": MAX_DRIFT_PCT, "max_ate_vs_pnp": MAX_ATE_RATIO},
+        "places": [{"name": p.name, "kind": p.kind, "source": p.source, "judge_drift": p.judge_drift} for p in places],
+        "skipped": skipped,
+        "wall_s": time.perf_counter() - t0,
+        "rows": rows,
+    }
+    if args.json:
+        json.dump(out, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print_table(out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
