@@ -244,6 +244,17 @@ class _ImageDatasetCamera(Driver):
 
 def _kitti_calib(path: Path, size: tuple[int, int]) -> RectifiedStereo:
     """P0/P1 of ``calib.txt`` -> the rectified rig (f, p_x, p_y, b = -P1[0,3]/P1[0,0])."""
+    P0, b = _kitti_projection(path)
+    return RectifiedStereo(float(P0[0, 0]), float(P0[0, 2]), float(P0[1, 2]), b, size[0], size[1])
+
+
+def kitti_baseline_m(path: str | Path) -> float:
+    """The stereo baseline b = -P1[0,3]/P1[0,0] [m] of a KITTI ``calib.txt``."""
+    return _kitti_projection(Path(path))[1]
+
+
+def _kitti_projection(path: Path) -> tuple[np.ndarray, float]:
+    """(P0 (3, 4), baseline [m]) of a KITTI ``calib.txt``."""
     rows: dict[str, np.ndarray] = {}
     unlabelled = 0
     for line in path.read_text().splitlines():
@@ -264,7 +275,24 @@ def _kitti_calib(path: Path, size: tuple[int, int]) -> RectifiedStereo:
     b = -P1[0, 3] / P1[0, 0]
     if not b > 0:
         raise DatasetError(f"{path}: baseline -P1[0,3]/P1[0,0] = {b:.6g} m, expected > 0")
-    return RectifiedStereo(float(P0[0, 0]), float(P0[0, 2]), float(P0[1, 2]), float(b), size[0], size[1])
+    return P0, float(b)
+
+
+def kitti_times_ns(path: str | Path, n: int) -> np.ndarray:
+    """The first ``n`` stamps of a KITTI ``times.txt`` (seconds, one per image) as integer ns: the
+    dataset time a replay stamps its frames (and its TUM trajectory) with."""
+    path = Path(path)
+    try:
+        t = np.loadtxt(path, dtype=float, ndmin=1)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: expected one time in seconds per line ({exc})") from None
+    if t.ndim != 1 or t.shape[0] < n:
+        raise DatasetError(f"{path}: expected {n} stamps (one per image), got {t.shape[0] if t.ndim == 1 else t.shape}")
+    # seconds with 6 decimals in KITTI: round to whole microseconds before converting to ns
+    t_ns = np.round(t[:n] * 1e6).astype(np.int64) * 1000
+    if np.any(np.diff(t_ns) <= 0):
+        raise DatasetError(f"{path}: stamps are not strictly increasing")
+    return t_ns
 
 
 def kitti_truth_to_robot(T_C0_C: np.ndarray, baseline_m: float) -> np.ndarray:
@@ -320,14 +348,7 @@ class KittiCamera(_ImageDatasetCamera):
     def _times(path: Path, n: int) -> np.ndarray:
         if not path.is_file():
             return np.arange(n, dtype=np.int64) * KITTI_DT_NS
-        t = np.loadtxt(path, dtype=float, ndmin=1)
-        if t.shape[0] < n:
-            raise DatasetError(f"{path}: expected {n} stamps (one per image), got {t.shape[0]}")
-        # seconds with 6 decimals in KITTI: round to whole microseconds before converting to ns
-        t_ns = np.round(t[:n] * 1e6).astype(np.int64) * 1000
-        if np.any(np.diff(t_ns) <= 0):
-            raise DatasetError(f"{path}: stamps are not strictly increasing")
-        return t_ns
+        return kitti_times_ns(path, n)
 
     @staticmethod
     def _poses(path: Path, n: int, b: float) -> np.ndarray | None:

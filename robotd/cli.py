@@ -135,25 +135,24 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from robotd.geometry import T_optical_to_robot
-    from robotd.research.evaluate import Trajectory, evaluate_trajectories, plot_trajectory, read_trajectory
+    from robotd.research.evaluate import (
+        associate_trajectories,
+        evaluate_trajectories,
+        plot_trajectory,
+        read_trajectory,
+    )
 
     configure_logging(args.log_level or "WARNING")
     if args.no_plot:
         logger.warning("eval: --no-plot is deprecated and does nothing: no plot is written unless --plot PNG is given")
+    # a KITTI poses.txt is read as the replay carries it: robot frame at the baseline centre,
+    # stamped from the times.txt beside it (by index when it has none and the counts match)
     est = read_trajectory(args.traj)
     gt = read_trajectory(args.gt)
-    if _is_kitti_poses(args.gt):
-        # KITTI poses are the left camera in its optical frame: re-express them in robotd's FRD axes
-        gt = Trajectory(gt.t_s, np.stack([T_optical_to_robot(T) for T in gt.T]))
     result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar))
     result["frames"] = int(result["frames"])
+    ie, ig, result["association"] = associate_trajectories(est, gt)
     if args.plot:
-        from robotd.research.evaluate import associate
-
-        ie, ig = associate(est.t_s, gt.t_s)
         plot_trajectory(est.T[ie], gt.T[ig], None, args.plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
         result["plot"] = args.plot
     if args.json:
@@ -181,14 +180,6 @@ def _human_number(key: str, v: Any) -> str:
     if key.endswith("_deg"):
         return f"{v:.3f}"
     return f"{v:.3g}"
-
-
-def _is_kitti_poses(path: str) -> bool:
-    with open(path, encoding="utf-8") as f:
-        for line in f:
-            if line.strip() and not line.lstrip().startswith("#"):
-                return len(line.split()) == 12
-    return False
 
 
 def cmd_experiments(args: argparse.Namespace) -> int:
@@ -277,9 +268,16 @@ keys: frames (associated poses); ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m
 (after a rigid alignment); heading_rmse_deg; rpe_trans_m, rpe_rot_deg (frame to frame);
 drift_m (end-point error after aligning the first poses only) and drift_pct (the same in % of
 path_length_m); similarity_scale (diagnostic). drift_pct and similarity_scale are undefined
-(n/a, JSON null) when the ground-truth path is shorter than 1 m (a stationary sequence)."""
+(n/a, JSON null) when the ground-truth path is shorter than 1 m (a stationary sequence);
+association: how the poses were paired ("time", or "index" when one side has no recorded times
+and both have one pose per frame).
+
+A KITTI poses.txt is read as a replay of its folder carries its truth: moved from the left
+camera's optical frame to the robot frame at the stereo baseline centre (baseline from the
+calib.txt beside it) and stamped from the times.txt beside it, so `robotd replay kitti://DIR
+--out T.txt` then `robotd eval T.txt DIR/poses.txt` gives the replay's own truth_* figures."""
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
-    sp.add_argument("traj", help="estimated trajectory (TUM)")
+    sp.add_argument("traj", help="estimated trajectory (TUM, or KITTI poses)")
     sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")
     sp.add_argument("--plot", metavar="PNG", help="also write a plot of both trajectories to PNG (none by default)")
     # kept so that old scripts still run: a plot is opt-in now, so there is nothing to turn off

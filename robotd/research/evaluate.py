@@ -12,7 +12,8 @@ evaluation uses the x, y and yaw of the same matrices. Times are float seconds.
 - NEES per step and ANEES with its two-sided 95 % χ² band (Bar-Shalom et al. 2001).
 - Map RMSE after alignment.
 - TUM trajectory files (``t x y z qx qy qz qw``, what evo reads) and KITTI pose files (12 numbers
-  per row, the row-major 3×4 [R|t] of the left camera, optical frame).
+  per row, the row-major 3×4 [R|t] of the left camera, optical frame), read as robot-frame truth
+  at the baseline centre and stamped from the ``times.txt`` beside them, as a replay carries them.
 """
 
 from __future__ import annotations
@@ -45,10 +46,16 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Trajectory:
-    """A timed trajectory: ``t_s`` (N,) seconds and ``T`` (N, 4, 4) T_world_body."""
+    """A timed trajectory: ``t_s`` (N,) seconds and ``T`` (N, 4, 4) T_world_body.
+
+    ``timed`` is False when the stamps are made up rather than recorded (a KITTI pose file without
+    its ``times.txt``: index / 10 Hz); :func:`associate_trajectories` then pairs by index when
+    both trajectories have one pose per frame.
+    """
 
     t_s: np.ndarray
     T: np.ndarray
+    timed: bool = True
 
     def __post_init__(self) -> None:
         if self.T.ndim != 3 or self.T.shape[1:] != (4, 4) or self.t_s.shape != (self.T.shape[0],):
@@ -122,6 +129,45 @@ def associate(t_est: np.ndarray, t_gt: np.ndarray, max_dt_s: float | None = None
     ie_u = np.array([best[g] for g in ig_u], dtype=np.int64)
     srt = np.argsort(ie_u, kind="stable")
     return ie_u[srt], order[ig_u[srt]]
+
+
+# a replay of a KITTI folder without times.txt stamps frame i at exactly i × 0.1 s; written to a
+# TUM file with 9 decimals it comes back within nanoseconds, so 1 ms tells "on that grid" apart
+NOMINAL_GRID_TOL_S = 1e-3
+
+
+def associate_trajectories(est: Trajectory, gt: Trajectory) -> tuple[np.ndarray, np.ndarray, str]:
+    """Pair the poses of an estimate and a ground truth: (idx_est, idx_gt, how).
+
+    By time (``how = "time"``, :func:`associate`) when both carry recorded stamps. When one does
+    not (``timed`` False: a KITTI poses.txt without times.txt, stamped index / 10 Hz):
+
+    - the same count on both sides (one pose per frame): by index (``"index"``); the made-up
+      stamps may not be the frame times (KITTI raw runs at ~9.66 Hz);
+    - different counts: by time only when the other side's stamps lie on that 10 Hz grid (what a
+      replay of such a folder writes, e.g. a part of it), else an InputError: there is no telling
+      which frame an off-grid stamp belongs to.
+    """
+    if est.timed and gt.timed:
+        ie, ig = associate(est.t_s, gt.t_s)
+        return ie, ig, "time"
+    if len(est) == len(gt):
+        idx = np.arange(len(est), dtype=np.int64)
+        return idx, idx.copy(), "index"
+    grid, other = (gt, est) if not gt.timed else (est, gt)
+    pos = np.clip(np.searchsorted(grid.t_s, other.t_s), 1, max(len(grid) - 1, 1))
+    off = np.minimum(
+        np.abs(grid.t_s[pos - 1] - other.t_s), np.abs(grid.t_s[np.minimum(pos, len(grid) - 1)] - other.t_s)
+    )
+    if np.any(off > NOMINAL_GRID_TOL_S):
+        k = int(np.argmax(off > NOMINAL_GRID_TOL_S))
+        raise InputError(
+            f"evaluate: {len(est)} estimated and {len(gt)} true poses, one side without recorded times "
+            f"(a KITTI poses.txt without times.txt), and stamp {other.t_s[k]:.6f} s is not on its 10 Hz "
+            "grid: give the poses.txt its times.txt, or an estimate with one pose per frame"
+        )
+    ie, ig = associate(est.t_s, gt.t_s)
+    return ie, ig, "time"
 
 
 def align_rigid(est: np.ndarray, gt: np.ndarray, planar: bool = False) -> np.ndarray:
@@ -385,19 +431,52 @@ def read_tum(path: str | Path) -> Trajectory:
 def read_kitti_poses(path: str | Path, rate_hz: float = 10.0) -> Trajectory:
     """Read a KITTI odometry pose file: 12 numbers per row, row-major [R|t] of the left camera.
 
-    The poses stay in the camera optical frame (x right, y down, z forward) relative to frame 0;
-    use ``robotd.geometry.T_optical_to_robot`` to compare with FRD estimates. KITTI has no times in
-    this file, so t = index / rate_hz.
+    The poses stay as they are in the file: the left camera in its optical frame (x right, y down,
+    z forward) relative to frame 0; :func:`read_kitti_truth` moves them to robotd's robot frame.
+    Stamps: the ``times.txt`` beside the file when there is one (the frame times, in seconds: what
+    a replay stamps its trajectory with), else index / ``rate_hz`` with ``timed`` False.
     """
-    a = _read_rows(Path(path), 12, "KITTI poses")
+    path = Path(path)
+    a = _read_rows(path, 12, "KITTI poses")
     T = np.zeros((len(a), 4, 4))
     T[:, :3, :] = a.reshape(-1, 3, 4)
     T[:, 3, 3] = 1.0
-    return Trajectory(np.arange(len(a)) / rate_hz, T)
+    times = path.parent / "times.txt"
+    if times.is_file():
+        from drivers.dataset import kitti_times_ns
+
+        return Trajectory(kitti_times_ns(times, len(a)) / 1e9, T)
+    return Trajectory(np.arange(len(a)) / rate_hz, T, timed=False)
+
+
+def read_kitti_truth(path: str | Path) -> Trajectory:
+    """A KITTI poses.txt as robot-frame truth, exactly as a replay of its folder carries it.
+
+    The left-camera optical-frame poses become the robot frame (FRD) at the stereo baseline centre
+    (``drivers.dataset.kitti_truth_to_robot``, baseline from P1 of the ``calib.txt`` beside the
+    file), relative to frame 0; stamps as :func:`read_kitti_poses`. Without a calib.txt the origin
+    stays at the left camera (a warning says so): the lever arm b/2 then shows in any turn.
+    """
+    from drivers.dataset import kitti_baseline_m, kitti_truth_to_robot
+
+    path = Path(path)
+    tr = read_kitti_poses(path)
+    calib = path.parent / "calib.txt"
+    if calib.is_file():
+        b = kitti_baseline_m(calib)
+    else:
+        b = 0.0
+        logger.warning("%s: no calib.txt beside it, so no baseline: truth stays at the left camera", path)
+    T = se3_inverse(tr.T[0]) @ tr.T
+    return Trajectory(tr.t_s, kitti_truth_to_robot(T, b), tr.timed)
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
-    """TUM (8 columns) or KITTI (12 columns) by the first data row."""
+    """TUM (8 columns) or KITTI (12 columns) by the first data row, in robotd's robot frame.
+
+    A TUM file is taken as it is (robotd writes robot-frame TUM); a KITTI pose file is moved to the
+    robot frame at the baseline centre and stamped from its times.txt (:func:`read_kitti_truth`).
+    """
     p = Path(path)
     if not p.is_file():
         raise DatasetError(f"trajectory: no such file {p}")
@@ -412,13 +491,14 @@ def read_trajectory(path: str | Path) -> Trajectory:
     if n == 8:
         return read_tum(p)
     if n == 12:
-        return read_kitti_poses(p)
+        return read_kitti_truth(p)
     raise DatasetError(f"trajectory {p}: expected 8 (TUM) or 12 (KITTI) columns, got {n}")
 
 
 def evaluate_trajectories(est: Trajectory, gt: Trajectory, planar: bool = False) -> dict[str, float]:
-    """All trajectory metrics of §11 for two timed trajectories (associated by nearest time)."""
-    ie, ig = associate(est.t_s, gt.t_s)
+    """All trajectory metrics of §11 for two trajectories, paired by :func:`associate_trajectories`
+    (nearest time; by index when one side has no recorded times and the counts match)."""
+    ie, ig, _ = associate_trajectories(est, gt)
     if len(ie) < 2:
         raise InputError(
             f"evaluate: only {len(ie)} poses associate within half a frame period "
@@ -446,7 +526,9 @@ def evaluate_files(traj_path: str | Path, gt_path: str | Path, planar: bool = Fa
     final_error_m, rpe_trans_m, rpe_rot_deg (Δ = 1 frame), drift_pct, drift_m, path_length_m,
     similarity_scale. drift_pct and similarity_scale are NaN when the ground-truth path is shorter
     than ``MIN_PATH_FOR_RELATIVE_M`` (undefined there); drift_m (the end-point error after aligning
-    the first poses) is always given. Both files must be in the same frame convention.
+    the first poses) is always given. TUM files are taken in robotd's robot frame; a KITTI pose
+    file is moved there first (:func:`read_trajectory`), so a replay's TUM output evaluates against
+    its folder's poses.txt exactly as the replay's own ``truth_*`` figures.
     """
     est = read_trajectory(traj_path)
     gt = read_trajectory(gt_path)

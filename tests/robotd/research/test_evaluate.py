@@ -230,3 +230,83 @@ def test_normal_path_figures_unchanged_and_drift_m_is_drift_pct_numerator():
     assert m["similarity_scale"] == similarity_scale(est[:, :3, 3], gt[:, :3, 3])
     assert m["drift_m"] == pytest.approx(np.linalg.norm([0.3, -0.2, 0.1]), abs=CONDITIONED_ATOL)
     assert m["drift_pct"] == pytest.approx(100 * m["drift_m"] / m["path_length_m"], rel=CONDITIONED_RTOL)
+
+
+# --------------------------------------------------------------------------------------------
+# KITTI pose files as ground truth: frame times and the robot frame (issue 13, item 6)
+
+KITTI_B_M = 0.54  # a KITTI-like stereo baseline
+RAW_PERIOD_S = 0.1035  # KITTI raw's real frame period (~9.66 Hz), not the 0.1 s of the odometry benchmark
+
+
+def _kitti_folder(root, n=60, times=True, calib=True):
+    """A KITTI folder with a turning left-camera trajectory; returns (poses.txt, the frame times,
+    the truth a replay of this folder carries: robot frame, FRD, at the baseline centre)."""
+    from drivers.dataset import kitti_truth_to_robot
+
+    root.mkdir(parents=True, exist_ok=True)
+    k = np.arange(n)
+    # optical frame (x right, y down, z forward): forward along z, turning about -y (to the left)
+    yaw = 0.03 * k
+    x6 = np.column_stack([2 * np.sin(yaw) * 10, 0.02 * np.sin(k), 10 * (1 - np.cos(yaw)) * 2, 0 * k, -yaw, 0 * k])
+    T_C0_C = pose6_to_T(x6[:, [0, 1, 2, 3, 4, 5]])
+    T_C0_C = np.linalg.inv(T_C0_C[0]) @ T_C0_C
+    np.savetxt(root / "poses.txt", T_C0_C[:, :3, :].reshape(n, 12), fmt="%.12e")
+    t_s = k * RAW_PERIOD_S + 0.001 * np.sin(k)  # irregular, like a real capture clock
+    if times:
+        np.savetxt(root / "times.txt", t_s, fmt="%.6e")
+    if calib:
+        P0 = [700.0, 0, 600.0, 0, 0, 700.0, 180.0, 0, 0, 0, 1, 0]
+        P1 = [700.0, 0, 600.0, -700.0 * KITTI_B_M, 0, 700.0, 180.0, 0, 0, 0, 1, 0]
+        (root / "calib.txt").write_text(f"P0: {' '.join(map(str, P0))}\nP1: {' '.join(map(str, P1))}\n")
+    return root / "poses.txt", np.round(t_s, 6), kitti_truth_to_robot(T_C0_C, KITTI_B_M)
+
+
+def test_kitti_truth_is_read_with_its_times_and_in_the_robot_frame(tmp_path):
+    poses, t_s, G = _kitti_folder(tmp_path / "seq")
+    write_tum(tmp_path / "est.txt", t_s, G)  # what a perfect replay of the folder writes
+    r = evaluate_files(tmp_path / "est.txt", poses)
+    assert r["frames"] == len(G), "every frame pairs with its own truth (times.txt, not 0.1 s × index)"
+    assert r["ate_rmse_m"] < TUM_POSE_ATOL and r["drift_m"] < TUM_POSE_ATOL and r["rpe_trans_m"] < TUM_POSE_ATOL
+    # the same estimate against truth left at the left camera (only the axes changed) errs by the
+    # lever arm b/2 swinging through the turn: the comparison the robot frame fixes
+    from robotd.geometry import T_optical_to_robot
+
+    tr = read_kitti_poses(poses)
+    m = evaluate_trajectories(Trajectory(tr.t_s, G), Trajectory(tr.t_s, T_optical_to_robot(tr.T)))
+    assert m["drift_m"] > 0.3, "b/2 = 0.27 m turned through 100 degrees"
+    # the old stamping (0.1 s × index) against these 9.66 Hz frames drops and mis-pairs frames
+    ie, _ = associate(t_s, np.arange(len(G)) * 0.1)
+    assert len(ie) < len(G)
+
+
+def test_kitti_truth_without_times_pairs_by_index_when_counts_match(tmp_path):
+    poses, t_s, G = _kitti_folder(tmp_path / "seq", times=False)
+    tr = read_trajectory(poses)
+    assert not tr.timed and np.allclose(tr.t_s, np.arange(len(G)) * 0.1)
+    write_tum(tmp_path / "est.txt", t_s, G)  # a 9.66 Hz clock the file does not know
+    r = evaluate_files(tmp_path / "est.txt", poses)
+    assert r["frames"] == len(G) and r["ate_rmse_m"] < TUM_POSE_ATOL
+    # a different count: the nominal 10 Hz stamps, which a replay of such a folder writes (a prefix)
+    write_tum(tmp_path / "part.txt", np.arange(12) * 0.1, G[:12])
+    r = evaluate_files(tmp_path / "part.txt", poses)
+    assert r["frames"] == 12 and r["ate_rmse_m"] < TUM_POSE_ATOL
+    # a different count off that grid: no telling which frame each pose is, so a clear error
+    # (pairing by nearest 10 Hz stamp would silently mis-pair every frame after the 15th)
+    write_tum(tmp_path / "slow.txt", t_s[:40], G[:40])
+    with pytest.raises(InputError, match=r"not on its 10 Hz grid: give the poses.txt its times.txt"):
+        evaluate_files(tmp_path / "slow.txt", poses)
+
+
+def test_kitti_truth_errors_and_a_missing_calibration(tmp_path, caplog):
+    poses, t_s, _ = _kitti_folder(tmp_path / "short", n=20)
+    np.savetxt(poses.parent / "times.txt", t_s[:15], fmt="%.6e")
+    with pytest.raises(DatasetError, match=r"times\.txt: expected 20 stamps"):
+        read_trajectory(poses)
+    poses, t_s, _ = _kitti_folder(tmp_path / "nocalib", calib=False)
+    with caplog.at_level("WARNING", logger="robotd.research.evaluate"):
+        tr = read_trajectory(poses)
+    assert "no calib.txt" in caplog.text
+    from robotd.geometry import T_optical_to_robot
+
+    assert np.allclose(tr.T, T_optical_to_robot(read_kitti_poses(poses).T), atol=1e-12)
