@@ -667,8 +667,8 @@ def _kitti_recorded_vehicle(camera: KittiCamera, url: str, opts: dict[str, Any])
     the last, so realtime pacing of frames and records starts together); None when it has none."""
     from drivers.kitti_oxts import OXTS_SIGMA_RATE_RADPS, OXTS_SIGMA_VEL_MPS, kitti_oxts_odometry
 
-    sv = _as_float("oxts_sigma_vel_mps", opts.pop("oxts_sigma_vel_mps", OXTS_SIGMA_VEL_MPS), 0.0)
-    sr = _as_float("oxts_sigma_rate_radps", opts.pop("oxts_sigma_rate_radps", OXTS_SIGMA_RATE_RADPS), 0.0)
+    sv = _as_float("oxts_sigma_vel_mps", opts.pop("oxts_sigma_vel_mps", OXTS_SIGMA_VEL_MPS), 1e-6)
+    sr = _as_float("oxts_sigma_rate_radps", opts.pop("oxts_sigma_rate_radps", OXTS_SIGMA_RATE_RADPS), 1e-6)
     frames = [(e.seq, e.t_ns) for e in camera._all]
     samples = kitti_oxts_odometry(camera.root, camera.model.baseline_m, sv, sr, frames)
     if samples is None:
