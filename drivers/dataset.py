@@ -18,8 +18,10 @@ Dataset-specific options: EuRoC ``alpha`` (0.0, OpenCV free scaling of the recti
 attached to each frame as ``truth_T_world_robot`` (robot frame FRD at the baseline centre of the
 rectified rig, world = robot frame at the first frame with truth); it is for evaluation only.
 
-Vehicle links: datasets carry no wheel odometry, so by default the dataset vehicle is **visual
-only**: ``odometry()`` yields nothing and the pipeline runs on its constant-velocity prediction.
+Vehicle links: by default the dataset vehicle is **visual only**: ``odometry()`` yields nothing
+and the pipeline runs on its visual (or constant-velocity) prediction. A KITTI raw folder that
+keeps its drive's OXTS GPS/INS records (``raw/*/oxts``) offers them as recorded odometry with
+``odometry=oxts`` (:mod:`drivers.kitti_oxts`; ``source="oxts"``); a folder without them has none.
 ``gt_odometry=True`` synthesises odometry from ground truth for experiments only (every sample
 has ``source="gt-synthetic"``); see :class:`DatasetVehicle`. An MCAP recording's vehicle replays the
 recorded odometry.
@@ -331,6 +333,7 @@ class KittiCamera(_ImageDatasetCamera):
         first = _read_gray(lefts[0])
         if first is None:
             raise DatasetError(f"{lefts[0]}: not a readable 8-bit grey image")
+        self.root = root
         self.model = _kitti_calib(calib, (first.shape[1], first.shape[0]))
         n = len(lefts)
         times_ns = self._times(root / "times.txt", n)
@@ -603,6 +606,8 @@ class DatasetVehicle(Driver):
         self.url = url
         self.samples = samples or []
         self.realtime = realtime
+        # what the odometry is: "none" (visual only), else the samples' source ("oxts", "gt-synthetic", ...)
+        self.odometry_source = self.samples[0].source if self.samples else "none"
         self._closed = False
         self._stats: dict[str, Any] = {"odometry": 0, "poses_sent": 0, "mode": "replay" if samples else "visual-only"}
 
@@ -643,13 +648,38 @@ def _dataset_vehicle(camera: _ImageDatasetCamera, url: str, opts: dict[str, Any]
 
 
 _VEHICLE_KEYS = ("gt_odometry", "seed", "sigma_vel_mps", "sigma_rate_radps")
+_KITTI_VEHICLE_KEYS = (*_VEHICLE_KEYS, "odometry", "oxts_sigma_vel_mps", "oxts_sigma_rate_radps")
+KITTI_ODOMETRY = ("none", "oxts")  # the values of the kitti vehicle's ``odometry`` option
 
 
-def _split_vehicle_options(url: str, scheme: str, options: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+def _split_vehicle_options(
+    url: str, scheme: str, options: dict[str, Any], keys: Sequence[str] = _VEHICLE_KEYS
+) -> tuple[dict[str, Any], dict[str, Any]]:
     _, q = _split_url(url, scheme)
     merged = {**q, **options}
-    veh = {k: merged.pop(k) for k in _VEHICLE_KEYS if k in merged}
+    veh = {k: merged.pop(k) for k in keys if k in merged}
     return merged, veh
+
+
+def _kitti_recorded_vehicle(camera: KittiCamera, url: str, opts: dict[str, Any]) -> DatasetVehicle | None:
+    """``odometry=oxts``: the raw drive's OXTS records (drivers.kitti_oxts) when the folder keeps
+    them, cut to the selected frames' span (one record at or before the first, one at or after
+    the last, so realtime pacing of frames and records starts together); None when it has none."""
+    from drivers.kitti_oxts import OXTS_SIGMA_RATE_RADPS, OXTS_SIGMA_VEL_MPS, kitti_oxts_odometry
+
+    sv = _as_float("oxts_sigma_vel_mps", opts.pop("oxts_sigma_vel_mps", OXTS_SIGMA_VEL_MPS), 1e-6)
+    sr = _as_float("oxts_sigma_rate_radps", opts.pop("oxts_sigma_rate_radps", OXTS_SIGMA_RATE_RADPS), 1e-6)
+    frames = [(e.seq, e.t_ns) for e in camera._all]
+    samples = kitti_oxts_odometry(camera.root, camera.model.baseline_m, sv, sr, frames)
+    if samples is None:
+        logger.info("%s: no raw OXTS records (raw/*/oxts): no odometry, visual only", url)
+        return None
+    if camera.entries:
+        t = np.array([o.t_ns for o in samples], dtype=np.int64)
+        first = max(int(np.searchsorted(t, camera.entries[0].t_ns, side="right")) - 1, 0)
+        last = int(np.searchsorted(t, camera.entries[-1].t_ns, side="left"))
+        samples = samples[first : last + 1]
+    return DatasetVehicle(url, samples, camera.replay.realtime)
 
 
 # --------------------------------------------------------------------------------------------
@@ -667,9 +697,24 @@ def open_euroc(url: str, **options: Any) -> EurocCamera:
 
 
 def open_kitti_vehicle(url: str, **options: Any) -> DatasetVehicle:
-    """Vehicle for ``kitti://DIR``: visual only, or ``gt_odometry=True`` (+ ``seed``, sigmas) for experiments."""
-    cam_opts, veh = _split_vehicle_options(url, "kitti", options)
-    return _dataset_vehicle(KittiCamera(url.split("?")[0], **cam_opts), url, veh)
+    """Vehicle for ``kitti://DIR``: visual only (``odometry=none``, the default); ``odometry=oxts``:
+    the recorded OXTS odometry of a KITTI raw folder when it keeps it (``oxts_sigma_vel_mps``,
+    ``oxts_sigma_rate_radps`` state its noise), else visual only; or ``gt_odometry=True`` (+ ``seed``,
+    sigmas) for experiments."""
+    cam_opts, veh = _split_vehicle_options(url, "kitti", options, _KITTI_VEHICLE_KEYS)
+    camera = KittiCamera(url.split("?")[0], **cam_opts)
+    mode = str(veh.pop("odometry", "none")).lower()
+    if mode not in KITTI_ODOMETRY:
+        raise DriverError(f"{url!r}: option odometry: expected one of {list(KITTI_ODOMETRY)}, got {mode!r}")
+    if mode == "oxts":
+        if _as_bool("gt_odometry", veh.get("gt_odometry", False)):
+            raise DriverError(f"{url!r}: odometry=oxts and gt_odometry both given; choose one")
+        recorded = _kitti_recorded_vehicle(camera, url, veh)
+        if recorded is not None:
+            return recorded
+    for k in ("oxts_sigma_vel_mps", "oxts_sigma_rate_radps"):
+        veh.pop(k, None)
+    return _dataset_vehicle(camera, url, veh)
 
 
 def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:

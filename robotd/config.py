@@ -128,6 +128,29 @@ class SlamConfig:
 
 
 @dataclass(frozen=True)
+class ReplayConfig:
+    odometry: str = _f(
+        "none",
+        "vehicle odometry of a dataset replay (kitti://, euroc://): none = vision only; dataset = the "
+        "dataset's recorded odometry when the folder has it (KITTI raw OXTS under raw/*/oxts), else none. "
+        "A robotd recording (.mcap) always replays its recorded odometry",
+        choices=("none", "dataset"),
+    )
+    oxts_sigma_vel_mps: float = _f(
+        0.06,
+        "noise (1 sigma per axis) stated with each KITTI OXTS velocity sample (the unit's own vel_accuracy)",
+        min=1e-6,
+        max=10.0,
+    )
+    oxts_sigma_rate_radps: float = _f(
+        0.015,
+        "noise (1 sigma per axis) stated with each KITTI OXTS angular-rate sample (10 Hz hold of a vibrating body)",
+        min=1e-6,
+        max=10.0,
+    )
+
+
+@dataclass(frozen=True)
 class BudgetConfig:
     deadline_ms: float = _f(0.0, "per-frame deadline; 0 means one frame period", min=0.0)
     min_features: int = _f(200, "feature cap floor when degrading", min=10)
@@ -183,6 +206,7 @@ class Config:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     slam: SlamConfig = field(default_factory=SlamConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)

@@ -75,17 +75,25 @@ class Odometry:
 
     A velocity sample: linear velocity and body rates, both in the robot frame (FRD), valid at
     ``t_ns``. Drivers that count wheel ticks convert them to velocities at their border.
+    ``cov``: the sample's noise when the source states it, over (vel_R_mps, rate_R_radps), each
+    sample's error independent of the others'; the integrator carries it into
+    ``MotionIncrement.cov``. None: not stated (the filter's motion model then sets the noise).
     """
 
     t_ns: int  # time the motion was measured, host monotonic clock
     vel_R_mps: np.ndarray  # (3,) [m/s] forward, right, down
     rate_R_radps: np.ndarray  # (3,) [rad/s] roll, pitch, yaw rates (positive yaw turns right)
-    source: str = "unknown"  # "wheels", "mavlink", "serial", "sim", "visual", ...
+    source: str = "unknown"  # "wheels", "mavlink", "serial", "sim", "visual", "oxts", ...
+    cov: np.ndarray | None = None  # (6, 6) [m²/s², m·rad/s², rad²/s²] over (vel, rate), or None
 
     def __post_init__(self) -> None:
         _check_time("Odometry.t_ns", self.t_ns)
         _check_array("Odometry.vel_R_mps", self.vel_R_mps, (3,))
         _check_array("Odometry.rate_R_radps", self.rate_R_radps, (3,))
+        if self.cov is not None:
+            _check_array("Odometry.cov", self.cov, (6, 6))
+            if not np.allclose(self.cov, self.cov.T) or np.any(np.diag(self.cov) < 0):
+                raise InputError("Odometry.cov: expected a symmetric matrix with a non-negative diagonal")
 
 
 @dataclass(frozen=True, slots=True, eq=False)

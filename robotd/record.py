@@ -153,6 +153,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "vel_R_mps": {**_NUMBERS, "minItems": 3, "maxItems": 3},
             "rate_R_radps": {**_NUMBERS, "minItems": 3, "maxItems": 3},
             "source": {"type": "string"},
+            "cov": {"type": ["array", "null"], "items": _NUMBERS},
         },
     ),
     "robotd.PoseEstimate": _schema(
@@ -234,11 +235,13 @@ def camera_calibration_msg(model: RectifiedStereo, side: str, t_ns: int) -> dict
 
 def odometry_to_json(o: Odometry) -> dict[str, Any]:
     return {"t_ns": int(o.t_ns), "vel_R_mps": _floats(o.vel_R_mps), "rate_R_radps": _floats(o.rate_R_radps),
-            "source": o.source}  # fmt: skip
+            "source": o.source, "cov": None if o.cov is None else _floats(o.cov)}  # fmt: skip
 
 
 def odometry_from_json(d: Mapping[str, Any]) -> Odometry:
-    return Odometry(int(d["t_ns"]), np.array(d["vel_R_mps"], float), np.array(d["rate_R_radps"], float), d["source"])
+    cov = d.get("cov")  # absent in recordings made before samples carried their noise
+    return Odometry(int(d["t_ns"]), np.array(d["vel_R_mps"], float), np.array(d["rate_R_radps"], float), d["source"],
+                    None if cov is None else np.array(cov, float).reshape(6, 6))  # fmt: skip
 
 
 def pose_estimate_msg(p: PoseEstimate) -> dict[str, Any]:

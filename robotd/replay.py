@@ -5,10 +5,14 @@ than real time here, unless ``--realtime`` paces the source), integrates the rec
 each frame's capture time, steps the pipeline and writes the trajectory in TUM format. The same
 seed and input give bit-identical poses.
 
-KITTI and EuRoC carry no wheel odometry, so they run visual only by default: the motion prior
+KITTI and EuRoC run visual only by default (``replay.odometry = "none"``): the motion prior
 comes from the images (the outlier stage's frame-to-frame transform) and ground truth never
-reaches the filter. ``gt_odometry=True`` synthesises odometry from ground truth with documented
-noise, for experiments only; such runs are labelled in the summary and never reported as results.
+reaches the filter. With ``replay.odometry = "dataset"`` a KITTI raw folder that keeps its drive's
+OXTS GPS/INS records (``raw/*/oxts``) feeds them as the vehicle's odometry, as a rover's wheel
+odometry would arrive (``drivers.kitti_oxts``); a folder without them stays visual only. The
+summary's ``odometry`` says which was used ("none", "oxts", "sim", "gt-synthetic", or a recording's
+source). ``gt_odometry=True`` synthesises odometry from ground truth with documented noise, for
+experiments only; such runs are labelled in the summary and never reported as results.
 """
 
 from __future__ import annotations
@@ -99,6 +103,8 @@ def summary_line(summary: dict[str, Any]) -> str:
         line += "; " + ", ".join(truth)
     if summary.get("gt_odometry"):
         line += " [EXPERIMENT: odometry from ground truth]"
+    elif summary.get("odometry", "none") != "none":
+        line += f" [odometry: {summary['odometry']}]"
     return line
 
 
@@ -140,6 +146,8 @@ def replay(
         elif source.startswith("sim://"):
             # the simulated rover's own noisy odometry (same world and clock as its camera)
             vehicle = stack.enter_context(drivers.open_vehicle(url))
+        elif source.startswith("kitti://") and cfg.replay.odometry == "dataset":
+            vehicle = stack.enter_context(drivers.open_vehicle(_recorded_odometry_url(url, cfg)))
         odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
         pending = None
         rig = camera.rectified_model()
@@ -192,6 +200,7 @@ def replay(
         "dim": cfg.slam.dim,
         "detector": cfg.frontend.detector,
         "gt_odometry": gt_odometry,
+        "odometry": _odometry_name(vehicle, source),
         "step_ms_p50": float(np.nanpercentile(total_ms, 50)),
         "step_ms_p95": float(np.nanpercentile(total_ms, 95)),
         "wall_s": time.monotonic() - t_wall,
@@ -227,6 +236,24 @@ def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np
         logger.warning("no truth metrics: %s", exc)
         return {}
     return {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
+
+
+def _odometry_name(vehicle: Any, source: str) -> str:
+    """What the replay's odometry was: "none" (vision only), else the vehicle's source (a dataset
+    vehicle says it: "oxts", "gt-synthetic", a recording's "sim" ...; else the URL scheme)."""
+    if vehicle is None:
+        return "none"
+    return str(getattr(vehicle, "odometry_source", None) or source.partition("://")[0])
+
+
+def _recorded_odometry_url(url: str, cfg: Config) -> str:
+    """The kitti vehicle URL with the dataset's recorded odometry (OXTS) and its configured noise."""
+    sep = "&" if "?" in url else "?"
+    r = cfg.replay
+    return (
+        f"{url}{sep}odometry=oxts&oxts_sigma_vel_mps={r.oxts_sigma_vel_mps!r}"
+        f"&oxts_sigma_rate_radps={r.oxts_sigma_rate_radps!r}"
+    )
 
 
 def _gt_odometry_url(source: str) -> str:

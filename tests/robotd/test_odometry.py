@@ -118,3 +118,80 @@ def test_the_limits_come_from_the_config() -> None:
     assert lim.max_speed_mps == 3.0
     gate = OdometryGate(lim)
     assert gate.check(Odometry(0, np.array([3.5, 0.0, 0.0]), np.zeros(3))) == "speed"
+
+
+# --------------------------------------------------------------------------------------------
+# samples that state their noise (Odometry.cov) give the increment its covariance
+
+
+def _noisy_increment(rng: np.random.Generator | None, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four 10 Hz samples of a car turning and pitching, integrated over [0, 0.3] s, each sample
+    perturbed by N(0, S) when ``rng`` is given: (dp, R, stated cov)."""
+    integ = OdometryIntegrator()
+    v, w = np.array([10.0, 0.5, -0.2]), np.array([0.3, -0.2, 0.6])
+    for t in (-30_000_000, 70_000_000, 170_000_000, 270_000_000):
+        e = rng.multivariate_normal(np.zeros(6), S) if rng is not None else np.zeros(6)
+        integ.add(Odometry(t, v + e[:3], w + e[3:], cov=S))
+    inc = integ.integrate(0, 300_000_000)
+    assert inc is not None
+    return inc.dp_R_m, so3_exp(inc.drot_R_rad), inc.cov
+
+
+def test_stated_sample_noise_becomes_the_increments_covariance() -> None:
+    """Monte Carlo: the spread of (dp, φ) over noisy runs, φ = log(R̃ Rᵀ) the rotation error in the
+    frame at t0, matches the first-order covariance the integrator states."""
+    S = np.diag([0.06**2] * 3 + [0.05**2] * 3)
+    dp0, R0, P = _noisy_increment(None, S)
+    rng = np.random.default_rng(11)
+    K = 3000
+    E = np.empty((K, 6))
+    for k in range(K):
+        dp, R, _ = _noisy_increment(rng, S)
+        E[k] = np.r_[dp - dp0, so3_log(R @ R0.T)]
+    # the rotation error moves the translation: a sizeable cross term, which the check must see
+    assert np.abs(P[:3, 3:]).max() > 0.3 * np.sqrt(P[0, 0] * P[3, 3])
+    L = np.linalg.cholesky(P)
+    W = np.linalg.solve(L, E.T).T  # whitened by the stated covariance: identity covariance expected
+    C = W.T @ W / K
+    # sampling error of a unit variance/covariance over K runs: sqrt(2/K) = 0.026; 5 sigma
+    assert np.abs(C - np.eye(6)).max() < 5 * np.sqrt(2 / K), np.round(C, 3)
+
+
+def test_samples_without_stated_noise_leave_the_covariance_to_the_model() -> None:
+    integ = OdometryIntegrator()
+    S = np.eye(6) * 1e-4
+    integ.add(Odometry(0, np.ones(3), np.zeros(3), cov=S))
+    integ.add(Odometry(50_000_000, np.ones(3), np.zeros(3)))  # this one states nothing
+    inc = integ.integrate(10_000_000, 90_000_000)
+    assert inc is not None and not np.any(inc.cov)
+    inc = integ.integrate(0, 40_000_000)  # only the stated sample holds here
+    # σ_v² Δt² (the rate noise adds 0.08 % through the rotation of v during the segment)
+    assert inc is not None and inc.cov[0, 0] == pytest.approx(1e-4 * 0.04**2, rel=1e-2)
+
+
+def test_odometry_cov_is_validated_at_the_border() -> None:
+    from robotd.errors import InputError
+
+    with pytest.raises(InputError, match=r"Odometry\.cov: expected shape \(6, 6\)"):
+        Odometry(0, np.zeros(3), np.zeros(3), cov=np.eye(3))
+    bad = np.eye(6)
+    bad[0, 1] = 1.0
+    with pytest.raises(InputError, match="Odometry.cov: expected a symmetric matrix"):
+        Odometry(0, np.zeros(3), np.zeros(3), cov=bad)
+
+
+def test_dead_reckoning_of_a_constant_turn_follows_the_arc() -> None:
+    from robotd.errors import InputError
+    from robotd.odometry import dead_reckon
+
+    v, w = np.array([2.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.4])  # yaw rate > 0 turns right in FRD
+    samples = [Odometry(int(t), v, w) for t in np.arange(0, 5_000_000_001, 10_000_000)]
+    t = np.arange(0, 5_000_000_001, 250_000_000)
+    T = dead_reckon(samples, t)
+    th = 0.4 * t / 1e9
+    r = 2.0 / 0.4
+    np.testing.assert_allclose(T[:, 0, 3], r * np.sin(th), atol=MIDPOINT_INTEGRATION_ATOL)
+    np.testing.assert_allclose(T[:, 1, 3], r * (1 - np.cos(th)), atol=MIDPOINT_INTEGRATION_ATOL)
+    np.testing.assert_allclose(np.arctan2(T[:, 1, 0], T[:, 0, 0]), np.angle(np.exp(1j * th)), atol=CONDITIONED_ATOL)
+    with pytest.raises(InputError, match="no odometry covers"):
+        dead_reckon(samples, [0, 6_000_000_000])

@@ -28,7 +28,9 @@ def session(rng: np.random.Generator, n: int = 6) -> list[StereoFrame | Odometry
     events: list[StereoFrame | Odometry | PoseEstimate] = []
     for i in range(n):
         t = T0 + i * 33_333_333
-        events.append(Odometry(t - 7, rng.normal(size=3), rng.normal(size=3), source="wheels"))
+        # every other sample states its noise (Odometry.cov), the others leave it to the model
+        odo_cov = np.diag(rng.uniform(1e-4, 1e-2, 6)) if i % 2 else None
+        events.append(Odometry(t - 7, rng.normal(size=3), rng.normal(size=3), source="wheels", cov=odo_cov))
         truth = np.eye(4) if i % 2 else None
         img = lambda: rng.integers(0, 256, (40, 64), dtype=np.uint8)  # noqa: E731
         events.append(StereoFrame(t, 100 + i, img(), img(), True, truth))
@@ -62,6 +64,7 @@ def assert_same(a: Any, b: Any) -> None:
     elif isinstance(a, Odometry):
         assert np.array_equal(a.vel_R_mps, b.vel_R_mps) and np.array_equal(a.rate_R_radps, b.rate_R_radps)
         assert a.source == b.source
+        assert (a.cov is None and b.cov is None) or np.array_equal(a.cov, b.cov)  # type: ignore[arg-type]
     else:
         for k in ("xyz_W_m", "rpy_rad", "cov"):
             assert np.array_equal(getattr(a, k), getattr(b, k))
@@ -199,3 +202,10 @@ def test_record_session_interleaves_odometry(tmp_path: Path, rng: np.random.Gene
     r = SessionReader(path)
     assert [f.seq for f in r.frames()] == [f.seq for f in frames[:4]]
     assert [o.t_ns for o in r.odometry()] == [o.t_ns for o in odo]
+
+
+def test_odometry_recorded_before_samples_stated_their_noise_still_reads() -> None:
+    from robotd.record import odometry_from_json
+
+    o = odometry_from_json({"t_ns": 5, "vel_R_mps": [1.0, 0.0, 0.0], "rate_R_radps": [0.0, 0.0, 0.1], "source": "sim"})
+    assert o.cov is None and o.t_ns == 5 and o.source == "sim"

@@ -74,6 +74,20 @@ def test_summary_line_without_truth() -> None:
     assert summary_line(s) == "replayed 40 frames in 2.0 s (20 fps): 3 lost"
 
 
+def test_summary_says_which_odometry_was_used(shared_data, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """replay.odometry = "dataset" on a KITTI folder without raw OXTS records: no odometry, said
+    so; the oxts run itself is tests/drivers/test_kitti_oxts.py's."""
+    root = shared_data("kitti-seq1")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[replay]\nodometry = "dataset"\n')
+    for extra in ([], ["--config", str(cfg)]):
+        assert main(["replay", f"kitti://{root}?stop=3", "--json", "--quiet", "--log-level", "WARNING", *extra]) == 0
+        s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert s["odometry"] == "none" and s["odometry_priors"] == 0
+    line = summary_line({"frames": 40, "wall_s": 2.0, "lost_frames": 0, "gt_odometry": False, "odometry": "oxts"})
+    assert line == "replayed 40 frames in 2.0 s (20 fps): 0 lost [odometry: oxts]"
+
+
 def test_opening_line_names_a_recording_and_its_size(tmp_path: Path) -> None:
     from robotd.replay import _opening_line
 
