@@ -235,10 +235,5 @@ def test_replay_with_the_recorded_odometry(oxts_replay: dict) -> None:
     assert s["truth_ate_rmse_m"] < 0.3  # measured 0.135 m (vision only 0.120 m)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="tracking is declared on accepted visual correspondences, which frames 18-22 of kitti-raw-0009 "
-    "lack whatever the prior (issue 13, item 3); the odometry carries the pose through them",
-)
 def test_replay_with_the_recorded_odometry_loses_no_frame(oxts_replay: dict) -> None:
     assert oxts_replay["lost_frames"] == 0
