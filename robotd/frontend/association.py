@@ -203,6 +203,8 @@ class LandmarkDescriptors:
         max_d = params.max_dist_binary if self.binary else params.max_dist_float
         ok = d <= max_d
         ii, jj, d = ii[ok], jj[ok], d[ok]
+        if ii.size == 0:
+            return Correspondences(status, ids, dist, stats)
         # the ratio test per landmark: its nearest measurement in the window against the second
         order = np.lexsort((d, jj))
         j_s, d_s = jj[order], d[order]

@@ -161,6 +161,14 @@ def test_guided_matching_ignores_rows_on_a_planar_map_and_rejects_far_disparitie
     assert np.all(store.identify_guided(desc, px2, ids, pred, p).status == NEW)
 
 
+def test_guided_matching_with_no_descriptor_under_the_limit_finds_nothing():
+    rng = np.random.default_rng(6)
+    store, ids, desc = _guided_store(rng, 4)
+    pred = np.array([[100.0, 80.0, 50.0]] * 4)
+    corr = store.identify_guided(~desc, pred, ids, pred, AssociationParams(guided_radius_px=10.0))
+    assert np.all(corr.status == NEW) and np.all(corr.ids == -1)
+
+
 def test_guided_matching_settings_are_checked():
     with pytest.raises(ConfigError, match="guided"):
         AssociationParams(guided_radius_px=0.0)
