@@ -43,7 +43,8 @@ def _robotd(*args: str) -> subprocess.Popen[str]:
 @pytest.mark.slow
 def test_a_second_instance_fails_in_one_line_or_runs_beside_with_its_own_port(tmp_path: Path) -> None:
     port = _free_port()
-    first = _robotd("run", "--config", str(_config(tmp_path, "a", port)), "--duration", "12")
+    # long enough to outlast the three runs below on a loaded machine; it is stopped in `finally`
+    first = _robotd("run", "--config", str(_config(tmp_path, "a", port)), "--duration", "120")
     try:
         time.sleep(4.0)  # the first one is up and holds the port
         assert first.poll() is None
