@@ -49,7 +49,7 @@ sys.path.insert(0, str(REPO))
 from robotd.choices import DETECTORS, FILTERS  # noqa: E402
 
 DEFAULT_DATA = Path(os.environ.get("ROBOTD_SHARED_DATA", REPO.parent / "shared" / "data"))
-SIM_DURATION_S = 10.0  # a world name's default run: 300 frames at the sim's 30 fps
+SIM_DURATION_S = 4.0  # a world name's default run: 120 frames at the sim's 30 fps
 SIM_EXTRA = ("sim://?world=yard&tilt=5",)  # existing worlds under harder settings, run besides WORLDS
 # issue 13's targets
 MAX_ATE_M = 0.10
@@ -289,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--detectors", default=",".join(("orb", "sift", "surf")))
     ap.add_argument("--filters", default=",".join(("fastslam2", "fastslam1", "ekf")))
     ap.add_argument("--sim", nargs="*", metavar="WORLD|URL", help="sim cases (world names or sim:// URLs); default: "
-                    "every world of drivers.simworld.WORLDS and SIM_EXTRA; --sim with none: no sim runs")  # fmt: skip
+                    "every world of drivers.simworld.WORLDS and SIM_EXTRA with the default detector and filter; --sim with none: no sim runs")  # fmt: skip
     ap.add_argument("--sim-duration", type=float, default=SIM_DURATION_S, help="simulated seconds of a world name")
     ap.add_argument("--config", metavar="FILE", help="TOML file overriding the built-in defaults (as robotd replay)")
     ap.add_argument("--max-frames", type=int, default=0, help="frames per run at most (0: all)")
@@ -326,7 +326,14 @@ def main(argv: list[str] | None = None) -> int:
     tasks: list[tuple[str, Place, str | None, str | None]] = []
     for p in places:  # the baseline first, so a --jobs 1 run shows each place's reference early
         tasks.append(("pnp", p, None, None))
-        tasks += [("robotd", p, d, f) for d in detectors for f in filters]
+        if p.kind == "sim":
+            # sim cases: the default detector and filter only (the full grid there took 2 h,
+            # EKF with SIFT on 300 frames alone most of it); the KITTI grid is the judged one
+            d0 = "orb" if "orb" in detectors else detectors[0]
+            f0 = default_filter if default_filter in filters else filters[0]
+            tasks.append(("robotd", p, d0, f0))
+        else:
+            tasks += [("robotd", p, d, f) for d in detectors for f in filters]
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
     with _bar(len(tasks), "run", "accuracy") as bar:
