@@ -288,8 +288,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--detectors", default=",".join(("orb", "sift", "surf")))
     ap.add_argument("--filters", default=",".join(("fastslam2", "fastslam1", "ekf")))
-    ap.add_argument("--sim", nargs="*", metavar="WORLD|URL", help="sim cases (world names or sim:// URLs); default: "
-                    "every world of drivers.simworld.WORLDS and SIM_EXTRA with the default detector and filter; --sim with none: no sim runs")  # fmt: skip
+    ap.add_argument(
+        "--sim",
+        nargs="*",
+        metavar="WORLD|URL",
+        help="sim cases (world names or sim:// URLs), run with the default detector and filter; default: every "
+        "world of drivers.simworld.WORLDS and SIM_EXTRA; --sim with none: no sim runs",
+    )
     ap.add_argument("--sim-duration", type=float, default=SIM_DURATION_S, help="simulated seconds of a world name")
     ap.add_argument("--config", metavar="FILE", help="TOML file overriding the built-in defaults (as robotd replay)")
     ap.add_argument("--max-frames", type=int, default=0, help="frames per run at most (0: all)")
