@@ -194,13 +194,19 @@ class _PrevFrame:
 
 def predicted_visible(
     rig: RectifiedStereo, xyz_W: np.ndarray, T_world_robot: np.ndarray, stereo: StereoMatchParams, margin_px: float
-) -> np.ndarray:
-    """(M,) True for map landmarks that project inside both images within the disparity bounds."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Map landmarks seen from a pose: (M,) True for those that project inside both images within
+    the disparity bounds, and (M, 3) their pixels (x_l, x_r, y) (meaningless where not visible)."""
     T_rw = se3_inverse(T_world_robot)
     xyz_R = xyz_W @ T_rw[:3, :3].T + T_rw[:3, 3]
     vis = xyz_R[:, 0] > 1e-6
-    if not np.any(vis):
-        return vis
+    xl, xr, y = project(np.where(vis[:, None], xyz_R, 1.0), rig.f_px, rig.px, rig.py, rig.baseline_m)
+    d_min, d_max = rig.disparity_bounds(stereo.depth_min_m, stereo.d_min_px)
+    d = xl - xr
+    m = margin_px
+    vis &= (xl >= m) & (xl <= rig.width - 1 - m) & (xr >= m) & (y >= m) & (y <= rig.height - 1 - m)
+    vis &= (d >= d_min) & (d <= d_max)
+    return vis, np.c_[xl, xr, y]
     xl, xr, y = project(np.where(vis[:, None], xyz_R, 1.0), rig.f_px, rig.px, rig.py, rig.baseline_m)
     d_min, d_max = rig.disparity_bounds(stereo.depth_min_m, stereo.d_min_px)
     d = xl - xr
@@ -318,32 +324,25 @@ class Frontend:
         if predicted:
             assert T_world_robot_prior is not None
             p = self.params
-            cand = ref_ids[predicted_visible(self.rig, ref_xyz, T_world_robot_prior, p.stereo, p.fov_margin_px)]
+            vis, px = predicted_visible(self.rig, ref_xyz, T_world_robot_prior, p.stereo, p.fov_margin_px)
+            cand = ref_ids[vis]
         corr = None
         if predicted and self.params.guided and cand.size:
-            assert T_world_robot_prior is not None
-            corr = self._identify_guided(meas, cand, ref_ids, ref_xyz, T_world_robot_prior)
+            corr = self._identify_guided(meas, cand, px[vis])
         if corr is None:
             corr = self.descriptors.identify(meas.desc, cand, self.params.association)
         return Identification(corr, ref_ids, ref_xyz, ref_cov, ref_is_map, cand, predicted)
 
-    def _identify_guided(
-        self, meas: StereoMatches, cand: np.ndarray, ref_ids: np.ndarray, ref_xyz: np.ndarray, T_world_robot: np.ndarray
-    ) -> Correspondences | None:
-        """Guided matching around the landmarks' projections from the predicted pose; None when it
-        finds too few matches for the outlier stage (the prior is likely wrong: fall back to the
-        descriptors alone)."""
+    def _identify_guided(self, meas: StereoMatches, cand: np.ndarray, cand_px: np.ndarray) -> Correspondences | None:
+        """Guided matching around the landmarks' projections ``cand_px`` (K, 3) from the predicted
+        pose; None when it finds too few matches for the outlier stage (the prior is likely wrong:
+        fall back to the descriptors alone)."""
         assert self.descriptors is not None
-        order = np.argsort(ref_ids, kind="stable")
-        rows = order[np.searchsorted(ref_ids, cand, sorter=order)]
-        T_rw = se3_inverse(T_world_robot)
-        q = ref_xyz[rows] @ T_rw[:3, :3].T + T_rw[:3, 3]
-        xl, xr, y = project(q, self.rig.f_px, self.rig.px, self.rig.py, self.rig.baseline_m)
         corr = self.descriptors.identify_guided(
             meas.desc,
             np.c_[meas.xl, meas.xr, meas.y],
             cand,
-            np.c_[xl, xr, y],
+            cand_px,
             self.params.association,
             rows_known=not self.params.planar_map,
         )
