@@ -321,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
         r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
         after = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
         r["case"] = label
+        if r.get("latency_p50_ms") is None:
+            print(f"# {det} {label}: the daemon processed no frame (its error is above)", file=sys.stderr)
+            return 1
         # the host's p99/p50 on two busy cores just before and after the case (≈ 1.1 quiet)
         r["host_jitter_before"] = before["p99_over_p50"] if before else None
         r["host_jitter_after"] = after["p99_over_p50"] if after else None
