@@ -1091,14 +1091,13 @@ def _pixel_rig(
     if intrinsics is None:
         return None
     f, px, py, b = (float(v) for v in intrinsics)
-    rows = [Q for Q in (Q_old, Q_new) if Q.shape[0]]
     vx = vy = 1.0
-    if rows:
-        Q0 = rows[0][0]
+    Q0 = Q_old[0] if Q_old.shape[0] else (Q_new[0] if Q_new.shape[0] else None)
+    if Q0 is not None:
         dz = Q0.shape[0]
         vx, vy = float(Q0[0, 0]), float(Q0[2, 2]) if dz == 3 else 1.0
         expect = np.diag([vx, vx, vy][:dz])
-        if not all(np.array_equal(Q, np.broadcast_to(expect, Q.shape)) for Q in rows):
+        if not (np.all(Q_old == expect) and np.all(Q_new == expect)):
             raise InputError("FastSLAM pixel kernel: expected Q = diag(σx², σx², σy²) for every observation")
     return (f, px, py, b, vx, vy, 1.0 / (f * b), 1.0 / f, 2.0 * math.log(f**3 * b), 2.0 * math.log(f * f * b))
 
