@@ -4,6 +4,7 @@ observations, EKF SLAM against map size, resampling copy cost and memory per par
     python bench/fastslam.py            # full grid, Markdown tables
     python bench/fastslam.py --quick    # reduced grid, < 1 min
     python bench/fastslam.py --json     # exactly one JSON object on stdout
+    python bench/fastslam.py --measurement pixel   # the filters with the stereo pixel model
 
 A step is ``predict(inc)`` + ``update(obs)`` (including resampling when N_eff falls below N/2)
 on a stationary robot re-observing ``observations`` landmarks of a map of ``map_size`` landmarks
@@ -13,7 +14,9 @@ copy-on-write landmark blocks exploit); one extra row draws them from the whole 
 Landmark pruning is off except in the ``pruning on`` rows (the daemon's default: one visibility
 pass over the best particle's whole map per frame; pruned ids are no longer observed there).
 numba rows use ``numba_threads`` threads (the target figure is one thread); the numba kernels are
-compiled (or loaded from cache) before timing.
+compiled (or loaded from cache) before timing. With ``--measurement pixel`` the observations carry
+the landmarks' pixels in a rectified pair (OAK-D-like rig, 0.5 px noise) and the filters use the
+stereo pixel model (slam.measurement = "pixel").
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import os
 import platform
 import sys
 import time
+from functools import partial
 from typing import Any
 
 # One BLAS thread: the EKF's n×n updates are small dgemm calls, and OpenBLAS's worker threads
@@ -40,8 +44,11 @@ from robotd.slam.ekf import EkfSlam
 from robotd.slam.factory import make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
+from robotd.stereo import project, triangulate
 
 SIGMA_Z = 0.03  # measurement noise [m]
+SIGMA_PX = 0.5  # pixel noise of the pixel-model rows [px]
+RIG = (432.0, 320.0, 200.0, 0.075)  # f [px], p_x, p_y [px], baseline [m]: an OAK-D at 640×400
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
@@ -58,17 +65,34 @@ def _world(M: int, rng: np.random.Generator) -> np.ndarray:
     return L
 
 
-def _populate(est: FastSlam | EkfSlam, L: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _measure(q: np.ndarray, rng: np.random.Generator, pixel: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Noisy measurements of robot-frame points q (N, 3): (points, None), or with ``pixel`` the
+    triangulated noisy pixels and the pixels (N, 3)."""
+    if not pixel:
+        return q + rng.normal(0.0, SIGMA_Z, q.shape), None
+    uv = np.stack(project(q, *RIG), -1) + rng.normal(0.0, SIGMA_PX, q.shape)
+    uv[:, 1] = np.minimum(uv[:, 1], uv[:, 0] - 0.5)  # a positive disparity, as the front end guarantees
+    return triangulate(uv[:, 0], uv[:, 1], uv[:, 2], RIG[0], RIG[1], RIG[2], RIG[3]), uv
+
+
+def _populate(est: FastSlam | EkfSlam, L: np.ndarray, rng: np.random.Generator, pixel: bool = False) -> np.ndarray:
     """Put all landmarks in the map; returns their ids."""
     ids = np.arange(L.shape[0], dtype=np.int64)
-    z = L + rng.normal(0.0, SIGMA_Z, L.shape)
+    z, uv = _measure(L, rng, pixel)
     cov = np.tile(np.eye(3) * SIGMA_Z**2, (L.shape[0], 1, 1))
-    est.update(Observations(0, z, cov, ids, np.ones(L.shape[0], bool)))
+    est.update(Observations(0, z, cov, ids, np.ones(L.shape[0], bool), uv))
     return ids
 
 
 def _obs(
-    L: np.ndarray, ids: np.ndarray, n: int, t: int, x: np.ndarray, rng: np.random.Generator, spread: bool = False
+    L: np.ndarray,
+    ids: np.ndarray,
+    n: int,
+    t: int,
+    x: np.ndarray,
+    rng: np.random.Generator,
+    spread: bool = False,
+    pixel: bool = False,
 ) -> Observations:
     if spread or ids.size <= 2 * n:
         sel = rng.choice(ids.size, size=min(n, ids.size), replace=False)
@@ -76,9 +100,9 @@ def _obs(
         start = int(rng.integers(0, ids.size - 2 * n))
         sel = start + rng.choice(2 * n, size=n, replace=False)
     R = euler_to_R(x[3:])
-    z = (L[sel] - x[:3]) @ R + rng.normal(0.0, SIGMA_Z, (sel.size, 3))
+    z, uv = _measure((L[sel] - x[:3]) @ R, rng, pixel)
     cov = np.tile(np.eye(3) * SIGMA_Z**2, (sel.size, 1, 1))
-    return Observations(t, z, cov, ids[sel], np.zeros(sel.size, bool))
+    return Observations(t, z, cov, ids[sel], np.zeros(sel.size, bool), uv)
 
 
 def _threads_used(threads: int) -> int:
@@ -103,8 +127,10 @@ def time_filter(
     spread: bool = False,
     block: int = 64,
     prune: bool = False,
+    measurement: str = "cartesian",
 ) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
+    pixel = measurement == "pixel"
     params = SlamParams(
         filter=filt,
         dim=3,
@@ -113,11 +139,14 @@ def time_filter(
         numba_threads=threads,
         prune_enabled=prune,
         landmark_block_size=block,
+        measurement=measurement,
+        stereo_intrinsics=RIG,
+        pixel_sigma_px=(SIGMA_PX, SIGMA_PX),
     )
     est = make_estimator(params, np.random.default_rng(seed + 1))
     assert isinstance(est, FastSlam | EkfSlam)
     L = _world(M, rng)
-    ids = _populate(est, L, rng)
+    ids = _populate(est, L, rng, pixel)
     x = np.zeros(6)
     inc = MotionIncrement(0, 1, np.zeros(3), np.zeros(3), np.diag([1e-4] * 3 + [1e-5] * 3))
     times: list[float] = []
@@ -126,10 +155,9 @@ def time_filter(
     t_end = time.perf_counter() + budget_s
     k = 0
     while k < 3 or (time.perf_counter() < t_end and k < 200) or len(times) < 5:
-        obs = _obs(L, ids, N, k + 1, x, rng, spread)
+        obs = _obs(L, ids, N, k + 1, x, rng, spread, pixel)
         if prune:  # the existence counters delete landmarks the robot should see but does not: skip those
-            known = np.isin(obs.ids, est.book.slot_id[est.book.active_slots()])
-            obs = Observations(obs.t_ns, obs.xyz_R_m[known], obs.cov_R[known], obs.ids[known], obs.is_new[known])
+            obs = obs.subset(np.isin(obs.ids, est.book.slot_id[est.book.active_slots()]))
         t0 = time.perf_counter()
         est.predict(inc)
         rep = est.update(obs)
@@ -142,6 +170,7 @@ def time_filter(
     a = np.asarray(times) * 1e3
     return {
         "filter": filt,
+        "measurement": measurement,
         "dim": 3,
         "particles": P if filt != "ekf" else 0,
         "map_size": M,
@@ -230,7 +259,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--target-repeats", type=int, default=5, help="extra timings of the target cell, for its spread (default 5)"
     )
+    ap.add_argument(
+        "--measurement",
+        choices=("cartesian", "pixel"),
+        default="cartesian",
+        help="the filters' measurement model (slam.measurement; default cartesian)",
+    )
     args = ap.parse_args(argv)
+    tf = partial(time_filter, measurement=args.measurement)
     load_start = round(os.getloadavg()[0], 2)
 
     if args.quick:
@@ -253,9 +289,9 @@ def main(argv: list[str] | None = None) -> int:
     with bar:
         # compile / load the numba kernels once before any timing
         bar.set_postfix_str("numba warm-up")
-        time_filter("fastslam2", 4, 10, 5, 0.0, True, 1)
+        tf("fastslam2", 4, 10, 5, 0.0, True, 1)
         bar.update(1)
-        time_filter("fastslam1", 4, 10, 5, 0.0, True, 1)
+        tf("fastslam1", 4, 10, 5, 0.0, True, 1)
         bar.update(1)
 
         results: list[dict[str, Any]] = []
@@ -264,23 +300,23 @@ def main(argv: list[str] | None = None) -> int:
                 for M in Ms:
                     for N in Ns:
                         bar.set_postfix_str(f"{filt} P={P} M={M} N={N}")
-                        results.append(time_filter(filt, P, M, N, budget, True, 1))
+                        results.append(tf(filt, P, M, N, budget, True, 1))
                         note(results[-1])
         # the target cell with 2 threads, with the numpy path, and with observations spread over the map
         bar.set_postfix_str("target cell variants")
         for kw in ({"use_numba": True, "threads": 2}, {"use_numba": False, "threads": 0}):
-            results.append(time_filter("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
+            results.append(tf("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
             note(results[-1])
-        results.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
+        results.append(tf("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
         note(results[-1])
         # the daemon's default: landmark pruning on (one O(M) visibility pass over the best particle's map)
         for M in Ms[1:]:
             bar.set_postfix_str(f"pruning M={M}")
-            results.append(time_filter("fastslam2", 100, M, 100, budget, True, 1, prune=True))
+            results.append(tf("fastslam2", 100, M, 100, budget, True, 1, prune=True))
             note(results[-1])
         for M in ekf_M:
             bar.set_postfix_str(f"ekf M={M}")
-            results.append(time_filter("ekf", 0, M, 20, budget, False, 0))
+            results.append(tf("ekf", 0, M, 20, budget, False, 0))
             note(results[-1])
         copies = []
         for P in Ps:
@@ -304,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         repeats = []
         for i in range(max(0, args.target_repeats)):
             bar.set_postfix_str(f"target repeat {i + 1}")
-            repeats.append(time_filter("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"])
+            repeats.append(tf("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"])
             bar.update(1)
     medians = [target["median_ms"], *repeats]
     conditions = {
@@ -320,6 +356,7 @@ def main(argv: list[str] | None = None) -> int:
         "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "quick": bool(args.quick),
         "budget_s_per_cell": budget,
+        "measurement": args.measurement,
     }
     mom = round(float(np.median(medians)), 3)
     out = {
@@ -328,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         "results": results,
         "resample_copy": copies,
         "target": {
-            "cell": "fastslam2 3D P=100 M=1000 N=100 numba1",
+            "cell": f"fastslam2 3D P=100 M=1000 N=100 numba1 {args.measurement}",
             "median_ms": target["median_ms"],
             "min_ms": target["min_ms"],
             "goal_ms": 5.0,

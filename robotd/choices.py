@@ -9,3 +9,4 @@ from __future__ import annotations
 DETECTORS = ("orb", "sift", "surf")  # robotd.frontend.detectors
 OUTLIER_METHODS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental", "none")  # robotd.outliers
 FILTERS = ("ekf", "fastslam1", "fastslam2")  # robotd.slam (EKF SLAM, FastSLAM 1.0, FastSLAM 2.0)
+MEASUREMENTS = ("cartesian", "pixel")  # robotd.slam.models: triangulated points, or stereo pixels

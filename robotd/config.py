@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from robotd.choices import DETECTORS, FILTERS, OUTLIER_METHODS
+from robotd.choices import DETECTORS, FILTERS, MEASUREMENTS, OUTLIER_METHODS
 from robotd.errors import ConfigError
 
 
@@ -74,7 +74,8 @@ class FrontendConfig:
     cov_inflation: float = _f(1.0, "multiplier on the measurement covariance", min=0.1, max=100.0)
     cov_at: str = _f(
         "predicted",
-        "re-observations' covariance at the filter's predicted point (unbiased weights) or at the measured pixels",
+        "re-observations' covariance at the filter's predicted point (unbiased weights) or at the measured pixels"
+        " (slam.measurement = cartesian only: the pixel model's noise is constant)",
         choices=("predicted", "measured"),
     )
     debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
@@ -104,6 +105,13 @@ class FrontendConfig:
 class SlamConfig:
     filter: str = _f("fastslam2", "estimator", choices=FILTERS)
     dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
+    measurement: str = _f(
+        "cartesian",
+        "measurement model: the triangulated point with its first-order covariance (the thesis's), or the"
+        " landmark's pixels (x_left, x_right, y) in the rectified pair with the constant noise"
+        " frontend.sigma_x_px / sigma_y_px (× cov_inflation)",
+        choices=MEASUREMENTS,
+    )
     n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(

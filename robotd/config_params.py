@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from robotd.config import Config
+from robotd.errors import ConfigError
 from robotd.frontend.association import AssociationParams
 from robotd.frontend.detectors import DetectorParams
 from robotd.frontend.frontend import FrontendParams
@@ -63,8 +64,12 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
 
 def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:
     """``slam.*`` keys (and the particle floor of ``budget.min_particles``); with a ``rig``, the
-    pruning field of view and range follow the rig and the disparity limits (§2.2)."""
+    pruning field of view and range follow the rig and the disparity limits (§2.2). The pixel
+    measurement model (``slam.measurement = "pixel"``) needs the rig: it projects with its
+    intrinsics, with the front end's pixel noise σ·√cov_inflation."""
     n_min = max(1, min(cfg.budget.min_particles, cfg.slam.n_particles))
+    f = cfg.frontend
+    inflate = float(np.sqrt(f.cov_inflation))
     kw: dict[str, Any] = {
         "filter": cfg.slam.filter,
         "dim": cfg.slam.dim,
@@ -73,12 +78,17 @@ def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> 
         "resample_neff_ratio": cfg.slam.resample_neff_ratio,
         "fs2_weights": cfg.slam.fs2_weights,
         "numba_threads": cfg.slam.numba_threads,
+        "measurement": cfg.slam.measurement,
+        "pixel_sigma_px": (f.sigma_x_px * inflate, f.sigma_y_px * inflate),
     }
     if rig is not None:
         kw["fov_h_rad"] = float(2 * np.arctan2(rig.width / 2.0, rig.f_px))
         kw["fov_v_rad"] = float(2 * np.arctan2(rig.height / 2.0, rig.f_px))
-        kw["min_range_m"] = cfg.frontend.depth_min_m
-        kw["max_range_m"] = max(cfg.frontend.depth_min_m * 1.01, rig.fb / cfg.frontend.disparity_min_px)
+        kw["min_range_m"] = f.depth_min_m
+        kw["max_range_m"] = max(f.depth_min_m * 1.01, rig.fb / f.disparity_min_px)
+        kw["stereo_intrinsics"] = (rig.f_px, rig.px, rig.py, rig.baseline_m)
+    elif cfg.slam.measurement == "pixel":
+        raise ConfigError("slam.measurement: 'pixel' needs the stereo rig's intrinsics, and none was given")
     return SlamParams(**kw)
 
 

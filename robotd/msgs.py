@@ -131,6 +131,10 @@ class Observations:
 
     ``ids`` are global landmark ids (shared by all particles). ``is_new`` marks measurements that
     initialise a landmark; the others update the landmark with that id.
+
+    ``uv_px`` are the measured pixels the points were triangulated from, for the filters' pixel
+    measurement model (``slam.measurement = "pixel"``); None when the producer has no images
+    (simulators, tests): the pixel model then projects ``xyz_R_m`` instead.
     """
 
     t_ns: int
@@ -138,6 +142,7 @@ class Observations:
     cov_R: np.ndarray  # (N, 3, 3) [m²] first-order covariance of each point
     ids: np.ndarray  # (N,) int64 global landmark ids
     is_new: np.ndarray  # (N,) bool
+    uv_px: np.ndarray | None = None  # (N, 3) [px] (x_left, x_right, y) in the rectified pair, x_left > x_right
 
     def __post_init__(self) -> None:
         _check_time("Observations.t_ns", self.t_ns)
@@ -149,10 +154,22 @@ class Observations:
             raise InputError(f"Observations.ids: expected integer dtype, got {self.ids.dtype}")
         if self.is_new.dtype != np.bool_:
             raise InputError(f"Observations.is_new: expected bool dtype, got {self.is_new.dtype}")
+        if self.uv_px is not None:
+            uv = _check_array("Observations.uv_px", self.uv_px, (n, 3))
+            if n and not np.all(uv[:, 0] > uv[:, 1]):
+                raise InputError(
+                    f"Observations.uv_px: expected x_left > x_right (positive disparity), got "
+                    f"{int(np.sum(~(uv[:, 0] > uv[:, 1])))} rows without"
+                )
 
     @property
     def n(self) -> int:
         return int(self.xyz_R_m.shape[0])
+
+    def subset(self, idx: np.ndarray) -> Observations:
+        """The observations at ``idx`` (indices or a boolean mask), pixels included."""
+        uv = None if self.uv_px is None else self.uv_px[idx]
+        return Observations(self.t_ns, self.xyz_R_m[idx], self.cov_R[idx], self.ids[idx], self.is_new[idx], uv)
 
     @staticmethod
     def empty(t_ns: int) -> Observations:

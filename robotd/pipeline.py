@@ -184,8 +184,9 @@ class Pipeline:
 
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend
-        if f.cov_at == "predicted" and landmarks.n:
-            # Q of re-observations at the predicted point, not the noisy pixels (docs/slam.md)
+        if f.cov_at == "predicted" and landmarks.n and self.cfg.slam.measurement == "cartesian":
+            # Q of re-observations at the predicted point, not the noisy pixels (docs/slam.md); the
+            # pixel model's noise is constant
             obs = covariance_at_prediction(
                 obs,
                 self.estimator.estimate(),

@@ -460,11 +460,15 @@ class Frontend:
         meas: StereoMatches, ident: Identification, t_ns: int, idx: np.ndarray | None = None
     ) -> Observations:
         """Observations of the committed measurements at ``idx`` (all identified and initialised ones
-        when None): identified ones update their landmark, new ones initialise theirs."""
+        when None): identified ones update their landmark, new ones initialise theirs. They carry
+        the pixels too, for the filters' pixel measurement model."""
         corr = ident.corr
         if idx is None:
             idx = np.flatnonzero((corr.status != REJECTED) & (corr.ids >= 0))
-        return Observations(int(t_ns), meas.xyz_R[idx], meas.cov_R[idx], corr.ids[idx].copy(), corr.status[idx] == NEW)
+        uv = np.stack([meas.xl[idx], meas.xr[idx], meas.y[idx]], -1)
+        return Observations(
+            int(t_ns), meas.xyz_R[idx], meas.cov_R[idx], corr.ids[idx].copy(), corr.status[idx] == NEW, uv
+        )
 
     @staticmethod
     def counts(

@@ -139,7 +139,6 @@ def _outlier_filter(est: Any, obs: Any, rng: np.random.Generator, dim: int) -> t
     Returns (observations to feed, kept mask over the re-observations, ms). New landmarks pass
     through. When RANSAC accepts nothing (< min_inliers), every re-observation is dropped (§5.3).
     """
-    from robotd.msgs import Observations
     from robotd.outliers import OutlierParams, ransac_similarity
 
     old = np.flatnonzero(~obs.is_new)
@@ -162,7 +161,7 @@ def _outlier_filter(est: Any, obs: Any, rng: np.random.Generator, dim: int) -> t
     ms = (time.perf_counter() - t0) * 1e3
     keep = np.ones(obs.n, bool)
     keep[old] = keep_old
-    out = Observations(obs.t_ns, obs.xyz_R_m[keep], obs.cov_R[keep], obs.ids[keep], obs.is_new[keep])
+    out = obs.subset(keep)
     return out, keep_old, ms
 
 

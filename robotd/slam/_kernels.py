@@ -1,8 +1,9 @@
-"""numba kernels for the FastSLAM hot path (Cartesian measurements, 2D and 3D).
+"""numba kernels for the FastSLAM hot path (Cartesian and stereo pixel measurements, 2D and 3D).
 
 ``fastslam_step_numba`` has the signature and the effects of
 :func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
-and agrees with it and with its readable twin ``fastslam_step_reference``
+and the stereo pixel models (``intrinsics``; docs/slam.md "Measurement models", with their
+constant noise), and agrees with it and with its readable twin ``fastslam_step_reference``
 (tests/support/reference_fastslam.py) to 1e-9 given the same ``eps``. Each
 particle is one iteration of a ``prange`` loop (one contiguous range of particles per thread,
 sharing its scratch arrays), so there are no per-call numpy dispatch costs.
@@ -23,9 +24,13 @@ import math
 
 import numba as nb
 import numpy as np
+from numba import types
+from numba.extending import overload
 
+from robotd.errors import InputError
 from robotd.jit import jit
 from robotd.slam._store import LandmarkStore
+from robotd.slam.models import PIXEL_MIN_DEPTH_M as _PIXEL_MIN_DEPTH
 
 _TWO_PI = 2.0 * math.pi
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -239,6 +244,141 @@ def _pose_part3t(Sg, d, R, sy: float, cy: float, T):  # type: ignore[no-untyped-
     )
 
 
+# Pixel model (docs/slam.md "Measurement models") in the same world frame. With q = Rᵀ d (depth
+# clamped to PIXEL_MIN_DEPTH_M: X̃) and G = J_π(q̃) Rᵀ the pixel model's H_m (H_x = G Ĥ), its
+# formulas equal those of a Cartesian model with
+#   ν_w = G⁻¹ ν_px,  Q_w = G⁻¹ Q_px G⁻ᵀ,  det Ψ_px = g · det Ψ_w,  g = det(G)² = (f³ b / X̃⁴)²,
+# and G⁻¹ = R J_tri, J_tri = ∂q/∂(x_L, x_R, y) = s [[−X̃, X̃, 0], [−(Y − b/2), Y + b/2, 0], [−Z, Z, b]]
+# with s = X̃/(f b), whose columns give R J_tri = s [−D + h | D + h | b r2], D = R q̃, h = (b/2) r1
+# (r1, r2 R's second and third columns). For the model's noise Q_px = diag(σx², σx², σy²):
+#   ν_w = s (D (ν_R − ν_L) + h (ν_L + ν_R) + b r2 ν_y),  Q_w = s² (2σx² D Dᵀ + A),
+#   A = (σx² b²/2) r1 r1ᵀ + σy² b² r2 r2ᵀ (a function of the pose only),
+# cheaper than the Cartesian R Q Rᵀ; and since ν = z − π(q̃), s (ν_R − ν_L) = 1 − X̃ (x_L − x_R)/(f b),
+# s b/2 (ν_L + ν_R) = X̃ (x_L + x_R − 2 p_x)/(2 f) − Y, s b ν_y = X̃ (y − p_y)/f − Z: no division on the
+# update's path. The weights' log det Ψ_px = log det Ψ_w + log g: the log g terms are collected per
+# particle (``_depth_acc``, ``_depth_logw``). ``rig`` is (f, p_x, p_y, b, σx², σy², 1/(f b), 1/f,
+# log (f³ b)², log (f² b)²) for the pixel model (``_pixel_rig``) and None for the Cartesian one;
+# numba compiles the two apart (no branch in the kernels: measured, a run-time branch cost the
+# Cartesian 2D and FastSLAM 1.0 steps 10–40 %).
+
+
+def _noise3(R, rig):  # type: ignore[no-untyped-def]
+    """Pixel model: A (6-tuple) of Q_w for the rotation R (9-tuple); Cartesian: 0.0 (unused). numba only."""
+    raise NotImplementedError
+
+
+@overload(_noise3, inline="always", jit_options={"fastmath": _FM})
+def _noise3_impl(R, rig):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+        return lambda R, rig: 0.0
+
+    def pixel(R, rig):  # type: ignore[no-untyped-def]
+        b2 = rig[3] * rig[3]
+        k1, k2 = 0.5 * rig[4] * b2, rig[5] * b2
+        u0, u1, u2 = R[1], R[4], R[7]
+        v0, v1, v2 = R[2], R[5], R[8]
+        return (
+            k1 * u0 * u0 + k2 * v0 * v0,
+            k1 * u0 * u1 + k2 * v0 * v1,
+            k1 * u0 * u2 + k2 * v0 * v2,
+            k1 * u1 * u1 + k2 * v1 * v1,
+            k1 * u1 * u2 + k2 * v1 * v2,
+            k1 * u2 * u2 + k2 * v2 * v2,
+        )
+
+    return pixel
+
+
+@jit(fastmath=_FM, inline="always")
+def _pixel_cov3(D0: float, D1: float, D2: float, sc: float, A, vx: float):  # type: ignore[no-untyped-def]
+    """Q_w = s² (2σx² D Dᵀ + A) as a 6-tuple."""
+    s2 = sc * sc
+    k = 2.0 * vx * s2
+    return (
+        k * D0 * D0 + s2 * A[0],
+        k * D0 * D1 + s2 * A[1],
+        k * D0 * D2 + s2 * A[2],
+        k * D1 * D1 + s2 * A[3],
+        k * D1 * D2 + s2 * A[4],
+        k * D2 * D2 + s2 * A[5],
+    )
+
+
+def _meas3(x, m, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+    """One observation at pose x in the world frame: (d = m − p, ν_w, Q_w (6-tuple), X̃); numba only.
+
+    Cartesian (``rig`` None): ν_w = R z − d, Q_w = R Q Rᵀ, X̃ None. Pixel: see above, X̃ the clamped
+    depth for the weight's log g (Qm is not read: the noise is rig[4:6]; A = _noise3(R, rig)).
+    """
+    raise NotImplementedError
+
+
+@overload(_meas3, inline="always", jit_options={"fastmath": _FM})
+def _meas3_impl(x, m, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+
+        def cartesian(x, m, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+            d, nu = _innov3t(x, m, zm, R)
+            return d, nu, _sandwich3(R, _sym3(Qm)), None
+
+        return cartesian
+
+    def pixel(x, m, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+        px, py, vx, i_fb, i_f = rig[1], rig[2], rig[4], rig[6], rig[7]
+        d0, d1, d2 = m[0] - x[0], m[1] - x[1], m[2] - x[2]
+        X = R[0] * d0 + R[3] * d1 + R[6] * d2
+        Y = R[1] * d0 + R[4] * d1 + R[7] * d2
+        Z = R[2] * d0 + R[5] * d1 + R[8] * d2
+        Xc = max(X, _PIXEL_MIN_DEPTH)
+        e = Xc - X
+        D0, D1, D2 = d0 + e * R[0], d1 + e * R[3], d2 + e * R[6]
+        sc = Xc * i_fb
+        # s (ν_R − ν_L), s b/2 (ν_L + ν_R), s b ν_y with ν = z − π(q̃), written without 1/X̃
+        t = 1.0 - sc * (zm[0] - zm[1])
+        u = 0.5 * Xc * i_f * (zm[0] + zm[1] - 2.0 * px) - Y
+        v = Xc * i_f * (zm[2] - py) - Z
+        nu = (t * D0 + u * R[1] + v * R[2], t * D1 + u * R[4] + v * R[5], t * D2 + u * R[7] + v * R[8])
+        return (d0, d1, d2), nu, _pixel_cov3(D0, D1, D2, sc, A, vx), Xc
+
+    return pixel
+
+
+def _init3(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+    """A new landmark at pose x (§9 step 3): (μ (3-tuple), Σ without the floor (6-tuple)); numba only.
+
+    Cartesian (``rig`` None): μ = p + R z, Σ = R Q Rᵀ. Pixel: q = π⁻¹(z) (triangulation),
+    μ = p + R q, Σ = (R J_tri) Q_px (R J_tri)ᵀ = s² (2σx² D Dᵀ + A), D = R q.
+    """
+    raise NotImplementedError
+
+
+@overload(_init3, inline="always", jit_options={"fastmath": _FM})
+def _init3_impl(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+
+        def cartesian(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+            z0, z1, z2 = zm[0], zm[1], zm[2]
+            D0 = R[0] * z0 + R[1] * z1 + R[2] * z2
+            D1 = R[3] * z0 + R[4] * z1 + R[5] * z2
+            D2 = R[6] * z0 + R[7] * z1 + R[8] * z2
+            return (x[0] + D0, x[1] + D1, x[2] + D2), _sandwich3(R, _sym3(Qm))
+
+        return cartesian
+
+    def pixel(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
+        f, px, py, b, vx = rig[0], rig[1], rig[2], rig[3], rig[4]
+        r = b / (zm[0] - zm[1])
+        z0 = f * r
+        z1 = (zm[0] - px) * r - 0.5 * b
+        z2 = (zm[2] - py) * r
+        D0 = R[0] * z0 + R[1] * z1 + R[2] * z2
+        D1 = R[3] * z0 + R[4] * z1 + R[5] * z2
+        D2 = R[6] * z0 + R[7] * z1 + R[8] * z2
+        return (x[0] + D0, x[1] + D1, x[2] + D2), _pixel_cov3(D0, D1, D2, z0 * rig[6], A, vx)
+
+    return pixel
+
+
 @jit(fastmath=_FM)
 def _particle3(  # type: ignore[no-untyped-def]
     k,
@@ -262,6 +402,7 @@ def _particle3(  # type: ignore[no-untyped-def]
     seq,
     out_mu,
     out_Sx,
+    rig,
     x,
     mu,
     T,
@@ -277,6 +418,7 @@ def _particle3(  # type: ignore[no-untyped-def]
     for i in range(6):
         x[i] = pose[k, i]
     w = 0.0
+    xacc = (1.0, 0.0, 0)  # depth terms of the pixel weights (_depth_acc)
     if version == 2:
         # One pass over the identified landmarks: the importance weight at the prior x̂ with S and
         # the landmarks before the update (§10 "Importance weight"), and the Kalman-form proposal
@@ -286,6 +428,7 @@ def _particle3(  # type: ignore[no-untyped-def]
         cp, sp = math.cos(x[4]), math.sin(x[4])
         cy, sy = math.cos(x[5]), math.sin(x[5])
         R0 = _rot3_cs(cr, sr, cp, sp, cy, sy)
+        A0 = _noise3(R0, rig)
         sy0, cy0 = sy, cy
         for i in range(6):
             mu[i] = x[i]
@@ -296,20 +439,21 @@ def _particle3(  # type: ignore[no-untyped-def]
             blk = table[k, s // bs]
             m = pool_mean[blk, s % bs]
             C = _sym3(pool_cov[blk, s % bs])
-            Qj = _sym3(Q_old[j])
             if j == 0 or not seq:
-                # weight term: L_w = Ĥ S Ĥ^T + C + R̂ Q R̂^T at x̂
-                d, nu = _innov3t(x, m, z_old[j], R0)
+                # weight term: L_w = Ĥ S Ĥ^T + C + Q_w at x̂ (Cartesian Q_w = R̂ Q R̂^T)
+                d, nu, Qw, g = _meas3(x, m, z_old[j], Q_old[j], R0, rig, A0)
                 HSH = _pose_part3t(Sk, d, R0, sy0, cy0, T)
-                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R0, Qj)))
+                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), Qw))
                 w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
+                xacc = _depth_acc(xacc, g)
             if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
                 R = _rot3_cs(cr, sr, cp, sp, cy, sy)
-                d, nu = _innov3t(mu, m, z_old[j], R)
+                d, nu, Qw, g = _meas3(mu, m, z_old[j], Q_old[j], R, rig, _noise3(R, rig))
                 HSH = _pose_part3t(Sx, d, R, sy, cy, T)
-                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), _sandwich3(R, Qj)))
+                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), Qw))
                 if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
                     w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
+                    xacc = _depth_acc(xacc, g)
             p00, p01, p02, p11, p12, p22 = Pinv
             a3, a4, a5 = mu[3], mu[4], mu[5]
             # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first three columns); μ_x += K ν_w
@@ -350,6 +494,7 @@ def _particle3(  # type: ignore[no-untyped-def]
             x[i] = _wrap(x[i])
     # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
     R, _, _ = _rot3t(x[3], x[4], x[5])
+    A = _noise3(R, rig)
     for j in range(n_old):
         s = slots_old[j]
         blk = table[k, s // bs]
@@ -357,8 +502,7 @@ def _particle3(  # type: ignore[no-untyped-def]
         Cm = pool_cov[blk, s % bs]
         C = _sym3(Cm)
         c00, c01, c02, c11, c12, c22 = C
-        _, nu = _innov3t(x, m, z_old[j], R)
-        Qw = _sandwich3(R, _sym3(Q_old[j]))
+        _, nu, Qw, g = _meas3(x, m, z_old[j], Q_old[j], R, rig, A)
         Pinv, det = _inv_sym3(_add3(C, Qw))
         p00, p01, p02, p11, p12, p22 = Pinv
         # K_w = C Ψ_w^{-1} (general 3×3)
@@ -407,24 +551,24 @@ def _particle3(  # type: ignore[no-untyped-def]
         Cm[1, 2] = Cm[2, 1] = n12
         if version == 1:
             w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I (R(x) is still in R)
+            xacc = _depth_acc(xacc, g)
+    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I (R(x) is still in R); pixel:
+    # z triangulated first (_init3)
     for j in range(slots_new.shape[0]):
         s = slots_new[j]
         blk = table[k, s // bs]
         m = pool_mean[blk, s % bs]
         Cm = pool_cov[blk, s % bs]
-        z0, z1, z2 = z_new[j, 0], z_new[j, 1], z_new[j, 2]
-        m[0] = x[0] + R[0] * z0 + R[1] * z1 + R[2] * z2
-        m[1] = x[1] + R[3] * z0 + R[4] * z1 + R[5] * z2
-        m[2] = x[2] + R[6] * z0 + R[7] * z1 + R[8] * z2
-        q00, q01, q02, q11, q12, q22 = _sandwich3(R, _sym3(Q_new[j]))
+        mn, Qn = _init3(x, z_new[j], Q_new[j], R, rig, A)
+        m[0], m[1], m[2] = mn
+        q00, q01, q02, q11, q12, q22 = Qn
         Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
         Cm[0, 1] = Cm[1, 0] = q01
         Cm[0, 2] = Cm[2, 0] = q02
         Cm[1, 2] = Cm[2, 1] = q12
     for i in range(6):
         out_pose[k, i] = x[i]
-    dlogw[k] = w
+    dlogw[k] = w + _depth_logw(xacc, rig, 3)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -464,6 +608,50 @@ def _logpdf2(n0: float, n1: float, Si, det: float) -> float:  # type: ignore[no-
     return -0.5 * (maha + math.log(det) + 2.0 * _LOG_2PI)
 
 
+def _depth_acc(acc, g):  # type: ignore[no-untyped-def]
+    """The pixel weights' depth terms: ``acc`` = (Π X̃ since the last fold, Σ log of the folded
+    products, count) gains the depth ``g``; Cartesian (``g`` None): unchanged. numba only.
+
+    log det Ψ_px = log det Ψ_w + log det(G)², det(G)² = (f³ b)²/X̃⁸ (2D (f² b)²/X̃⁶): the depth part
+    of every weight term is collected here and added once per particle (``_depth_logw``), so the
+    weight terms need no division or logarithm of their own. The product is folded into the
+    log sum before it can overflow or underflow (X̃ ∈ [0.05 m, ~1e4 m]).
+    """
+    raise NotImplementedError
+
+
+@overload(_depth_acc, inline="always", jit_options={"fastmath": _FM})
+def _depth_acc_impl(acc, g):  # type: ignore[no-untyped-def]
+    if isinstance(g, types.NoneType):
+        return lambda acc, g: acc
+
+    def pixel(acc, g):  # type: ignore[no-untyped-def]
+        p, ls, n = acc[0] * g, acc[1], acc[2] + 1
+        if p > 1e200 or p < 1e-200:
+            return 1.0, ls + math.log(p), n
+        return p, ls, n
+
+    return pixel
+
+
+def _depth_logw(xacc, rig, dz: int):  # type: ignore[no-untyped-def]
+    """Σ over the weight terms of −½ log det(G)² (0 for the Cartesian model); numba only."""
+    raise NotImplementedError
+
+
+@overload(_depth_logw, inline="always", jit_options={"fastmath": _FM})
+def _depth_logw_impl(acc, rig, dz):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+        return lambda acc, rig, dz: 0.0
+
+    def pixel(acc, rig, dz):  # type: ignore[no-untyped-def]
+        # 3D: −½ (log (f³ b)² − 8 log X̃) per term; 2D: −½ (log (f² b)² − 6 log X̃)
+        logc = rig[8] if dz == 3 else rig[9]
+        return (dz + 1) * (acc[1] + math.log(acc[0])) - 0.5 * acc[2] * logc
+
+    return pixel
+
+
 @jit(fastmath=_FM, inline="always")
 def _innov2t(x, m, zm, c: float, s: float):  # type: ignore[no-untyped-def]
     """(d = m - p, ν_w = R z_meas - d) as 2-tuples."""
@@ -479,6 +667,89 @@ def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
         T[i, 0] = -Sg[i, 0] + Sg[i, 2] * a0
         T[i, 1] = -Sg[i, 1] + Sg[i, 2] * a1
     return (-T[0, 0] + a0 * T[2, 0], -T[0, 1] + a0 * T[2, 1], -T[1, 1] + a1 * T[2, 1])
+
+
+def _noise2(c: float, s: float, rig):  # type: ignore[no-untyped-def]
+    """Pixel model: A = (σx² b²/2) r1 r1ᵀ (3-tuple), r1 = (−sin ψ, cos ψ); Cartesian: 0.0. numba only."""
+    raise NotImplementedError
+
+
+@overload(_noise2, inline="always", jit_options={"fastmath": _FM})
+def _noise2_impl(c, s, rig):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+        return lambda c, s, rig: 0.0
+
+    def pixel(c, s, rig):  # type: ignore[no-untyped-def]
+        k1 = 0.5 * rig[4] * rig[3] * rig[3]
+        return (k1 * s * s, -k1 * s * c, k1 * c * c)
+
+    return pixel
+
+
+@jit(fastmath=_FM, inline="always")
+def _pixel_cov2(D0: float, D1: float, sc: float, A, vx: float):  # type: ignore[no-untyped-def]
+    """Q_w = s² (2σx² D Dᵀ + A) as a 3-tuple."""
+    s2 = sc * sc
+    k = 2.0 * vx * s2
+    return (k * D0 * D0 + s2 * A[0], k * D0 * D1 + s2 * A[1], k * D1 * D1 + s2 * A[2])
+
+
+def _meas2(x, m, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
+    """One 2D observation in the world frame: (d, ν_w, Q_w (3-tuple), X̃), as ``_meas3`` with
+    R = R2(ψ) = [[c, −s], [s, c]]; pixel: z = (x_L, x_R), g = det(J_π)² = (f² b / X̃³)²; numba only."""
+    raise NotImplementedError
+
+
+@overload(_meas2, inline="always", jit_options={"fastmath": _FM})
+def _meas2_impl(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+
+        def cartesian(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+            d, nu = _innov2t(x, m, zm, c, s)
+            return d, nu, _sandwich2(c, s, (Qm[0, 0], Qm[0, 1], Qm[1, 1])), None
+
+        return cartesian
+
+    def pixel(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+        px, vx, i_fb, i_f = rig[1], rig[4], rig[6], rig[7]
+        d0, d1 = m[0] - x[0], m[1] - x[1]
+        X = c * d0 + s * d1
+        Y = -s * d0 + c * d1
+        Xc = max(X, _PIXEL_MIN_DEPTH)
+        e = Xc - X
+        D0, D1 = d0 + e * c, d1 + e * s
+        sc = Xc * i_fb
+        t = 1.0 - sc * (zm[0] - zm[1])
+        u = 0.5 * Xc * i_f * (zm[0] + zm[1] - 2.0 * px) - Y
+        return (d0, d1), (t * D0 - u * s, t * D1 + u * c), _pixel_cov2(D0, D1, sc, A, vx), Xc
+
+    return pixel
+
+
+def _init2(x, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
+    """A new 2D landmark at pose x: (μ (2-tuple), Σ without the floor (3-tuple)), as ``_init3``."""
+    raise NotImplementedError
+
+
+@overload(_init2, inline="always", jit_options={"fastmath": _FM})
+def _init2_impl(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+    if isinstance(rig, types.NoneType):
+
+        def cartesian(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+            z0, z1 = zm[0], zm[1]
+            mu = (x[0] + c * z0 - s * z1, x[1] + s * z0 + c * z1)
+            return mu, _sandwich2(c, s, (Qm[0, 0], Qm[0, 1], Qm[1, 1]))
+
+        return cartesian
+
+    def pixel(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+        f, px, b = rig[0], rig[1], rig[3]
+        r = b / (zm[0] - zm[1])
+        z0, z1 = f * r, (zm[0] - px) * r - 0.5 * b
+        D0, D1 = c * z0 - s * z1, s * z0 + c * z1
+        return (x[0] + D0, x[1] + D1), _pixel_cov2(D0, D1, z0 * rig[6], A, rig[4])
+
+    return pixel
 
 
 @jit(fastmath=_FM)
@@ -504,6 +775,7 @@ def _particle2(  # type: ignore[no-untyped-def]
     seq,
     out_mu,
     out_Sx,
+    rig,
     x,
     mu,
     T,
@@ -519,8 +791,10 @@ def _particle2(  # type: ignore[no-untyped-def]
     for i in range(3):
         x[i] = pose[k, i]
     w = 0.0
+    xacc = (1.0, 0.0, 0)  # depth terms of the pixel weights (_depth_acc)
     if version == 2:
         c0, s0 = math.cos(x[2]), math.sin(x[2])
+        A0 = _noise2(c0, s0, rig)
         c, s = c0, s0
         for i in range(3):
             mu[i] = x[i]
@@ -532,17 +806,18 @@ def _particle2(  # type: ignore[no-untyped-def]
             m = pool_mean[blk, sl % bs]
             Cm = pool_cov[blk, sl % bs]
             C = (Cm[0, 0], Cm[0, 1], Cm[1, 1])
-            Qj = (Q_old[j, 0, 0], Q_old[j, 0, 1], Q_old[j, 1, 1])
             if j == 0 or not seq:
                 # weight term at x̂ (§10 "Importance weight")
-                d, nu = _innov2t(x, m, z_old[j], c0, s0)
-                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), _sandwich2(c0, s0, Qj)))
+                d, nu, Qw, g = _meas2(x, m, z_old[j], Q_old[j], c0, s0, rig, A0)
+                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), Qw))
                 w += _logpdf2(nu[0], nu[1], Pinv, det)
+                xacc = _depth_acc(xacc, g)
             if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
-                d, nu = _innov2t(mu, m, z_old[j], c, s)
-                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), _sandwich2(c, s, Qj)))
+                d, nu, Qw, g = _meas2(mu, m, z_old[j], Q_old[j], c, s, rig, _noise2(c, s, rig))
+                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), Qw))
                 if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
                     w += _logpdf2(nu[0], nu[1], Pinv, det)
+                    xacc = _depth_acc(xacc, g)
             p00, p01, p11 = Pinv
             a2 = mu[2]
             for i in range(3):
@@ -576,14 +851,15 @@ def _particle2(  # type: ignore[no-untyped-def]
         x[2] = _wrap(x[2])
     # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
     c, s = math.cos(x[2]), math.sin(x[2])
+    A = _noise2(c, s, rig)
     for j in range(n_old):
         sl = slots_old[j]
         blk = table[k, sl // bs]
         m = pool_mean[blk, sl % bs]
         Cm = pool_cov[blk, sl % bs]
         c00, c01, c11 = Cm[0, 0], Cm[0, 1], Cm[1, 1]
-        _, nu = _innov2t(x, m, z_old[j], c, s)
-        q00, q01, q11 = _sandwich2(c, s, (Q_old[j, 0, 0], Q_old[j, 0, 1], Q_old[j, 1, 1]))
+        _, nu, Qw, g = _meas2(x, m, z_old[j], Q_old[j], c, s, rig, A)
+        q00, q01, q11 = Qw
         Pinv, det = _inv_sym2((c00 + q00, c01 + q01, c11 + q11))
         p00, p01, p11 = Pinv
         # K_w = C Ψ_w^{-1}
@@ -603,21 +879,22 @@ def _particle2(  # type: ignore[no-untyped-def]
         Cm[0, 1] = Cm[1, 0] = n01
         if version == 1:
             w += _logpdf2(nu[0], nu[1], Pinv, det)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I
+            xacc = _depth_acc(xacc, g)
+    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I; pixel: z = (x_L, x_R)
+    # triangulated to q, Σ = (R J_tri) Q (R J_tri)^T
     for j in range(slots_new.shape[0]):
         sl = slots_new[j]
         blk = table[k, sl // bs]
         m = pool_mean[blk, sl % bs]
         Cm = pool_cov[blk, sl % bs]
-        z0, z1 = z_new[j, 0], z_new[j, 1]
-        m[0] = x[0] + c * z0 - s * z1
-        m[1] = x[1] + s * z0 + c * z1
-        q00, q01, q11 = _sandwich2(c, s, (Q_new[j, 0, 0], Q_new[j, 0, 1], Q_new[j, 1, 1]))
+        mn, Qn = _init2(x, z_new[j], Q_new[j], c, s, rig, A)
+        m[0], m[1] = mn
+        q00, q01, q11 = Qn
         Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
         Cm[0, 1] = Cm[1, 0] = q01
     for i in range(3):
         out_pose[k, i] = x[i]
-    dlogw[k] = w
+    dlogw[k] = w + _depth_logw(xacc, rig, 2)
 
 
 @jit(fastmath=_FM, parallel=True)
@@ -642,6 +919,7 @@ def _step(  # type: ignore[no-untyped-def]
     seq,
     out_mu,
     out_Sx,
+    rig,
     n_chunks,
 ):
     # one contiguous range of particles per thread, with its scratch arrays allocated once;
@@ -678,6 +956,7 @@ def _step(  # type: ignore[no-untyped-def]
                     seq,
                     out_mu,
                     out_Sx,
+                    rig,
                     x,
                     mu,
                     T,
@@ -707,6 +986,7 @@ def _step(  # type: ignore[no-untyped-def]
                     seq,
                     out_mu,
                     out_Sx,
+                    rig,
                     x,
                     mu,
                     T,
@@ -802,6 +1082,26 @@ def copy_blocks(pool_mean, pool_cov, src, dst) -> None:  # type: ignore[no-untyp
             pc[b, j] = pc[a, j]
 
 
+def _pixel_rig(
+    intrinsics: tuple[float, float, float, float] | None, Q_old: np.ndarray, Q_new: np.ndarray
+) -> tuple[float, ...] | None:
+    """The kernels' ``rig``: None (Cartesian), or (f, p_x, p_y, b, σx², σy², 1/(f b), 1/f, log (f³ b)²,
+    log (f² b)²) with the pixel model's noise Q = diag(σx², σx², σy²) (2D: diag(σx², σx²)), which must be
+    every row's."""
+    if intrinsics is None:
+        return None
+    f, px, py, b = (float(v) for v in intrinsics)
+    vx = vy = 1.0
+    Q0 = Q_old[0] if Q_old.shape[0] else (Q_new[0] if Q_new.shape[0] else None)
+    if Q0 is not None:
+        dz = Q0.shape[0]
+        vx, vy = float(Q0[0, 0]), float(Q0[2, 2]) if dz == 3 else 1.0
+        expect = np.diag([vx, vx, vy][:dz])
+        if not (np.all(Q_old == expect) and np.all(Q_new == expect)):
+            raise InputError("FastSLAM pixel kernel: expected Q = diag(σx², σx², σy²) for every observation")
+    return (f, px, py, b, vx, vy, 1.0 / (f * b), 1.0 / f, 2.0 * math.log(f**3 * b), 2.0 * math.log(f * f * b))
+
+
 def _run(
     version: int,
     pose: np.ndarray,
@@ -821,6 +1121,7 @@ def _run(
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
+    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     P, dx = pose.shape
     out_pose = np.empty_like(pose)
@@ -851,6 +1152,7 @@ def _run(
         bool(seq_weights),
         mu_,
         Sx_,
+        _pixel_rig(intrinsics, Q_old, Q_new),
     )
     _step(*args, max(1, min(P, nb.get_num_threads())))
     return out_pose, dlogw
@@ -873,11 +1175,14 @@ def fastslam_step_numba(
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
+    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """numba ``fastslam_step`` on dense arrays lm_mean (P, cap, dm), lm_cov (P, cap, dm, dm), in place.
 
     Dense storage is block storage with one block of ``cap`` slots per particle. ``seq_weights``,
     ``out_mu`` (P, dx) and ``out_Sx`` (P, dx, dx) as in :func:`robotd.slam.fastslam.fastslam_step`.
+    ``intrinsics`` (f, p_x, p_y, b): the stereo pixel model of that rig (``MeasurementModel.intrinsics``:
+    z are pixels, and every Q must be the model's diag(σx², σx², σy²)); None: the Cartesian model.
     """
     P, cap = lm_mean.shape[:2]
     table = np.arange(P, dtype=np.int64)[:, None]
@@ -900,6 +1205,7 @@ def fastslam_step_numba(
         seq_weights,
         out_mu,
         out_Sx,
+        intrinsics,
     )
 
 
@@ -919,6 +1225,7 @@ def fastslam_step_numba_store(
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
+    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The same step directly in a copy-on-write :class:`LandmarkStore` (no gather/scatter copies).
 
@@ -945,6 +1252,7 @@ def fastslam_step_numba_store(
         seq_weights,
         out_mu,
         out_Sx,
+        intrinsics,
     )
 
 
@@ -963,8 +1271,23 @@ def warmup() -> None:
         mean = np.ones((P, n, dm))
         cov = np.tile(np.eye(dm), (P, n, 1, 1))
         z = np.ones((1, dm))
+        z[0, 0] = 2.0  # a positive disparity for the pixel model
         Q = np.eye(dm)[None]
         for version in (1, 2):
-            fastslam_step_numba(
-                version, pose, S, mean, cov, np.array([0]), z, Q, np.array([1]), z, Q, np.zeros((P, dx)), 0.0
-            )
+            for rig in (None, (1.0, 0.0, 0.0, 1.0)):  # Cartesian and pixel models: one compilation each
+                fastslam_step_numba(
+                    version,
+                    pose,
+                    S,
+                    mean,
+                    cov,
+                    np.array([0]),
+                    z,
+                    Q,
+                    np.array([1]),
+                    z,
+                    Q,
+                    np.zeros((P, dx)),
+                    0.0,
+                    intrinsics=rig,
+                )

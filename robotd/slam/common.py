@@ -13,8 +13,17 @@ import numpy as np
 from robotd.errors import InputError, PersistenceError
 from robotd.msgs import MotionIncrement, Observations, UpdateReport
 from robotd.slam._book import LandmarkBook
-from robotd.slam.models import RANGE_BEARING_2D, MeasurementModel, motion3d_noise, odometry2d_noise
+from robotd.slam.models import (
+    CARTESIAN_2D,
+    CARTESIAN_3D,
+    RANGE_BEARING_2D,
+    MeasurementModel,
+    motion3d_noise,
+    odometry2d_noise,
+    stereo_pixel_model,
+)
 from robotd.slam.params import SlamParams
+from robotd.stereo import project
 
 NO_IDS = np.zeros(0, np.int64)  # an empty id list (read-only: shared)
 NO_IDS.flags.writeable = False
@@ -82,10 +91,29 @@ def control_from_increment(inc: MotionIncrement, params: SlamParams) -> tuple[np
     )
 
 
-def split_observations(obs: Observations, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(z (N, dim), Q (N, dim, dim), ids (N,) int64, is_new (N,) bool) for a ``dim``-D filter (§3.3).
+def measurement_model(params: SlamParams) -> MeasurementModel:
+    """The filter's measurement model for ``params.measurement`` and ``params.dim``."""
+    if params.measurement == "pixel":
+        return stereo_pixel_model(params.dim, *params.stereo_intrinsics)
+    return CARTESIAN_2D if params.dim == 2 else CARTESIAN_3D
 
-    Raises InputError on non-finite values or duplicate ids within the frame.
+
+def pixel_noise(params: SlamParams) -> np.ndarray:
+    """The pixel model's measurement covariance (dz, dz): diag(σx², σx², σy²), 2D the columns' block."""
+    sx, sy = params.pixel_sigma_px
+    return np.diag([sx * sx, sx * sx, sy * sy])[: params.dim, : params.dim]
+
+
+def split_observations(
+    obs: Observations, dim: int, model: MeasurementModel | None = None, Q_px: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(z (N, dz), Q (N, dz, dz), ids (N,) int64, is_new (N,) bool) for a ``dim``-D filter.
+
+    Cartesian (``model`` None or without intrinsics, §3.3): z = the first ``dim`` coordinates of
+    the points, Q the matching block of their covariances. Pixel model: z = ``obs.uv_px`` (the
+    projection of ``xyz_R_m`` when the message has no pixels), 2D its two columns, Q = ``Q_px``
+    (dz, dz) for every row. Raises InputError on non-finite values, duplicate ids within the frame,
+    or (pixel model) points without a positive disparity.
     """
     check_finite("Observations", obs.xyz_R_m, obs.cov_R)
     ids = np.asarray(obs.ids).astype(np.int64)
@@ -93,9 +121,30 @@ def split_observations(obs: Observations, dim: int) -> tuple[np.ndarray, np.ndar
         raise InputError(
             f"Observations.ids: expected unique ids per frame, got {ids.size - np.unique(ids).size} duplicates"
         )
-    z = np.ascontiguousarray(obs.xyz_R_m[:, :dim], dtype=float)
-    Q = np.ascontiguousarray(obs.cov_R[:, :dim, :dim], dtype=float)
-    return z, Q, ids, np.asarray(obs.is_new, dtype=bool)
+    is_new = np.asarray(obs.is_new, dtype=bool)
+    if model is None or model.intrinsics is None:
+        z = np.ascontiguousarray(obs.xyz_R_m[:, :dim], dtype=float)
+        Q = np.ascontiguousarray(obs.cov_R[:, :dim, :dim], dtype=float)
+        return z, Q, ids, is_new
+    assert Q_px is not None
+    if obs.uv_px is not None:
+        uv = np.asarray(obs.uv_px, dtype=float)
+        check_finite("Observations.uv_px", uv)
+    else:
+        if np.any(obs.xyz_R_m[:, 0] <= 0):
+            raise InputError(
+                f"Observations: the pixel model needs points in front of the rig (X > 0), got "
+                f"{int(np.sum(obs.xyz_R_m[:, 0] <= 0))} with X <= 0"
+            )
+        f, px, py, b = model.intrinsics
+        uv = np.stack(project(obs.xyz_R_m, f, px, py, b), -1)
+    if np.any(uv[:, 0] - uv[:, 1] <= 0):
+        raise InputError(
+            f"Observations.uv_px: expected x_left > x_right, got {int(np.sum(uv[:, 0] <= uv[:, 1]))} rows without"
+        )
+    z = np.ascontiguousarray(uv[:, : model.dz])
+    Q = np.ascontiguousarray(np.broadcast_to(Q_px, (ids.size, model.dz, model.dz)))
+    return z, Q, ids, is_new
 
 
 FILTER_CODE = {"ekf": 0, "fastslam1": 1, "fastslam2": 2}
@@ -134,13 +183,15 @@ def lm_to_3d(m: np.ndarray, C: np.ndarray, floor: float) -> tuple[np.ndarray, np
 class UpdateEntryPoints(ABC):
     """The two public update entry points every filter shares; the filter implements ``_update``.
 
-    ``update`` fuses a frame of Cartesian point observations with the filter's own model;
-    ``update_range_bearing`` (2D only, §7.2) converts and validates, then fuses with that model.
+    ``update`` fuses a frame of stereo observations with the filter's own model (the triangulated
+    points, or their pixels: ``SlamParams.measurement``); ``update_range_bearing`` (2D only, §7.2)
+    converts and validates, then fuses with that model.
     """
 
     dim: int
     book: LandmarkBook
     model: MeasurementModel
+    Q_px: np.ndarray | None  # the pixel model's (dz, dz) noise; None with the Cartesian model
     t_ns: int
 
     @abstractmethod
@@ -151,7 +202,7 @@ class UpdateEntryPoints(ABC):
 
     def update(self, obs: Observations) -> UpdateReport:
         """Fuse one frame: identified landmarks update, new ones are added, then bookkeeping."""
-        z, Q, ids, is_new = split_observations(obs, self.dim)
+        z, Q, ids, is_new = split_observations(obs, self.dim, self.model, self.Q_px)
         self.book.check(ids, is_new)
         rep = self._update(z, Q, ids, is_new, self.model)
         self.t_ns = int(obs.t_ns)

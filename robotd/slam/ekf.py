@@ -33,6 +33,8 @@ from robotd.slam.common import (
     check_reset_pose,
     control_from_increment,
     lm_to_3d,
+    measurement_model,
+    pixel_noise,
     pose_cov_6x6,
     pose_to_xyz_rpy,
 )
@@ -62,7 +64,8 @@ class EkfSlam(UpdateEntryPoints):
         self.visible = visible
         self.dx = 3 if self.dim == 2 else 6
         self.dm = self.dim
-        self.model: MeasurementModel = CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D
+        self.model: MeasurementModel = measurement_model(params)
+        self.Q_px = pixel_noise(params) if self.model.intrinsics is not None else None
         self.mu = np.zeros(self.dx)  # (n,) state mean
         self.Sigma = np.zeros((self.dx, self.dx))  # (n, n) state covariance
         self.book = LandmarkBook()

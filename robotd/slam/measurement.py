@@ -68,4 +68,4 @@ def covariance_at_prediction(
     ok = np.isfinite(Qp).all(axis=(1, 2))
     cov = obs.cov_R.copy()
     cov[old[ok]] = Qp[ok]
-    return Observations(obs.t_ns, obs.xyz_R_m, cov, obs.ids, obs.is_new)
+    return Observations(obs.t_ns, obs.xyz_R_m, cov, obs.ids, obs.is_new, obs.uv_px)

@@ -3,7 +3,8 @@
 All functions are pure and vectorised over a leading batch axis ``B`` (particles, or particles ×
 observations); the EKF calls them with ``B = 1``. Frames: poses are robot-in-world
 (``x = (x, y, yaw)`` in 2D, ``(x, y, z, roll, pitch, yaw)`` in 3D, ZYX Euler, algorithms.md §1.3);
-landmarks ``m`` are world-frame points; measurements ``z`` are in the robot frame.
+landmarks ``m`` are world-frame points; measurements ``z`` are in the robot frame (Cartesian models)
+or pixels of the rectified stereo pair (the pixel models).
 
 Angles in returned poses are wrapped to (-π, π]. Innovations of angle-valued measurement rows
 (the bearing of the range–bearing model) must be wrapped by the caller; the :class:`MeasurementModel`
@@ -12,8 +13,10 @@ record says which rows those are.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -25,6 +28,9 @@ from robotd.geometry import (
     rot2,
     wrap_angle,
 )
+
+MeasResult = tuple[np.ndarray, np.ndarray, np.ndarray]
+MeasFn = Callable[[np.ndarray, np.ndarray], MeasResult]
 
 # ω below this is a straight line for the velocity model (algorithms.md §6.1)
 OMEGA_STRAIGHT = 1e-6
@@ -351,10 +357,99 @@ def range_bearing_inverse(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.
 
 
 # --------------------------------------------------------------------------------------------
+# Stereo pixel measurement (docs/slam.md "Measurement models"): z = π(R(η)ᵀ(m − p)), the landmark's
+# columns in the left and right rectified images and its row, π the rectified projection of
+# robotd.stereo.project. 3D: z = (x_L, x_R, y); 2D: z = (x_L, x_R) (no height, the columns do not
+# depend on it). The Jacobians chain π's through the Cartesian models': H = J_π(q) · H_cart.
+
+# Predicted depths are clamped to at least this: h stays finite for a landmark that a (wrong)
+# pose puts at or behind the rig. J_π is then π's Jacobian at the clamped point.
+PIXEL_MIN_DEPTH_M = 0.05
+
+
+def stereo_projection(q: np.ndarray, f: float, px: float, py: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+    """π of robot-frame points and its Jacobian: q (B, 3) -> (x_L, x_R, y) (B, 3), J_π (B, 3, 3);
+    q (B, 2) (X, Y) -> (x_L, x_R) (B, 2), J_π (B, 2, 2). Depths below PIXEL_MIN_DEPTH_M are clamped.
+
+    x_L = p_x + f (Y + b/2)/X, x_R = p_x + f (Y − b/2)/X, y = p_y + f Z/X (robotd.stereo.project).
+    """
+    q = np.asarray(q, dtype=float)
+    n = q.shape[-1]
+    X = np.maximum(q[:, 0], PIXEL_MIN_DEPTH_M)
+    iX = 1.0 / X
+    fx = f * iX
+    Yl, Yr = q[:, 1] + 0.5 * b, q[:, 1] - 0.5 * b
+    z = np.empty_like(q)
+    J = np.zeros((q.shape[0], n, n))
+    z[:, 0] = px + fx * Yl
+    z[:, 1] = px + fx * Yr
+    J[:, 0, 0] = -fx * Yl * iX
+    J[:, 1, 0] = -fx * Yr * iX
+    J[:, 0, 1] = fx
+    J[:, 1, 1] = fx
+    if n == 3:
+        z[:, 2] = py + fx * q[:, 2]
+        J[:, 2, 0] = -fx * q[:, 2] * iX
+        J[:, 2, 2] = fx
+    return z, J
+
+
+def stereo_triangulation(z: np.ndarray, f: float, px: float, py: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+    """π⁻¹ and its Jacobian: z (B, 3) (x_L, x_R, y) -> q (B, 3), J (B, 3, 3) = ∂q/∂z (= J_π⁻¹);
+    z (B, 2) (x_L, x_R) -> (X, Y) (B, 2), J (B, 2, 2). The disparity x_L − x_R must be positive.
+
+    robotd.stereo.triangulate (eq. 3.2.14) and its Jacobian (algorithms.md §3.1) written in q:
+    J = X/(f b) · [[−X, X, 0], [−(Y − b/2), Y + b/2, 0], [−Z, Z, b]].
+    """
+    z = np.asarray(z, dtype=float)
+    n = z.shape[-1]
+    d = z[:, 0] - z[:, 1]
+    X = f * b / d
+    q = np.empty_like(z)
+    q[:, 0] = X
+    q[:, 1] = (z[:, 0] - px) * b / d - 0.5 * b
+    s = X / (f * b)
+    J = np.zeros((z.shape[0], n, n))
+    J[:, 0, 0] = -s * X
+    J[:, 0, 1] = s * X
+    J[:, 1, 0] = -s * (q[:, 1] - 0.5 * b)
+    J[:, 1, 1] = s * (q[:, 1] + 0.5 * b)
+    if n == 3:
+        q[:, 2] = (z[:, 2] - py) * b / d
+        J[:, 2, 0] = -s * q[:, 2]
+        J[:, 2, 1] = s * q[:, 2]
+        J[:, 2, 2] = s * b
+    return q, J
+
+
+def stereo_basis(dz: int) -> np.ndarray:
+    """T (dz, dz) with T (x_L, x_R[, y]) = (mean column, disparity[, y]); |det T| = 1.
+
+    Pixel covariances are nearly diagonal in these coordinates (the columns of a landmark are
+    almost perfectly correlated); the numpy filters work in them (robotd.slam.fastslam).
+    """
+    T = np.eye(dz)
+    T[0, :2] = (0.5, 0.5)
+    T[1, :2] = (1.0, -1.0)
+    return T
+
+
+def _pixel_h(cart: MeasFn, rig: tuple[float, float, float, float], x: np.ndarray, m: np.ndarray) -> MeasResult:
+    q, Hx, Hm = cart(x, m)
+    z, J = stereo_projection(q, *rig)
+    return z, J @ Hx, J @ Hm
+
+
+def _pixel_inverse(
+    cart_inv: MeasFn, rig: tuple[float, float, float, float], x: np.ndarray, z: np.ndarray
+) -> MeasResult:
+    q, Jt = stereo_triangulation(z, *rig)
+    m, Jx, Jz = cart_inv(x, q)
+    return m, Jx, Jz @ Jt
+
+
+# --------------------------------------------------------------------------------------------
 # Records that let the filters treat the models generically
-
-
-MeasFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -368,6 +463,8 @@ class MeasurementModel:
     h: MeasFn  # (x (B, dx), m (B, dm)) -> z (B, dz), H_x (B, dz, dx), H_m (B, dz, dm)
     inverse: MeasFn  # (x (B, dx), z (B, dz)) -> m (B, dm), J_x (B, dm, dx), J_z (B, dm, dz)
     angle_rows: tuple[int, ...] = ()  # rows of z whose innovations are wrapped
+    # the stereo pixel models: (f [px], p_x [px], p_y [px], baseline [m]) of the rectified rig
+    intrinsics: tuple[float, float, float, float] | None = None
 
     def innovation(self, z: np.ndarray, zhat: np.ndarray) -> np.ndarray:
         """z - zhat (..., dz) with angle rows wrapped to (-π, π]."""
@@ -380,6 +477,22 @@ class MeasurementModel:
 CARTESIAN_3D = MeasurementModel("cartesian3d", 6, 3, 3, meas3d, meas3d_inverse)
 CARTESIAN_2D = MeasurementModel("cartesian2d", 3, 2, 2, meas2d, meas2d_inverse)
 RANGE_BEARING_2D = MeasurementModel("range_bearing2d", 3, 2, 2, range_bearing, range_bearing_inverse, (1,))
+
+
+def stereo_pixel_model(dim: int, f_px: float, px: float, py: float, baseline_m: float) -> MeasurementModel:
+    """The stereo pixel model of a rectified rig: 3D z = (x_L, x_R, y), 2D z = (x_L, x_R) [px]."""
+    rig = (float(f_px), float(px), float(py), float(baseline_m))
+    if not (rig[0] > 0 and rig[3] > 0 and all(math.isfinite(v) for v in rig)):
+        raise EstimatorError(f"stereo_pixel_model: expected finite f_px > 0 and baseline_m > 0, got {rig}")
+    if dim == 3:
+        return MeasurementModel(
+            "pixel3d", 6, 3, 3, partial(_pixel_h, meas3d, rig), partial(_pixel_inverse, meas3d_inverse, rig), (), rig
+        )
+    if dim == 2:
+        return MeasurementModel(
+            "pixel2d", 3, 2, 2, partial(_pixel_h, meas2d, rig), partial(_pixel_inverse, meas2d_inverse, rig), (), rig
+        )
+    raise EstimatorError(f"stereo_pixel_model: expected dim 2 or 3, got {dim}")
 
 
 def pose_angle_slice(dim: int) -> slice:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.choices import FILTERS
+from robotd.choices import FILTERS, MEASUREMENTS
 from robotd.errors import ConfigError
 
 MOTION_COV_SOURCES = ("auto", "message", "model")
@@ -79,7 +79,15 @@ class SlamParams:
     landmark_cov_floor: float = 1e-12  # on new landmark covariances
     pose_cov_floor_2d: float = 1e-6  # z/roll/pitch variances a 2D filter reports in its 6×6
     landmark_block_size: int = 64  # FastSLAM copy-on-write block of landmark slots (docs/slam.md)
-    use_numba: bool = True  # numba kernels for the Cartesian FastSLAM hot path (numpy when False/unavailable)
+    # Measurement model (docs/slam.md "Measurement models"): "cartesian" = the triangulated point in the
+    # robot frame with its first-order covariance (§7.1/§7.2, the thesis's); "pixel" = the landmark's
+    # pixels in the rectified pair, z = (x_L, x_R, y) in 3D and (x_L, x_R) in 2D, constant noise
+    measurement: str = "cartesian"
+    # the rectified rig the pixel model projects with: (f [px], p_x [px], p_y [px], baseline [m])
+    stereo_intrinsics: tuple[float, ...] = ()
+    # pixel model noise: σ of each column (x_L, x_R) and of the row y [px] (independent)
+    pixel_sigma_px: tuple[float, float] = (0.5, 0.5 / math.sqrt(2.0))
+    use_numba: bool = True  # numba kernels for the FastSLAM hot path, both models (numpy when False/unavailable)
     numba_threads: int = 0  # threads of the numba kernel; 0 = numba's default (all cores)
 
     def __post_init__(self) -> None:
@@ -104,6 +112,14 @@ class SlamParams:
             raise bad("fs2_weights", "prior | sequential", self.fs2_weights)
         if self.pose_estimate not in ("mixture", "particles"):
             raise bad("pose_estimate", "mixture | particles", self.pose_estimate)
+        if self.measurement not in MEASUREMENTS:
+            raise bad("measurement", " | ".join(MEASUREMENTS), self.measurement)
+        if self.measurement == "pixel":
+            si = self.stereo_intrinsics
+            if len(si) != 4 or not (si[0] > 0 and si[3] > 0):
+                raise bad("stereo_intrinsics", "(f_px > 0, px, py, baseline_m > 0) for measurement = pixel", si)
+            if len(self.pixel_sigma_px) != 2 or min(self.pixel_sigma_px) <= 0:
+                raise bad("pixel_sigma_px", "(σ columns, σ row) > 0", self.pixel_sigma_px)
         if self.motion_cov_source not in MOTION_COV_SOURCES:
             raise bad("motion_cov_source", " | ".join(MOTION_COV_SOURCES), self.motion_cov_source)
         for f in fields(self):

@@ -81,6 +81,23 @@ def test_parallel_detect_reaches_the_front_end() -> None:
     assert frontend_params_from_config(one).parallel_detect is False
 
 
+def test_the_pixel_measurement_model_gets_the_rig_and_the_pixel_noise() -> None:
+    from robotd.config_params import slam_params_from_config
+    from robotd.stereo import RectifiedStereo
+
+    rig = RectifiedStereo(718.0, 607.0, 185.0, 0.54, 1241, 376)
+    default = slam_params_from_config(config_from_dict({}), rig)
+    assert default.measurement == "cartesian"
+    cfg = config_from_dict({"slam": {"measurement": "pixel"}, "frontend": {"sigma_x_px": 0.6, "cov_inflation": 4.0}})
+    p = slam_params_from_config(cfg, rig)
+    assert p.measurement == "pixel" and p.stereo_intrinsics == (718.0, 607.0, 185.0, 0.54)
+    assert p.pixel_sigma_px == pytest.approx((1.2, 2.0 * 0.3535533905932738))  # σ·√inflation
+    with pytest.raises(ConfigError, match="slam.measurement: 'pixel' needs the stereo rig"):
+        slam_params_from_config(cfg)
+    with pytest.raises(ConfigError, match="slam.measurement"):
+        config_from_dict({"slam": {"measurement": "pixels"}})
+
+
 def test_file_errors_name_the_file(tmp_path: Path) -> None:
     p = tmp_path / "bad.toml"
     p.write_text("[slam]\nn_particles = -3\n")

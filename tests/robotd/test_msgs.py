@@ -47,6 +47,20 @@ def test_observations_shapes() -> None:
         Observations(0, np.full((1, 3), np.inf), np.zeros((1, 3, 3)), np.zeros(1, np.int64), np.zeros(1, bool))
 
 
+def test_observations_pixels_are_optional_and_checked() -> None:
+    xyz, cov, ids, new = np.ones((2, 3)), np.tile(np.eye(3), (2, 1, 1)), np.arange(2), np.ones(2, bool)
+    assert Observations(0, xyz, cov, ids, new).uv_px is None
+    uv = np.array([[310.0, 300.0, 200.0], [100.0, 80.0, 50.0]])
+    obs = Observations(0, xyz, cov, ids, new, uv)
+    np.testing.assert_array_equal(obs.subset(np.array([1])).uv_px, uv[1:])
+    with pytest.raises(InputError, match=r"Observations.uv_px: expected shape \(2, 3\)"):
+        Observations(0, xyz, cov, ids, new, uv[:1])
+    with pytest.raises(InputError, match="x_left > x_right"):
+        Observations(0, xyz, cov, ids, new, uv[:, [1, 0, 2]])
+    with pytest.raises(InputError, match="non-finite"):
+        Observations(0, xyz, cov, ids, new, np.full((2, 3), np.nan))
+
+
 def test_pose_estimate_shapes() -> None:
     PoseEstimate(0, np.zeros(3), np.zeros(3), np.eye(6))
     with pytest.raises(InputError, match=r"PoseEstimate.cov: expected shape \(6, 6\), got \(3, 3\)"):

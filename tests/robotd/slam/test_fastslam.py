@@ -15,7 +15,7 @@ from robotd.slam.fastslam import FastSlam, fastslam_step
 from robotd.slam.params import SlamParams
 from robotd.slam.resampling import effective_sample_size, low_variance_indices, weighted_pose_mean
 from tests.support.reference_fastslam import fastslam_step_reference
-from tests.support.slam_world import World
+from tests.support.slam_world import KITTI_RIG, World
 from tests.support.tolerances import CONDITIONED_ATOL, KERNEL_TWIN_ATOL, ROUNDOFF_ATOL, ULP_ATOL
 
 # S_θθ = 1e-14, not 0: h is linear in (x, y) only up to that; log-likelihoods are O(10) (measured 4e-11)
@@ -47,6 +47,10 @@ def _random_problem(model: md.MeasurementModel, P: int, N_old: int, N_new: int, 
         z, _, _ = model.h(x0, base[np.r_[slots_old, slots_new]])
         z = z + rng.normal(0, [0.05, 0.02], z.shape)
         Q = np.tile(np.diag([0.05**2, 0.02**2]), (N_old + N_new, 1, 1))
+    elif model.intrinsics is not None:  # pixels, with the pixel model's constant noise (the numba kernel's)
+        z, _, _ = model.h(x0, base[np.r_[slots_old, slots_new]])
+        z = z + rng.normal(0, 0.5, z.shape)
+        Q = np.tile(np.diag([0.25, 0.25, 0.125])[:dz, :dz], (N_old + N_new, 1, 1))
     else:
         z, _, _ = model.h(x0, base[np.r_[slots_old, slots_new]])
         z = z + rng.normal(0, 0.05, z.shape)
@@ -58,7 +62,8 @@ def _random_problem(model: md.MeasurementModel, P: int, N_old: int, N_new: int, 
     return pose, S, lm_mean, lm_cov, slots_old, slots_new, z[:N_old], Q[:N_old], z[N_old:], Q[N_old:], eps
 
 
-MODELS = [md.CARTESIAN_2D, md.CARTESIAN_3D, md.RANGE_BEARING_2D]
+PIXEL = [md.stereo_pixel_model(2, *KITTI_RIG), md.stereo_pixel_model(3, *KITTI_RIG)]
+MODELS = [md.CARTESIAN_2D, md.CARTESIAN_3D, md.RANGE_BEARING_2D, *PIXEL]
 
 
 @pytest.mark.parametrize("version", [1, 2])
@@ -298,17 +303,20 @@ def test_range_bearing_and_velocity_entry_points(filt: str) -> None:
 
 
 CART = [md.CARTESIAN_2D, md.CARTESIAN_3D]
+NUMBA = [*CART, *PIXEL]  # the models the numba kernel implements
 
 
 @pytest.mark.parametrize("version", [1, 2])
-@pytest.mark.parametrize("model", CART, ids=[m.name for m in CART])
+@pytest.mark.parametrize("model", NUMBA, ids=[m.name for m in NUMBA])
 def test_numba_kernel_matches_reference(version: int, model: md.MeasurementModel) -> None:
     from robotd.slam._kernels import fastslam_step_numba
 
     pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 6, 8, 3, seed=12)
     a_mean, a_cov = lm_mean.copy(), lm_cov.copy()
     b_mean, b_cov = lm_mean.copy(), lm_cov.copy()
-    pa, wa = fastslam_step_numba(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12)
+    pa, wa = fastslam_step_numba(
+        version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, intrinsics=model.intrinsics
+    )
     pb, wb = fastslam_step_reference(version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
     for a, b in ((pa, pb), (wa, wb), (a_mean, b_mean), (a_cov, b_cov)):
         np.testing.assert_allclose(a, b, atol=KERNEL_TWIN_ATOL, rtol=0)
@@ -334,7 +342,7 @@ def test_warmup_numba_loads_kernels() -> None:
     assert took is not None and took >= 0.0
 
 
-@pytest.mark.parametrize("model", CART, ids=[m.name for m in CART])
+@pytest.mark.parametrize("model", NUMBA, ids=[m.name for m in NUMBA])
 def test_sequential_weights_and_proposal_outputs_agree_across_paths(model: md.MeasurementModel) -> None:
     """fs2_weights="sequential" and the proposal outputs: numpy, numba and the reference agree."""
     from robotd.slam._kernels import fastslam_step_numba
@@ -348,7 +356,9 @@ def test_sequential_weights_and_proposal_outputs_agree_across_paths(model: md.Me
         if fn == "numpy":
             p, w = fastslam_step(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx)
         elif fn == "numba":
-            p, w = fastslam_step_numba(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, True, mu, Sx)
+            p, w = fastslam_step_numba(
+                2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, True, mu, Sx, model.intrinsics
+            )
         else:
             p, w = fastslam_step_reference(
                 2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx
@@ -426,3 +436,127 @@ def test_bad_estimator_options_name_the_key() -> None:
         SlamParams(fs2_weights="joint")
     with pytest.raises(ConfigError, match="slam.pose_estimate"):
         SlamParams(pose_estimate="best")
+
+
+# --------------------------------------------------------------------------------------------
+# The stereo pixel model (slam.measurement = "pixel") in every filter
+
+PIXEL_KW = {"measurement": "pixel", "stereo_intrinsics": KITTI_RIG}
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("filt", ["ekf", "fastslam1", "fastslam2"])
+def test_pixel_model_noiseless_scenario_recovers_truth(filt: str, dim: int) -> None:
+    world = World(dim, np.random.default_rng(1), rig=KITTI_RIG)
+    est, errs = _run(
+        filt,
+        dim,
+        25,
+        world,
+        n_particles=10,
+        motion_cov_source="message",
+        process_cov_floor=0.0,
+        prune_enabled=False,
+        pixel_sigma_px=(1e-3, 1e-3),
+        **PIXEL_KW,
+    )
+    assert max(errs) < CONDITIONED_ATOL
+    lm = est.landmarks()
+    truth = {int(i): p for i, p in zip(world.ids, world.L)}
+    err = max(np.abs(p[:dim] - truth[int(i)][:dim]).max() for i, p in zip(lm.ids, lm.xyz_W_m))
+    assert lm.n == len(world.seen) and err < CONDITIONED_ATOL
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("filt", ["fastslam1", "fastslam2", "ekf"])
+def test_pixel_model_noisy_scenario_bounded_error(filt: str, dim: int) -> None:
+    # 0.5 px pixel noise (depth σ ≈ 7 cm at 6 m on this rig), 1 cm odometry noise, 40 steps of 0.2 m:
+    # EKF and FastSLAM 2.0 end within 5 mm of the truth (measured), FastSLAM 1.0, whose proposal
+    # is the motion model alone, within 0.1–0.33 m (as with the Cartesian model on the same world)
+    world = World(dim, np.random.default_rng(2), sigma_odo=0.01, rig=KITTI_RIG, sigma_px=0.5)
+    _, errs = _run(filt, dim, 40, world, n_particles=50, prune_enabled=False, **PIXEL_KW)
+    bound = 0.4 if filt == "fastslam1" else 0.03
+    assert errs[-1] < bound, errs[-1]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
+def test_pixel_model_numba_and_numpy_filters_agree(filt: str, dim: int) -> None:
+    # 6 steps, not the Cartesian test's 10: pixel likelihoods are ~10× steeper in the pose than that
+    # world's, so the two paths' round-off (pose 1e-14 apart) is amplified ~20× per resampling step
+    # after that (measured: N_eff 4e-10 apart after 8 steps, 7e-7 after 10, the poses 2e-11)
+    out = []
+    for use_numba in (False, True):
+        world = World(dim, np.random.default_rng(9), sigma_odo=0.01, rig=KITTI_RIG, sigma_px=0.5)
+        est, _ = _run(filt, dim, 6, world, n_particles=20, use_numba=use_numba, **PIXEL_KW)
+        out.append(est.state_dict())
+    for k in out[0]:
+        np.testing.assert_allclose(
+            np.asarray(out[1][k]), np.asarray(out[0][k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k
+        )
+
+
+@pytest.mark.parametrize("filt", ["ekf", "fastslam2"])
+def test_pixel_model_gates_gross_mismatches(filt: str) -> None:
+    """EKF's χ² gate and FastSLAM's optional one work on the pixel innovations (χ²_{3,0.99})."""
+    world = World(3, np.random.default_rng(2), sigma_odo=0.005, rig=KITTI_RIG, sigma_px=0.5)
+    est = make_estimator(
+        SlamParams(filter=filt, dim=3, prune_enabled=False, n_particles=30, fastslam_gate=True, **PIXEL_KW),
+        np.random.default_rng(0),
+    )
+    est.update(world.observe())
+    est.predict(world.step())
+    obs = world.observe()
+    assert obs.uv_px is not None
+    uv = obs.uv_px.copy()
+    old = np.flatnonzero(~obs.is_new)
+    uv[old[:2], :2] += 40.0  # two landmarks matched 40 px to the side of where they are
+    rep = est.update(Observations(obs.t_ns, obs.xyz_R_m, obs.cov_R, obs.ids, obs.is_new, uv))
+    assert rep.n_gated == 2
+    assert rep.n_updated == old.size - 2
+
+
+@pytest.mark.parametrize("filt", ["ekf", "fastslam2"])
+def test_pixel_model_projects_points_when_observations_carry_no_pixels(filt: str) -> None:
+    """Observations without ``uv_px`` (simulators): the pixel model uses the projection of the
+    points, which is the pixels they were triangulated from."""
+    states = []
+    for keep_pixels in (True, False):
+        world = World(3, np.random.default_rng(3), sigma_odo=0.01, rig=KITTI_RIG, sigma_px=0.5)
+        est = make_estimator(SlamParams(filter=filt, dim=3, n_particles=10, **PIXEL_KW), np.random.default_rng(1))
+        for t in range(6):
+            if t:
+                est.predict(world.step())
+            obs = world.observe()
+            est.update(obs if keep_pixels else replace(obs, uv_px=None))
+        states.append(est.state_dict())
+    for k in states[0]:
+        np.testing.assert_allclose(
+            np.asarray(states[1][k]), np.asarray(states[0][k]), atol=CONDITIONED_ATOL, rtol=0, err_msg=k
+        )
+    est = make_estimator(SlamParams(filter=filt, dim=3, **PIXEL_KW))
+    with pytest.raises(InputError, match="X > 0"):
+        est.update(Observations(0, np.array([[-1.0, 0.0, 0.0]]), np.eye(3)[None], np.array([1]), np.array([True])))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("filt", ["ekf", "fastslam2"])
+def test_a_map_made_with_one_measurement_model_resumes_with_the_other(filt: str, dim: int) -> None:
+    """The model is configuration, not state: the saved map (world-frame landmarks) is the same
+    kind either way, and a filter with the other model continues from it."""
+    for a_kw, b_kw in (({}, PIXEL_KW), (PIXEL_KW, {})):
+        world = World(dim, np.random.default_rng(5), sigma_odo=0.01, rig=KITTI_RIG, sigma_px=0.5)
+        a = make_estimator(SlamParams(filter=filt, dim=dim, n_particles=12, **a_kw), np.random.default_rng(1))
+        a.update(world.observe())
+        for _ in range(5):
+            a.predict(world.step())
+            a.update(world.observe())
+        b = make_estimator(SlamParams(filter=filt, dim=dim, n_particles=12, **b_kw), np.random.default_rng(1))
+        b.load_state_dict(a.state_dict())
+        np.testing.assert_array_equal(b.landmarks().xyz_W_m, a.landmarks().xyz_W_m)
+        b.predict(world.step())
+        rep = b.update(world.observe())
+        assert rep.n_updated > 0
+        e = b.estimate()
+        x = np.r_[e.xyz_W_m[:2], e.rpy_rad[2]] if dim == 2 else np.r_[e.xyz_W_m, e.rpy_rad]
+        assert np.abs(x - world.pose()).max() < 0.05

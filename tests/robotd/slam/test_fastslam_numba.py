@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import EstimatorError
+from robotd.errors import EstimatorError, InputError
 from robotd.msgs import MotionIncrement
 from robotd.slam import models as md
 from robotd.slam._store import LandmarkStore
@@ -136,3 +136,17 @@ def test_angle_addition_matches_trig_on_both_branches() -> None:
         for delta in (0.0, 1e-9, -3e-4, 0.0499, -0.0501, 0.7, -2.5):
             c, s = K._turn(np.cos(a), np.sin(a), delta)
             assert abs(c - np.cos(a + delta)) < ULP_ATOL and abs(s - np.sin(a + delta)) < ULP_ATOL, (a, delta)
+
+
+def test_pixel_kernel_refuses_a_noise_it_does_not_model() -> None:
+    """The pixel kernel takes the pixel model's constant noise diag(σx², σx², σy²) (it is folded into
+    closed forms); any other Q is refused in one line rather than silently misread."""
+    model = md.stereo_pixel_model(3, 718.0, 607.0, 185.0, 0.54)
+    pose, S, lm_mean, lm_cov, so, sn, zo, _, zn, _, eps = _problem(3, 3)
+    zo = model.h(np.zeros((so.size, 6)), np.abs(lm_mean[0, so]) + np.array([3.0, 0.0, 0.0]))[0]
+    Q = np.tile(np.diag([0.25, 0.25, 0.125]), (so.size, 1, 1))
+    Q[2, 0, 1] = Q[2, 1, 0] = 0.01
+    with pytest.raises(InputError, match=r"diag\(σx², σx², σy²\)"):
+        K.fastslam_step_numba(
+            2, pose, S, lm_mean, lm_cov, so, zo, Q, sn[:0], zn[:0], Q[:0], eps, 0.0, intrinsics=model.intrinsics
+        )

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.geometry import numerical_jacobian
+from robotd.errors import EstimatorError
+from robotd.geometry import euler_to_R, numerical_jacobian, rot2
 from robotd.slam import models as md
+from robotd.stereo import project, triangulation_jacobian
 from tests.support.tolerances import CENTRAL_DIFF_ATOL, ROUNDOFF_ATOL, ULP_ATOL
 
 # ω = 1e-3 rad/s off the straight-line limit, central differences at h = 1e-5: the limit form and the
@@ -146,3 +148,76 @@ def test_closed_form_rotations_match_geometry() -> None:
     np.testing.assert_allclose(R, euler_to_R(eta), atol=10 * ULP_ATOL)
     for a, b in zip((Rr, Rp, Ry), euler_to_R_derivatives(eta)):
         np.testing.assert_allclose(a, b, atol=10 * ULP_ATOL)
+
+
+# --------------------------------------------------------------------------------------------
+# Stereo pixel model
+
+RIG = (718.0, 607.0, 185.0, 0.54)  # f, p_x, p_y [px], baseline [m] (KITTI-like)
+# Pixel values are O(10³) px and their derivatives up to f/X ≈ 360 px/m: central differences'
+# round-off EPS·|f|/h grows with the magnitude, ~100× that of the O(10) functions
+# CENTRAL_DIFF_ATOL is sized for (measured ≤ 1.2e-7); a wrong term is ≥ 1 px/m
+PIXEL_DIFF_ATOL = 100 * CENTRAL_DIFF_ATOL
+
+
+def _pixel_case(dim: int, seed: int) -> tuple[md.MeasurementModel, np.ndarray, np.ndarray, np.ndarray]:
+    """A random pose (3D: roll, pitch within ±0.5 rad; yaw anywhere) and a landmark 2–30 m in front."""
+    rng = np.random.default_rng(seed)
+    if dim == 3:
+        x = np.r_[rng.normal(0, 5, 3), rng.uniform(-0.5, 0.5, 2), rng.uniform(-np.pi, np.pi)]
+        R = euler_to_R(x[3:])
+    else:
+        x = np.r_[rng.normal(0, 5, 2), rng.uniform(-np.pi, np.pi)]
+        R = rot2(x[2])
+    X = rng.uniform(2.0, 30.0)
+    q = np.array([X, rng.uniform(-0.5, 0.5) * X, rng.uniform(-0.3, 0.3) * X])[:dim]
+    return md.stereo_pixel_model(dim, *RIG), x, x[:dim] + R @ q, q
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pixel_measurement_jacobians(dim: int, seed: int) -> None:
+    model, x, m, _ = _pixel_case(dim, seed)
+    z, Hx, Hm = model.h(x[None], m[None])
+    np.testing.assert_allclose(
+        Hx[0], numerical_jacobian(lambda a: model.h(a[None], m[None])[0][0], x), atol=PIXEL_DIFF_ATOL
+    )
+    np.testing.assert_allclose(
+        Hm[0], numerical_jacobian(lambda a: model.h(x[None], a[None])[0][0], m), atol=PIXEL_DIFF_ATOL
+    )
+    mi, Jx, Jz = model.inverse(x[None], z)
+    Jxn = numerical_jacobian(lambda a: model.inverse(a[None], z)[0][0], x)
+    Jzn = numerical_jacobian(lambda a: model.inverse(x[None], a[None])[0][0], z[0])
+    np.testing.assert_allclose(Jx[0], Jxn, atol=CENTRAL_DIFF_ATOL)
+    np.testing.assert_allclose(Jz[0], Jzn, atol=CENTRAL_DIFF_ATOL)
+    # the inverse model inverts h: landmarks and pixels round-trip
+    np.testing.assert_allclose(mi[0], m, atol=ROUNDOFF_ATOL * np.abs(m).max())
+    np.testing.assert_allclose(model.h(x[None], mi)[0][0], z[0], atol=ROUNDOFF_ATOL * np.abs(z).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pixel_model_is_the_rigs_projection(dim: int) -> None:
+    """h is robotd.stereo.project of R(η)ᵀ(m − p) (2D: its columns); the inverse's J_z is R times the
+    triangulation Jacobian of robotd.stereo at the pixels."""
+    model, x, m, q = _pixel_case(dim, 7)
+    q3 = np.r_[q, 0.0][:3]
+    uv = np.stack(project(q3[None], *RIG), -1)[0]
+    z = model.h(x[None], m[None])[0][0]
+    np.testing.assert_allclose(z, uv[:dim], atol=ROUNDOFF_ATOL * 1e3)
+    _, _, Jz = model.inverse(x[None], z[None])
+    Jt = triangulation_jacobian(uv[:1], uv[1:2], uv[2:3], *RIG)[0][:dim, :dim]
+    R = euler_to_R(x[3:]) if dim == 3 else rot2(x[2])
+    np.testing.assert_allclose(Jz[0], R @ Jt, atol=ROUNDOFF_ATOL)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pixel_model_stays_finite_behind_the_rig(dim: int) -> None:
+    """A landmark that a (wrong) pose puts at or behind the rig gives finite pixels and Jacobians
+    (the depth is clamped to PIXEL_MIN_DEPTH_M), so a bad particle cannot poison the filter."""
+    model = md.stereo_pixel_model(dim, *RIG)
+    x = np.zeros((3, 3 if dim == 2 else 6))
+    m = np.array([[0.0, 1.0, 0.5], [-2.0, 0.3, 0.1], [1e-9, 0.0, 0.0]])[:, :dim]
+    z, Hx, Hm = model.h(x, m)
+    assert np.all(np.isfinite(z)) and np.all(np.isfinite(Hx)) and np.all(np.isfinite(Hm))
+    with pytest.raises(EstimatorError, match="baseline_m > 0"):
+        md.stereo_pixel_model(dim, 700.0, 300.0, 200.0, 0.0)
