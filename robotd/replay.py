@@ -9,6 +9,8 @@ KITTI and EuRoC carry no wheel odometry, so they run visual only by default: the
 comes from the images (the outlier stage's frame-to-frame transform) and ground truth never
 reaches the filter. ``gt_odometry=True`` synthesises odometry from ground truth with documented
 noise, for experiments only; such runs are labelled in the summary and never reported as results.
+A ``sim://`` source runs with its rover's own noisy odometry; ``odometry=0`` in its URL makes that
+rover give none, so the same world runs on vision alone (docs/sim.md).
 """
 
 from __future__ import annotations
@@ -138,7 +140,8 @@ def replay(
         elif source.endswith(".mcap") or source.startswith("mcap://"):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
         elif source.startswith("sim://"):
-            # the simulated rover's own noisy odometry (same world and clock as its camera)
+            # the simulated rover's own noisy odometry (same world and clock as its camera);
+            # none with odometry=0 in the URL (vision only)
             vehicle = stack.enter_context(drivers.open_vehicle(url))
         odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
         pending = None
