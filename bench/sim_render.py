@@ -1,14 +1,14 @@
 """Rendering speed of the sim:// rover (drivers/sim.py): ms per stereo pair and pairs per second.
 
-Renders ``--pairs`` consecutive frames of the default yard (seed 1) off the clock
-(``SimRig.render``: both views, depth test, sensor noise, StereoFrame with truth), after one
-warm-up frame, with OpenCV limited to ``--threads`` threads (1 = the "one core" goal of
-≥ 60 pairs/s at 640×400). Also reports the world build time (textures, first call in the
-process) and ORB features per left image on a few frames.
+Renders ``--pairs`` consecutive frames of a world (``--world``, default the yard; seed 1) off the
+clock (``SimRig.render``: both views, depth test, the moving box if the world has one, sensor
+noise, StereoFrame with truth), after one warm-up frame, with OpenCV limited to ``--threads``
+threads (1 = the "one core" goal of ≥ 60 pairs/s at 640×400). Also reports the world build time
+(textures, first call in the process) and ORB features per left image on a few frames.
 
 Prints a Markdown table, or exactly one JSON object with --json.
 
-    python bench/sim_render.py [--pairs 300] [--width 640] [--height 400] [--threads 1] [--json]
+    python bench/sim_render.py [--world yard] [--pairs 300] [--width 640] [--height 400] [--threads 1] [--json]
 """
 
 from __future__ import annotations
@@ -27,15 +27,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.sim import SimParams, SimRig
-from drivers.simworld import build_world
+from drivers.simworld import WORLDS, build_world
 
 
-def run(pairs: int, width: int, height: int, threads: int, seed: int) -> dict:
+def run(pairs: int, width: int, height: int, threads: int, seed: int, world_name: str = "yard") -> dict:
     cv2.setNumThreads(threads)
     t = time.perf_counter()
-    world = build_world(seed)
+    world = build_world(seed, world_name)
     build_s = time.perf_counter() - t
-    rig = SimRig(world, SimParams(width=width, height=height, seed=seed, realtime=0))
+    rig = SimRig(world, SimParams(width=width, height=height, seed=seed, realtime=0, world=world_name))
     rig.render(0, 0)  # warm-up: first touches of the textures
     ms = np.empty(pairs)
     for k in range(pairs):
@@ -45,6 +45,7 @@ def run(pairs: int, width: int, height: int, threads: int, seed: int) -> dict:
     orb = cv2.ORB_create(nfeatures=2000)
     feats = [len(orb.detect(rig.render(int(k), 0)[0].left, None)) for k in np.linspace(0, 850, 8).astype(int)]
     return {
+        "world": world_name,
         "width": width,
         "height": height,
         "pairs": pairs,
@@ -68,14 +69,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--height", type=int, default=400)
     ap.add_argument("--threads", type=int, default=1, help="cv2.setNumThreads (0 = OpenCV default)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--world", choices=WORLDS, default="yard")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    res = run(args.pairs, args.width, args.height, args.threads, args.seed)
+    res = run(args.pairs, args.width, args.height, args.threads, args.seed, args.world)
     if args.json:
         print(json.dumps(res))
         return 0
     print(
-        f"sim:// render, {res['width']}×{res['height']}, {res['pairs']} pairs, cv2 threads {res['cv2_threads']}, "
+        f"sim:// render, world {res['world']}, {res['width']}×{res['height']}, {res['pairs']} pairs, "
+        f"cv2 threads {res['cv2_threads']}, "
         f"{res['cpu_count']} CPUs, load {res['loadavg_1min']:.2f}\n"
     )
     print("| metric | value |\n|---|---|")

@@ -75,6 +75,17 @@ def clip_polygon_z(poly: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray:
     return poly
 
 
+def _stacked(surfaces: tuple[Surface, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Corners (S, 4, 3), normals (S, 3) and origins (S, 3) of ``surfaces``, stacked for culling."""
+    if not surfaces:
+        return np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    return (
+        np.stack([s.corners_W for s in surfaces]),
+        np.stack([s.normal_W for s in surfaces]),
+        np.stack([s.origin_W for s in surfaces]),
+    )
+
+
 class ViewRenderer:
     """Renders one pinhole view of a list of surfaces. Not thread-safe (owns scratch buffers).
 
@@ -90,29 +101,45 @@ class ViewRenderer:
         rows = np.linspace(235.0, 150.0, self.h, dtype=np.float32)[:, None]
         self.sky = np.broadcast_to(rows, (self.h, self.w)).astype(np.uint8)
         # stacked geometry for the vectorised cull
-        self._corners = np.stack([s.corners_W for s in surfaces])  # (S, 4, 3)
-        self._normals = np.stack([s.normal_W for s in surfaces])  # (S, 3)
-        self._origins = np.stack([s.origin_W for s in surfaces])  # (S, 3)
+        self._corners, self._normals, self._origins = _stacked(surfaces)
         # frustum side-plane slopes with a one-pixel margin: |x/z| ≤ tx, |y/z| ≤ ty (roughly, per side)
         self._x_lo = (-1.0 - self.px) / self.f
         self._x_hi = (self.w - self.px) / self.f
         self._y_lo = (-1.0 - self.py) / self.f
         self._y_hi = (self.h - self.py) / self.f
 
-    def render(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Render from the optical-frame pose ``T_world_cam`` (4, 4).
+    def render(self, T_world_cam: np.ndarray, moving: tuple[Surface, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
+        """Render from the optical-frame pose ``T_world_cam`` (4, 4), with ``moving`` surfaces
+        (already placed in the world frame for this instant) drawn as well, depth-tested with the rest.
 
         Returns (image (H, W) uint8, inverse depth (H, W) float32 [1/m], 0 where nothing is hit).
         """
         R_cw = T_world_cam[:3, :3].T
         t_cw = -R_cw @ T_world_cam[:3, 3]
-        cam_W = T_world_cam[:3, 3]
         img = self.sky.copy()
         izbuf = np.zeros((self.h, self.w), np.float32)
+        groups = [(self.surfaces, self._corners, self._normals, self._origins)]
+        if moving:
+            groups.append((moving, *_stacked(moving)))
+        for surfaces, corners, normals, origins in groups:
+            cc, inside = self._cull(corners, normals, origins, R_cw, t_cw, T_world_cam[:3, 3])
+            for i in np.flatnonzero(inside):
+                self._draw_surface(surfaces[i], cc[i], R_cw, t_cw, img, izbuf)
+        return img, izbuf
 
-        # vectorised culling: back faces, fully behind the near plane, fully outside a side plane
-        facing = np.einsum("si,si->s", self._normals, cam_W - self._origins) > 1e-9
-        cc = self._corners @ R_cw.T + t_cw  # (S, 4, 3) camera frame
+    def _cull(
+        self,
+        corners: np.ndarray,
+        normals: np.ndarray,
+        origins: np.ndarray,
+        R_cw: np.ndarray,
+        t_cw: np.ndarray,
+        cam_W: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised culling: back faces, fully behind the near plane, fully outside a side plane.
+        Returns the corners in the camera frame (S, 4, 3) and the mask of surfaces to draw (S,)."""
+        facing = np.einsum("si,si->s", normals, cam_W - origins) > 1e-9
+        cc = corners @ R_cw.T + t_cw  # (S, 4, 3) camera frame
         z = cc[..., 2]
         x, y = cc[..., 0], cc[..., 1]
         inside = (
@@ -123,9 +150,7 @@ class ViewRenderer:
             & ~np.all(y < self._y_lo * z, axis=1)
             & ~np.all(y > self._y_hi * z, axis=1)
         )
-        for i in np.flatnonzero(inside):
-            self._draw_surface(self.surfaces[i], cc[i], R_cw, t_cw, img, izbuf)
-        return img, izbuf
+        return cc, inside
 
     def _draw_surface(
         self, s: Surface, poly_C: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, img: np.ndarray, izbuf: np.ndarray

@@ -4,6 +4,21 @@ The daemon's built-in default source: ``robotd run`` with no configuration drive
 through a textured walled yard (drivers/simworld.py) and renders what its OAK-D-like stereo rig
 sees (drivers/_render.py). Every StereoFrame carries ``truth_T_world_robot``.
 
+Worlds (``world=``), each the walled yard with a trajectory; the last three are the hard cases
+real data is short of (docs/sim.md has the layouts and timings):
+
+- ``yard``: the default; a 28.5 m peanut-shaped loop, gentle curves, never stopping.
+- ``turn_in_place``: straight legs round a 6 × 3 m parallelogram; at each corner the rover
+  brakes to a stop and yaws 98° or 82° on the spot at up to 90 °/s (``speed`` scales both),
+  then drives on. The first turn is at t = 2.0–3.4 s.
+- ``moving_box``: the loop, in a wider yard, with a moving box (a 1.4 × 2.4 × 1.3 m van) that
+  drives across the rover's path 3 m ahead of it, from the right of the view to the left,
+  covering up to ≈ 54 % of the image (first crossing in view at t ≈ 2.3–5.0 s, then every half
+  lap). It is rendered in both images at the frame's instant and is not part of
+  ``World.surfaces`` (the static scene).
+- ``low_texture``: the loop with the yard's east end bare (plain walls, bare concrete, no
+  obstacles); the rover faces it for ≈ 1.5 s: fewer than 100 ORB features from t ≈ 3.9 to 5.4 s.
+
 URL: ``sim://[WORLD]?key=value&...`` (all keys optional; one URL can serve camera and vehicle):
 
 ========== ======== ===================================================================
@@ -15,8 +30,8 @@ fps        30       frame rate [Hz] (0.1..1000)
 f          430·w/640  focal length [px] (keeps the OAK-D's ≈ 73° field of view)
 baseline   0.0755   stereo baseline [m]
 seed       1        world layout, textures and noise (integer ≥ 0)
-world      yard     world name (also accepted as the URL's host: ``sim://yard``)
-speed      1.0      mean rover speed [m/s] (0..5)
+world      yard     yard, turn_in_place, moving_box or low_texture (also the URL's host: ``sim://yard``)
+speed      1.0      mean rover speed [m/s] (0..5); turn_in_place: on the straights, and turns × speed
 tilt       0        terrain rocking amplitude, roll and pitch [deg] (0..10)
 duration   0        stop after this many simulated seconds; 0 = run forever
 realtime   1        1: emit at capture times on time.monotonic_ns(); 0: as fast as pulled
@@ -25,6 +40,7 @@ gyro_noise 0.005    gyro white noise σ [rad/s] (per sample)
 gyro_bias  0.002    gyro bias σ [rad/s], drawn once per seed and held constant
 odom_hz    50       odometry rate [Hz] (1..1000)
 img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
+odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -89,6 +105,7 @@ class SimParams:
     gyro_bias: float = 0.002
     odom_hz: float = 50.0
     img_noise: float = 2.0
+    odometry: int = 1
 
     @property
     def f_px(self) -> float:
@@ -118,6 +135,7 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "gyro_bias": (float, 0.0, 1.0),
     "odom_hz": (float, 1.0, 1000.0),
     "img_noise": (float, 0.0, 50.0),
+    "odometry": (int, 0, 1),
 }
 
 
@@ -246,6 +264,7 @@ class SimRig:
         w, h = params.width, params.height
         self.model = RectifiedStereo(params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, params.baseline, w, h)
         self._renderer = ViewRenderer(world.surfaces, self.model.f_px, self.model.px, self.model.py, w, h)
+        self._movers_only: ViewRenderer | None = None
         b = params.baseline
         self.T_robot_left = se3(R_ROBOT_OPTICAL, np.array([0.0, -b / 2.0, 0.0]))
         self.T_robot_right = se3(R_ROBOT_OPTICAL, np.array([0.0, b / 2.0, 0.0]))
@@ -281,9 +300,11 @@ class SimRig:
         """Frame ``k`` stamped ``t_ns``, and the left camera's depth buffer (H, W) float32 [m]
         (Z along the optical axis = X_r depth; +inf where nothing was hit; None when ``depth`` is
         False: the camera's frame stream does not need it)."""
-        T_world_robot = self.world.trajectory.state(self.frame_time_s(k)).T_world_robot
-        left, iz = self._renderer.render(T_world_robot @ self.T_robot_left)
-        right, _ = self._renderer.render(T_world_robot @ self.T_robot_right)
+        t_s = self.frame_time_s(k)
+        T_world_robot = self.world.trajectory.state(t_s).T_world_robot
+        moving = self.world.moving_surfaces(t_s)  # one instant for both views: a synchronised pair
+        left, iz = self._renderer.render(T_world_robot @ self.T_robot_left, moving)
+        right, _ = self._renderer.render(T_world_robot @ self.T_robot_right, moving)
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)
@@ -293,6 +314,23 @@ class SimRig:
         with np.errstate(divide="ignore"):
             z = np.where(iz > 0, 1.0 / iz, np.inf).astype(np.float32)
         return frame, z
+
+    def moving_mask(self, k: int) -> np.ndarray:
+        """(H, W) bool: the pixels of frame ``k``'s left image that show a moving object (not
+        hidden behind the static scene); all False in a world without movers. For tests and
+        evaluation (which features sat on the moving box); it renders the view twice."""
+        t_s = self.frame_time_s(k)
+        moving = self.world.moving_surfaces(t_s)
+        if not moving:
+            return np.zeros((self.params.height, self.params.width), bool)
+        T_world_cam = self.world.trajectory.state(t_s).T_world_robot @ self.T_robot_left
+        _, iz_all = self._renderer.render(T_world_cam, moving)
+        if self._movers_only is None:
+            m = self.model
+            self._movers_only = ViewRenderer((), m.f_px, m.px, m.py, m.width, m.height)
+        _, iz_mov = self._movers_only.render(T_world_cam, moving)
+        # the same plane, pixel and float32 arithmetic: where the mover won the depth test, equal
+        return (iz_mov > 0) & (iz_mov >= iz_all)
 
 
 # --------------------------------------------------------------------------------------------
@@ -481,9 +519,12 @@ class SimVehicle(Driver):
         with self._lock:
             if self._session is None:
                 self._session = _acquire(self.params, self._t0_request)
-                logger.info(
-                    "sim vehicle %s: odometry @ %g Hz, noise=%g", self.url, self.params.odom_hz, self.params.noise
-                )
+                if self.params.odometry:
+                    logger.info(
+                        "sim vehicle %s: odometry @ %g Hz, noise=%g", self.url, self.params.odom_hz, self.params.noise
+                    )
+                else:
+                    logger.info("sim vehicle %s: no odometry (odometry=0)", self.url)
 
     def close(self) -> None:
         self._closed.set()
@@ -526,6 +567,8 @@ class SimVehicle(Driver):
             return
         self.open()
         p = self.params
+        if not p.odometry:
+            return  # odometry=0: a rover without wheel odometry (vision only); poses still go to the autopilot
         t0 = self.t0_ns
         j = self._next_j
         while not self._closed.is_set():

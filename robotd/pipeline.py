@@ -17,6 +17,7 @@ reports as pruned (``UpdateReport.pruned_ids``).
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,8 +29,9 @@ from robotd.errors import PersistenceError, RobotdError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening
+from robotd.frontend.pnp import MotionPrior, motion_prior
 from robotd.frontend.stereo_match import StereoMatches
-from robotd.geometry import se3, so3_exp
+from robotd.geometry import se3, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import Relocaliser
 from robotd.slam.estimator import Estimator
@@ -41,6 +43,7 @@ from robotd.timing import StageClock
 logger = logging.getLogger(__name__)
 
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
+VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
 
 
@@ -101,6 +104,13 @@ class Pipeline:
         self.max_features = cfg.frontend.max_features
         self._last_t_ns: int | None = None
         self._last_inc: MotionIncrement | None = None
+        # the constant-velocity model: the filter's last pose (t_ns, T_world_robot) and its motion
+        # over the last measured interval (R, t, dt_s); whether this frame's prior was measured
+        self._last_pose: tuple[int, np.ndarray] | None = None
+        self._velocity: tuple[np.ndarray, np.ndarray, float, float, float] | None = None
+        self._measured: MotionIncrement | None = None
+        # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
+        self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
 
     @property
     def tracking(self) -> bool:
@@ -118,7 +128,12 @@ class Pipeline:
         feats = clock.run("detect", fe.detect, frame.left, frame.right)
         meas = clock.run("stereo", fe.match_stereo, feats, frame.left, frame.right)
         # the motion prior: odometry, else the visual motion from the previous frame, else constant velocity
-        visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None)
+        # (with odometry too: its outliers are points that moved, on a vehicle, and are not mapped)
+        pnp = self.cfg.frontend.motion == "pnp"
+        prior = (
+            (self._motion_prior(frame.t_ns) if increment is None else self._odometry_prior(increment)) if pnp else None
+        )
+        visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None or pnp, prior)
         inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else self._view_prior(landmarks, inc)
@@ -128,7 +143,10 @@ class Pipeline:
         if relocalising and not clock.run("relocalise", self._relocalise, screen):
             fe.commit(meas, ident, frame.t_ns, NO_NEW)  # not found in the map yet: leave the map as it is
             return self._result(frame, clock, counts, UpdateReport(), est.estimate(), self.tracker.suspend(), 0)
-        obs = clock.run("select", self._select, meas, ident, frame.t_ns)
+        # points seen to move since the previous frame are not mapped; on vision alone, when the
+        # images gave no motion, nothing is known to move (the bare stretch needs its landmarks)
+        moving = visual.moving if (visual.increment is not None or increment is not None) else None
+        obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
         # predict with the motion prior, then fuse the frame's observations
         clock.run("predict", self._predict, inc)
         report = clock.run("update", self._update, obs, landmarks)
@@ -136,9 +154,58 @@ class Pipeline:
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
+        self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising)
 
     # ---------------------------------------------------------------- the stages
+    def _motion_prior(self, t_ns: int) -> MotionPrior | None:
+        """The constant-velocity prediction of the motion since the last frame, with the vehicle's
+        physical bounds (robotd.frontend.pnp.motion_prior): the filter's motion over the last
+        measured interval (odometry or visual motion), scaled to this one."""
+        if self._velocity is None or self._last_pose is None or t_ns <= self._last_pose[0]:
+            return None
+        R, t, dt_s, sd_t, sd_r = self._velocity
+        return motion_prior(R, t, dt_s, (t_ns - self._last_pose[0]) * 1e-9, self.frontend.params.pnp, sd_t, sd_r)
+
+    def _odometry_prior(self, odo: MotionIncrement) -> MotionPrior:
+        """The odometry's increment as the motion the images are checked against: within 3σ of
+        its covariance, plus the acceleration bounds over the interval (a zero covariance: the
+        bounds alone)."""
+        p = self.frontend.params.pnp
+        dt = max(odo.t1_ns - odo.t0_ns, 0) * 1e-9
+        C = np.asarray(odo.cov, float)
+        tol_t = 3.0 * math.sqrt(max(float(np.trace(C[:3, :3])), 0.0)) + p.max_accel_mps2 * dt * dt + 0.005
+        tol_r = 3.0 * math.sqrt(max(float(np.trace(C[3:, 3:])), 0.0)) + p.max_angular_accel_radps2 * dt * dt
+        R = so3_exp(odo.drot_R_rad)
+        return MotionPrior(R, np.asarray(odo.dp_R_m, float), tol_t, tol_r + math.radians(0.2), binding=True)
+
+    def _track_velocity(self, t_ns: int, T: np.ndarray, relocalising: bool) -> None:
+        """After the update: the velocity is the mean of the last measured increments (odometry or
+        visual motion, up to ``VELOCITY_INTERVALS``), each weighted by its information; an
+        interval without a measured increment keeps the velocity, so one frame without measured
+        motion or one poor map update cannot become the model for the next frames."""
+        if relocalising:
+            self._last_pose, self._velocity, self._rates = None, None, []
+            return
+        inc = self._measured
+        if inc is not None and inc.t1_ns > inc.t0_ns:
+            dt = (inc.t1_ns - inc.t0_ns) * 1e-9
+            C = np.asarray(inc.cov, float)
+            if not np.any(C):  # the motion model's noise: a nominal 1 cm and 0.5° per interval
+                C = np.diag([1e-4 / 3] * 3 + [math.radians(0.5) ** 2 / 3] * 3)
+            # rates per second, weighted by their information (var of a rate: trace(C) / dt²)
+            w_t = dt * dt / max(float(np.trace(C[:3, :3])), 1e-12)
+            w_r = dt * dt / max(float(np.trace(C[3:, 3:])), 1e-14)
+            rate = (np.asarray(inc.drot_R_rad, float) / dt, np.asarray(inc.dp_R_m, float) / dt, w_r, w_t)
+            self._rates = [*self._rates[-(VELOCITY_INTERVALS - 1) :], rate]
+            wr = np.array([r[2] for r in self._rates])
+            wt = np.array([r[3] for r in self._rates])
+            omega = (wr[:, None] * np.array([r[0] for r in self._rates])).sum(0) / wr.sum()
+            vel = (wt[:, None] * np.array([r[1] for r in self._rates])).sum(0) / wt.sum()
+            # over the last interval, with the σ of the weighted means
+            self._velocity = (so3_exp(omega * dt), vel * dt, dt, dt / math.sqrt(wt.sum()), dt / math.sqrt(wr.sum()))
+        self._last_pose = (t_ns, T)
+
     def _view_prior(self, landmarks: LandmarkMap, inc: MotionIncrement | None) -> np.ndarray | None:
         """The predicted pose (the last estimate moved by the motion prior) that restricts
         identification to the landmarks predicted in view and guides the search for them."""
@@ -151,6 +218,7 @@ class Pipeline:
 
     def _relocalise(self, screen: Screening) -> bool:
         fixed = self.relocaliser.attempt(screen.result, screen.similarity, self.estimator)
+        self._last_pose, self._velocity, self._rates = None, None, []
         if fixed:
             self._last_inc = None
             self.counters.relocalisations += 1
@@ -158,14 +226,21 @@ class Pipeline:
             self.counters.relocalisation_failures += 1
         return fixed
 
-    def _select(self, meas: StereoMatches, ident: Identification, t_ns: int) -> Observations:
+    def _select(
+        self, meas: StereoMatches, ident: Identification, t_ns: int, moving: np.ndarray | None = None
+    ) -> Observations:
         """Cap the filter's work per frame (slam.max_updates_per_frame, slam.max_new_per_frame): a
         spread subset of the identified measurements, and the nearest new ones (smallest
         covariance: the most precise landmarks to start from). The chosen new measurements become
-        landmarks (global ids); the others are left out."""
+        landmarks (global ids); the others are left out. ``moving``: measurements seen to move
+        since the previous frame (the outliers of the rover's motion) do not become landmarks:
+        the nearest points, first in line, are often on a vehicle."""
         status = ident.corr.status
         k_upd, k_new = self.cfg.slam.max_updates_per_frame, self.cfg.slam.max_new_per_frame
         old, new = np.flatnonzero(status == IDENTIFIED), np.flatnonzero(status == NEW)
+        if moving is not None:
+            new = new[~np.isin(new, moving)]
+            old = old[~np.isin(old, moving)]
         if old.size > k_upd:
             old = np.sort(self.rng.choice(old, size=k_upd, replace=False))
         if new.size > k_new:
@@ -212,14 +287,24 @@ class Pipeline:
     def _choose_increment(
         self, odo: MotionIncrement | None, vis: MotionIncrement | None, t_ns: int
     ) -> MotionIncrement | None:
+        self._measured = None
         if self._last_t_ns is None:
             return None
         if odo is not None:
             self.counters.odometry_priors += 1
+            self._measured = odo
             return odo
         if vis is not None and vis.t0_ns == self._last_t_ns:
             self.counters.visual_priors += 1
+            self._measured = vis
             return vis
+        cv = self._motion_prior(t_ns)
+        if cv is not None:
+            # constant velocity: the filter's last motion (its poses, corrected by the map), scaled
+            # to this interval, uncertain by what the vehicle's acceleration limits allow
+            self.counters.constant_velocity_priors += 1
+            sd = np.r_[np.full(3, cv.tol_t_m / 2.0), np.full(3, cv.tol_rot_rad / 2.0)]
+            return MotionIncrement(self._last_t_ns, t_ns, cv.t, so3_log(cv.R), np.diag(sd * sd))
         if self._last_inc is not None:
             # constant velocity: repeat the last increment, scaled to this interval
             self.counters.constant_velocity_priors += 1
@@ -298,3 +383,4 @@ class Pipeline:
         # the saved pose may be stale (the rover moved while robotd was down): find it in the map
         self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)
         self._last_t_ns = None
+        self._last_pose, self._velocity, self._rates = None, None, []

@@ -13,6 +13,8 @@ odometry would arrive (``drivers.kitti_oxts``); a folder without them stays visu
 summary's ``odometry`` says which was used ("none", "oxts", "sim", "gt-synthetic", or a recording's
 source). ``gt_odometry=True`` synthesises odometry from ground truth with documented noise, for
 experiments only; such runs are labelled in the summary and never reported as results.
+A ``sim://`` source runs with its rover's own noisy odometry; ``odometry=0`` in its URL makes that
+rover give none, so the same world runs on vision alone (docs/sim.md).
 """
 
 from __future__ import annotations
@@ -144,7 +146,8 @@ def replay(
         elif source.endswith(".mcap") or source.startswith("mcap://"):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
         elif source.startswith("sim://"):
-            # the simulated rover's own noisy odometry (same world and clock as its camera)
+            # the simulated rover's own noisy odometry (same world and clock as its camera);
+            # none with odometry=0 in the URL (vision only)
             vehicle = stack.enter_context(drivers.open_vehicle(url))
         elif source.startswith("kitti://") and cfg.replay.odometry == "dataset":
             vehicle = stack.enter_context(drivers.open_vehicle(_recorded_odometry_url(url, cfg)))

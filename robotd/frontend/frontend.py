@@ -41,7 +41,7 @@ from robotd.frontend.association import (
 )
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
 from robotd.frontend.features import Features
-from robotd.frontend.pnp import PnpParams, stereo_pnp
+from robotd.frontend.pnp import MotionPrior, PnpParams, stereo_pnp
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
@@ -145,12 +145,16 @@ class VisualMotion:
     T_prev_curr: (4, 4) rigid motion T_{R(t−1) R(t)}, or None; increment: the same as a
     MotionIncrement (dp_R_m = translation in R(t−1), drot_R_rad = rotation vector, cov 6×6 over
     (dp, drot) from the Gauss–Newton information), or None; counts: motion_matches and
-    motion_inliers (empty when the stage did not run).
+    motion_inliers (empty when the stage did not run); moving: indices of this frame's
+    measurements that were matched to the previous frame but did not move with the rover (the
+    outliers of its motion: a moving vehicle, or a false match), all the matched ones when the
+    images gave no motion, None when the stage did not run or found no match.
     """
 
     T_prev_curr: np.ndarray | None
     increment: MotionIncrement | None
     counts: dict[str, int]
+    moving: np.ndarray | None = None
 
 
 NO_SCREENING = Screening(None, None)
@@ -381,9 +385,13 @@ class Frontend:
         corr.status[cand[~inl]] = REJECTED
         return Screening(res, res.T_b_a() if (res.accepted and ident.ref_is_map) else None)
 
-    def visual_motion(self, meas: StereoMatches, t_ns: int, wanted: bool = True) -> VisualMotion:
+    def visual_motion(
+        self, meas: StereoMatches, t_ns: int, wanted: bool = True, prior: MotionPrior | None = None
+    ) -> VisualMotion:
         """Frame-to-frame motion from direct descriptor matches to the previous frame's measurements
-        (skipped when not ``wanted``: the vehicle gave odometry)."""
+        (skipped when not ``wanted``: the vehicle gave odometry). ``prior``: the constant-velocity
+        prediction of this motion with its physical bounds (PnP only: it picks the static
+        background over a moving vehicle, robotd.frontend.pnp)."""
         if not wanted:
             return VisualMotion(None, None, {})
         counts = {"motion_matches": 0, "motion_inliers": 0}
@@ -406,17 +414,20 @@ class Frontend:
         if p.motion_method == "pnp":
             z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
-            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng)
+            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng, prior)
             if pnp is None:
-                return VisualMotion(None, None, counts)
+                return VisualMotion(None, None, counts, ic if ic.size else None)
             counts["motion_inliers"] = int(pnp.inliers.sum())
             R, t, cov_tr = pnp.R, pnp.t, pnp.cov
+            moving: np.ndarray | None = ic[~pnp.inliers]
         else:
             fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)
             if fit is None:
                 return VisualMotion(None, None, counts)
             R, t, cov_tr = fit
-        return VisualMotion(se3(R, t), MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr), counts)
+            moving = None
+        inc = MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr)
+        return VisualMotion(se3(R, t), inc, counts, moving)
 
     def _similarity_motion(
         self, meas: StereoMatches, prev: StereoMatches, ic: np.ndarray, ip: np.ndarray, counts: dict[str, int]

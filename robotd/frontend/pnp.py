@@ -20,6 +20,17 @@ point's depth is uncertain, its pixels are not). Three stages:
 3. The covariance (6×6 over (t, rotation vector)) from the Gauss–Newton information with the
    residual variance the fit actually left (never below the configured pixel noise).
 
+A moving vehicle close to the camera can cover more of the image than the static background
+(the simulated van covers up to 54 %), and then it wins any count of cells or inliers. What tells
+the two apart is physics: the rover cannot change its velocity between two frames by more than
+its largest acceleration allows. Given a constant-velocity prediction of the motion
+(:class:`MotionPrior`), the prediction itself is scored as a hypothesis too, and the best
+hypothesis within the physical bounds of the prediction wins over a larger implausible one when
+its consensus is substantial (``prior_min_cells``, ``prior_cell_ratio`` of the best's cells). When
+no plausible consensus is substantial (a bump, a collision, a wrong prediction), the best
+hypothesis wins as before: the prediction decides between consensus sets, it never vetoes the
+images.
+
 Pure numpy, vectorised over hypotheses and pairs.
 """
 
@@ -32,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robotd.errors import ConfigError
-from robotd.geometry import skew, so3_exp, umeyama_batch
+from robotd.geometry import skew, so3_exp, so3_log, umeyama_batch
 from robotd.outliers import iteration_budget, sample_indices
 from robotd.stereo import RectifiedStereo
 
@@ -57,6 +68,12 @@ class PnpParams:
     lo_hypotheses, lo_gn_iterations: local optimisation: the best hypotheses of each batch are
       re-fitted on their inliers (this many Gauss–Newton passes) before they compete.
     min_sample_dist_m: a sample whose points are closer than this to each other is degenerate.
+    max_accel_mps2, max_angular_accel_radps2: the vehicle's physical limits, which bound how far
+      the motion can be from the constant-velocity prediction (|Δt| ≤ a dt², |Δθ| ≤ α dt², plus
+      the prediction's own uncertainty, :func:`motion_prior`).
+    prior_min_cells, prior_cell_ratio: a consensus within those bounds wins over a larger one
+      outside them when it holds an inlier in at least this many cells and this fraction of the
+      larger one's cells.
     """
 
     inlier_px: float = 2.0
@@ -73,6 +90,10 @@ class PnpParams:
     cov_scale: float = 3.0
     lo_gn_iterations: int = 2
     min_sample_dist_m: float = 0.05
+    max_accel_mps2: float = 10.0
+    max_angular_accel_radps2: float = 10.0
+    prior_min_cells: int = 3
+    prior_cell_ratio: float = 0.25
 
     def __post_init__(self) -> None:
         if not (self.inlier_px > 0 and self.sigma_px > 0 and self.cov_scale > 0):
@@ -84,6 +105,55 @@ class PnpParams:
             raise ConfigError("pnp: expected max_iterations, batch, min_inliers, grid_rows, grid_cols >= 1")
         if not 0.0 < self.p_success < 1.0:
             raise ConfigError(f"pnp: expected p_success in (0, 1), got {self.p_success}")
+        if not (self.max_accel_mps2 > 0 and self.max_angular_accel_radps2 > 0):
+            raise ConfigError("pnp: expected max_accel_mps2, max_angular_accel_radps2 > 0")
+        if not 0.0 <= self.prior_cell_ratio <= 1.0:
+            raise ConfigError(f"pnp: expected prior_cell_ratio in [0, 1], got {self.prior_cell_ratio}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MotionPrior:
+    """The predicted motion T_prev_curr (R, t) and how far the true motion can physically be from
+    it: |t − t_pred| ≤ tol_t_m and the angle of R_predᵀ R ≤ tol_rot_rad. ``binding``: the
+    prediction is a measurement (the vehicle's odometry), so no consensus outside the bounds is
+    taken, however large: it is a moving object."""
+
+    R: np.ndarray
+    t: np.ndarray
+    tol_t_m: float
+    tol_rot_rad: float
+    binding: bool = False
+
+    def plausible(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K,) for hypotheses R (K, 3, 3), t (K, 3)."""
+        dt = np.linalg.norm(t - self.t, axis=-1)
+        # angle of R_predᵀ R from its trace
+        c = (np.einsum("ij,kij->k", self.R, R.reshape(-1, 3, 3)) - 1.0) / 2.0
+        ang = np.arccos(np.clip(c, -1.0, 1.0))
+        return (dt <= self.tol_t_m) & (ang <= self.tol_rot_rad)
+
+
+def motion_prior(
+    R_last: np.ndarray,
+    t_last: np.ndarray,
+    dt_last_s: float,
+    dt_s: float,
+    p: PnpParams,
+    sd_t_m: float = 0.0,
+    sd_rot_rad: float = 0.0,
+) -> MotionPrior:
+    """The constant-velocity prediction of this interval's motion from the last one (R_last,
+    t_last over dt_last_s, with standard deviations sd_t_m, sd_rot_rad), and its physical bounds:
+    the acceleration limits over the interval (a dt², α dt²), plus 1σ of the last motion's own
+    error, plus 5 % of the predicted motion and 5 mm / 0.2° for what that σ leaves out."""
+    k = dt_s / max(dt_last_s, 1e-6)
+    w = so3_log(R_last) * k
+    t = t_last * k
+    tol_t = p.max_accel_mps2 * dt_s * dt_s + sd_t_m * k + 0.05 * float(np.linalg.norm(t)) + 0.005
+    tol_r = (
+        p.max_angular_accel_radps2 * dt_s * dt_s + sd_rot_rad * k + 0.05 * float(np.linalg.norm(w)) + math.radians(0.2)
+    )
+    return MotionPrior(so3_exp(w), t, tol_t, tol_r)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -251,12 +321,14 @@ def stereo_pnp(
     rig: RectifiedStereo,
     p: PnpParams,
     rng: np.random.Generator,
+    prior: MotionPrior | None = None,
 ) -> PnpResult | None:
     """The motion T_prev_curr from pairs (P_i in R(t−1), z_i pixels of frame t), or None.
 
     P (N, 3) [m]: the previous frame's points; z (N, 3) [px] = (x_l, x_r, y) of frame t; q_curr
     (N, 3) [m]: the current frame's own triangulation of z; z_prev (N, 3) [px]: the pixels P came
-    from. Hypotheses are scored, and refined, on the reprojection errors both ways.
+    from. Hypotheses are scored, and refined, on the reprojection errors both ways. ``prior``: the
+    predicted motion and its physical bounds (module docstring), or None.
     """
     n = P.shape[0]
     if n < max(p.min_inliers, 3):
@@ -264,10 +336,39 @@ def stereo_pnp(
     thr2 = p.inlier_px**2
     cell = _cells(z, rig, p)
     n_cells = p.grid_rows * p.grid_cols
-    best = (-1, -1, 0.0)  # (cells, inliers, −cost)
+    Score = tuple[int, int, float]  # (cells, inliers, −cost): compared lexicographically
+    best: Score = (-1, -1, 0.0)
     best_Rt: tuple[np.ndarray, np.ndarray] | None = None
-    budget, done = p.max_iterations, 0
+    best_pl: Score = (-1, -1, 0.0)  # the best within the prior's bounds
+    best_pl_Rt: tuple[np.ndarray, np.ndarray] | None = None
     lo = dataclasses.replace(p, gn_iterations=p.lo_gn_iterations)
+
+    def consider(R0: np.ndarray, t0: np.ndarray, inl0: np.ndarray) -> None:
+        """Local optimisation of one hypothesis on its inliers, then the competition."""
+        nonlocal best, best_Rt, best_pl, best_pl_Rt
+        Rj, tj, _, _, _ = refine(R0, t0, P, z, q_curr, z_prev, rig, lo, inl0)
+        e2j = _sq_errors(Rj, tj, P, z, q_curr, z_prev, rig)
+        inl_j = np.isfinite(e2j) & (e2j < thr2)
+        cand = (int(np.unique(cell[inl_j]).size), int(inl_j.sum()), -float(np.where(inl_j, e2j, thr2).sum()))
+        if cand > best:
+            best, best_Rt = cand, (Rj, tj)
+        if prior is not None and cand > best_pl and bool(prior.plausible(Rj[None], tj[None])[0]):
+            best_pl, best_pl_Rt = cand, (Rj, tj)
+
+    def prior_wins() -> bool:
+        return (
+            best_pl_Rt is not None
+            and best_pl[1] >= p.min_inliers
+            and best_pl[0] >= max(p.prior_min_cells, p.prior_cell_ratio * best[0])
+        )
+
+    if prior is not None:
+        # the prediction itself is a hypothesis (it finds the background a moving vehicle hides)
+        e2p = np.sum(reprojection_residuals(prior.R[None], prior.t[None], P, z, rig)[0] ** 2, axis=1)
+        inl_p = np.isfinite(e2p) & (e2p < thr2)
+        if inl_p.sum() >= 3:
+            consider(prior.R, prior.t, inl_p)
+    budget, done = p.max_iterations, 0
     while done < budget:
         k = min(p.batch, budget - done)
         s = sample_indices(rng, n, 3, k)
@@ -292,25 +393,38 @@ def stereo_pnp(
         key = cov.astype(np.float64) * (n + 1) * (thr2 * n + 1) + cnt * (thr2 * n + 1) - cost
         # local optimisation: the batch's leading hypotheses re-fitted on their inliers (a
         # three-point fit from noisy far points is rarely good enough to gather its whole consensus)
-        for j in np.argsort(-key)[: p.lo_hypotheses]:
-            if cnt[j] < 3:
-                continue
-            Rj, tj, inl_j, _, _ = refine(R[j], t[j], P, z, q_curr, z_prev, rig, lo, inl[j])
-            e2j = _sq_errors(Rj, tj, P, z, q_curr, z_prev, rig)
-            inl_j = np.isfinite(e2j) & (e2j < thr2)
-            cand = (
-                int(np.unique(cell[inl_j]).size),
-                int(inl_j.sum()),
-                -float(np.where(inl_j, e2j, thr2).sum()),
-            )
-            if cand > best:
-                best, best_Rt = cand, (Rj, tj)
+        lead = list(np.argsort(-key)[: p.lo_hypotheses])
+        if prior is not None:
+            # and the leading one within the prior's bounds
+            pl = np.flatnonzero(prior.plausible(R, t) & (cnt >= 3))
+            if pl.size:
+                j = int(pl[np.argmax(key[pl])])
+                if j not in lead:
+                    lead.append(j)
+        for j in lead:
+            if cnt[j] >= 3:
+                consider(R[j], t[j], inl[j])
         if best_Rt is not None:
-            need = max(p.min_iterations, iteration_budget(best[1] / n, 3, p.p_success, p.max_iterations))
+            ratio = best[1] / n
+            if prior is not None and best_pl_Rt is not best_Rt and not prior_wins():
+                # a larger consensus outside the bounds: keep looking for the background
+                ratio = max(best_pl[1], 0) / n
+            need = max(p.min_iterations, iteration_budget(ratio, 3, p.p_success, p.max_iterations))
             budget = min(budget, max(done, need))
-    if best_Rt is None or best[1] < p.min_inliers:
+    chosen = best_pl_Rt if prior_wins() else best_Rt
+    if chosen is None or (chosen is best_Rt and best[1] < p.min_inliers):
         return None
-    R0, t0 = best_Rt
+    if prior is not None and prior.binding and chosen is not best_pl_Rt:
+        return None
+    if (
+        prior is not None
+        and chosen is not best_pl_Rt
+        and (best[0] < 2 * p.prior_min_cells or best[1] < 2 * p.min_inliers)
+    ):
+        # a jump the vehicle cannot make, supported by a handful of matches (a bare wall, a few
+        # points on a vehicle): not a motion to trust; the constant-velocity prediction bridges
+        return None
+    R0, t0 = chosen
     e0 = _sq_errors(R0, t0, P, z, q_curr, z_prev, rig)
     R1, t1, inl, cov6, rms = refine(R0, t0, P, z, q_curr, z_prev, rig, p, np.isfinite(e0) & (e0 < thr2))
     if int(inl.sum()) < p.min_inliers or not np.all(np.isfinite(cov6)):

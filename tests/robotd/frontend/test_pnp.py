@@ -7,8 +7,10 @@ import pytest
 
 from robotd.errors import ConfigError
 from robotd.frontend.pnp import (
+    MotionPrior,
     PnpParams,
     _residuals_jacobian,
+    motion_prior,
     project_stereo,
     projection_jacobian,
     stereo_pnp,
@@ -127,3 +129,53 @@ def test_too_few_pairs_give_no_motion_and_bad_settings_are_refused():
     assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng) is None
     with pytest.raises(ConfigError, match="inlier_px"):
         PnpParams(inlier_px=0.0)
+
+
+def _van_scene(rng: np.random.Generator, van_motion: np.ndarray):
+    """A rover moving 4 cm forward; 60 background points far and spread over the image, and a
+    van of 300 points filling the left two thirds of the view 3 m ahead, moving sideways by
+    ``van_motion`` between the frames (in R(t−1))."""
+    R, t = so3_exp(np.array([0.0, 0.0, 0.004])), np.array([0.04, 0.0, 0.0])
+    bg = _scene(rng, 60)
+    van = np.c_[rng.uniform(3.0, 3.3, 300), rng.uniform(-2.6, 0.6, 300), rng.uniform(-0.6, 0.6, 300)]
+    Pb, zb, Qb, zpb = _observe(bg, R, t, rng, 0.3)
+    Pv, zv, Qv, zpv = _observe(van, R, t - van_motion, rng, 0.3)  # the van moved with it: t − v
+    return R, t, np.r_[Pb, Pv], np.r_[zb, zv], np.r_[Qb, Qv], np.r_[zpb, zpv], len(bg)
+
+
+def test_a_larger_vehicle_consensus_loses_to_the_background_the_prediction_allows():
+    """Without a prediction the van (more cells, more points) wins; with the constant-velocity
+    prediction within the acceleration bounds, the background does."""
+    rng = np.random.default_rng(11)
+    R, t, P, z, Q, zp, nb = _van_scene(rng, np.array([0.0, 0.08, 0.0]))
+    free = stereo_pnp(P, z, Q, zp, RIG, PnpParams(), np.random.default_rng(1))
+    assert free is not None and np.linalg.norm(free.t - t) > 0.05  # the van's motion
+    prior = motion_prior(R, t, 1 / 30, 1 / 30, PnpParams())
+    res = stereo_pnp(P, z, Q, zp, RIG, PnpParams(), np.random.default_rng(1), prior)
+    assert res is not None and np.linalg.norm(res.t - t) < 0.01
+    assert res.inliers[:nb].mean() > 0.7 and res.inliers[nb:].mean() < 0.05
+
+
+def test_the_prediction_never_vetoes_a_strong_consensus_but_binding_odometry_does():
+    """A prediction that is wrong (the rover braked harder than it says) with no plausible
+    consensus: the images' strong consensus is taken. Odometry is binding: nothing is taken."""
+    rng = np.random.default_rng(5)
+    R, t = so3_exp(np.array([0.0, 0.0, 0.01])), np.array([0.5, 0.0, 0.0])
+    Pp, z, Q, zp = _observe(_scene(rng, 150), R, t, rng, 0.5)
+    wrong = motion_prior(np.eye(3), np.array([1.2, 0.0, 0.0]), 0.1, 0.1, PnpParams())
+    assert not wrong.plausible(R[None], t[None])[0]
+    res = stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng, wrong)
+    assert res is not None and np.linalg.norm(res.t - t) < 0.05
+    binding = MotionPrior(wrong.R, wrong.t, wrong.tol_t_m, wrong.tol_rot_rad, binding=True)
+    assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng, binding) is None
+
+
+def test_a_weak_jump_the_vehicle_cannot_make_is_not_taken():
+    """Ten matches whose consensus asks for a 0.3 m jump at 30 fps: no motion (the
+    constant-velocity prediction bridges); without a prediction the same pairs give one."""
+    rng = np.random.default_rng(2)
+    R, t = np.eye(3), np.array([0.34, 0.0, 0.0])
+    Pp, z, Q, zp = _observe(_scene(rng, 10), R, t, rng, 0.3)
+    assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng) is not None
+    prior = motion_prior(np.eye(3), np.array([0.04, 0.0, 0.0]), 1 / 30, 1 / 30, PnpParams())
+    assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng, prior) is None

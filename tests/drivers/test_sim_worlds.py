@@ -1,0 +1,227 @@
+"""The hard-case worlds of sim:// (turn_in_place, moving_box, low_texture): each renders a usable
+stereo pair, its trajectory does what the docs say (a fast turn on the spot, a box crossing the
+view, a stretch with few features), the moving box is in both images at the frame's instant and
+never in the static scene, and everything is the same for the same seed."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers import open_camera, open_vehicle
+from drivers.sim import SimParams, SimRig
+from drivers.simworld import WORLDS, LaneCrossing, build_world
+from robotd.frontend.detectors import DetectorParams, make_detector
+from robotd.geometry import T_to_pose6, se3_inverse
+from robotd.stereo import triangulate
+
+NEW_WORLDS = ("turn_in_place", "moving_box", "low_texture")
+FPS = 30.0
+
+
+def _rig(world: str, width: int = 160, height: int = 100, seed: int = 1) -> SimRig:
+    return SimRig(build_world(seed, world), SimParams(realtime=0, world=world, width=width, height=height, seed=seed))
+
+
+def test_the_hard_cases_are_worlds_of_the_url():
+    assert set(NEW_WORLDS) < set(WORLDS)
+    with open_camera("sim://moving_box?realtime=0&width=64&height=40") as cam:
+        assert cam.params.world == "moving_box"  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("world", NEW_WORLDS)
+def test_each_world_renders_a_stereo_pair_and_starts_at_the_identity(world: str):
+    rig = _rig(world, 320, 200)
+    frame, depth = rig.render(15, 0)
+    assert frame.truth_T_world_robot is not None
+    assert np.allclose(rig.world.trajectory.state(0.0).T_world_robot, np.eye(4), atol=1e-12)
+    assert frame.left.shape == frame.right.shape == (200, 320) and not np.array_equal(frame.left, frame.right)
+    assert np.isfinite(depth).mean() > 0.5  # surfaces, not sky
+    # ORB matches are row-aligned, as on the rectified rig
+    orb = cv2.ORB_create(500)
+    kl, dl = orb.detectAndCompute(frame.left, None)
+    kr, dr = orb.detectAndCompute(frame.right, None)
+    m = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+    dy = np.array([kl[x.queryIdx].pt[1] - kr[x.trainIdx].pt[1] for x in m])
+    assert np.median(np.abs(dy[np.abs(dy) < 3])) < 0.5
+
+
+@pytest.mark.parametrize("world", NEW_WORLDS)
+def test_same_seed_same_frames_other_seed_other_world(world: str):
+    a, _ = _rig(world).render(100, 7)
+    b, _ = _rig(world).render(100, 7)
+    assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+    assert np.array_equal(a.truth_T_world_robot, b.truth_T_world_robot)
+    c, _ = _rig(world, seed=2).render(100, 7)
+    assert np.mean(np.abs(a.left.astype(int) - c.left.astype(int))) > 10
+
+
+@pytest.mark.parametrize("world", NEW_WORLDS)
+def test_camera_and_vehicle_share_the_world_and_its_clock(world: str):
+    url = f"sim://{world}?realtime=0&width=64&height=40"
+    with open_camera(url) as cam, open_vehicle(url) as veh:
+        frames = cam.frames()
+        for _ in range(4):
+            f = next(frames)
+        assert np.array_equal(veh.truth_T_world_robot(f.t_ns), f.truth_T_world_robot)  # type: ignore[attr-defined]
+
+
+# --------------------------------------------------------------------------------------------
+# turn_in_place
+
+
+def _turns(yaw: np.ndarray, dt: float, threshold_degps: float = 5.0) -> list[tuple[int, int]]:
+    """(first, last) sample indices of each run where |dyaw/dt| exceeds the threshold."""
+    fast = np.abs(np.degrees(np.diff(yaw)) / dt) > threshold_degps
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], fast.astype(int), [0]])))
+    return list(zip(edges[::2], edges[1::2], strict=True))
+
+
+def test_turn_in_place_stops_yaws_fast_on_the_spot_and_drives_on():
+    traj = build_world(1, "turn_in_place").trajectory
+    dt = 1.0 / 100.0
+    ts = np.arange(0.0, 10.0, dt)
+    T = [traj.state(float(t)).T_world_robot for t in ts]
+    yaw = np.unwrap([T_to_pose6(x)[5] for x in T])
+    xyz = np.array([x[:3, 3] for x in T])
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / dt
+    turns = _turns(yaw, dt)
+    assert len(turns) == 2, turns  # 98° at 2.0–3.4 s, 82° at 7.4–8.6 s
+    assert ts[turns[0][0]] < 2.5  # early enough for short test runs
+    for a, b in turns:
+        angle = math.degrees(yaw[b] - yaw[a])
+        peak = np.max(np.abs(np.degrees(np.diff(yaw[a : b + 1])))) / dt
+        assert 80.0 <= angle <= 100.0, angle  # right turns (FRD: positive yaw)
+        assert 60.0 <= peak <= 95.0, peak
+        assert np.linalg.norm(xyz[b] - xyz[a]) < 1e-3  # on the spot
+        assert speed[max(0, a - 5) : b].max() < 0.05  # stopped before and during the turn
+        assert speed[b : b + 200].max() > 0.9  # and driving on within 2 s
+    assert abs(math.degrees(yaw[turns[0][1]] - yaw[turns[0][0]]) - 98.0) < 0.5
+    # the trajectory's own account of its turns (for evaluations) agrees with the poses
+    windows = traj.turn_windows(10.0)  # type: ignore[attr-defined]
+    assert len(windows) == len(turns)
+    for (t0, t1, angle), (a, b) in zip(windows, turns, strict=True):
+        # the 5 °/s threshold cuts the sin² ramps' first and last 0.05 s (0.1° of the turn)
+        assert abs(t0 - ts[a]) <= 0.06 and abs(t1 - ts[b]) <= 0.06
+        assert angle == pytest.approx(yaw[b] - yaw[a], abs=math.radians(0.3))
+
+
+def test_turn_in_place_speed_scales_time():
+    slow = build_world(1, "turn_in_place", speed_mps=0.5).trajectory
+    fast = build_world(1, "turn_in_place", speed_mps=1.0).trajectory
+    for t in (0.7, 4.4, 13.0):
+        assert np.allclose(slow.state(2 * t).T_world_robot, fast.state(t).T_world_robot, atol=1e-12)
+        assert np.allclose(2 * slow.state(2 * t).rate_R_radps, fast.state(t).rate_R_radps, atol=1e-12)
+    parked = build_world(1, "turn_in_place", speed_mps=0.0).trajectory
+    assert np.allclose(parked.state(5.0).T_world_robot, np.eye(4)) and not parked.state(5.0).vel_R_mps.any()
+
+
+def test_odometry_0_gives_a_vehicle_without_odometry_that_still_takes_poses():
+    with open_vehicle("sim://?odometry=0&realtime=1&seed=5") as veh:
+        assert list(veh.odometry()) == []  # ends at once, even in real time
+        assert veh.stats()["samples"] == 0
+        assert veh.autopilot is not None
+    with open_camera("sim://?odometry=0&realtime=0&width=64&height=40&duration=0.1") as cam:
+        assert len(list(cam.frames())) == 3  # the camera is unaffected
+
+
+# --------------------------------------------------------------------------------------------
+# moving_box
+
+
+@pytest.fixture(scope="module")
+def box_rig() -> SimRig:
+    return _rig("moving_box", 160, 100)
+
+
+def test_the_box_crosses_the_view_covering_a_large_part_of_the_image(box_rig: SimRig):
+    ks = np.arange(0, int(6.0 * FPS), 3)
+    cover = np.array([box_rig.moving_mask(int(k)).mean() for k in ks])
+    t = ks / FPS
+    assert cover.max() > 0.35, cover.max()  # ≈ 0.46 at 3.6 s
+    assert np.sum(cover > 0.2) * 3 / FPS >= 1.0  # more than a fifth of the image for over a second
+    assert np.all(cover[t > 5.3] == 0.0)  # and then it is gone
+    # it crosses the path ahead: in the robot frame its centre goes from one side to the other
+    # while ahead of the rover
+    world = box_rig.world
+    van = world.movers[0]
+    side = []
+    for tt in np.arange(1.0, 5.5, 0.1):
+        p = se3_inverse(world.trajectory.state(float(tt)).T_world_robot) @ van.pose(float(tt))[:, 3]
+        if 1.0 < p[0] < 6.0:
+            side.append(p[1])
+    assert min(side) < -1.0 and max(side) > 1.0
+
+
+def test_the_box_never_hits_the_rover_and_crosses_every_half_lap():
+    world = build_world(1, "moving_box")
+    van = world.movers[0]
+    assert isinstance(van.motion, LaneCrossing)
+    windows = [van.motion.move_window(i) for i in range(5)]
+    T_yard_world = se3_inverse(world.trajectory.T_world_yard)
+    half_x, half_y = 0.5 * 1.4 + 0.35, 0.5 * 2.4 + 0.35  # the van's footprint and the rover's half width
+    lane_y = []
+    for t in np.arange(0.0, 60.0, 0.05):
+        T_world_van = van.pose(float(t))
+        p = se3_inverse(T_world_van) @ world.trajectory.state(float(t)).T_world_robot[:, 3]
+        assert abs(p[0]) > half_x or abs(p[1]) > half_y, t
+        lane_y.append((T_yard_world @ T_world_van)[1, 3])
+    # each move takes it across the loop's middle (yard y = 0): one per half lap, two laps
+    assert np.count_nonzero(np.diff(np.sign(lane_y))) >= 4
+    # it moves in its move windows (the schedule evaluations use), and only then
+    ts = np.arange(0.0, 60.0, 0.05)
+    moved = np.abs(np.diff(lane_y)) > 1e-9
+    overlaps = np.array([any(a < t1 and b > t0 for a, b in windows) for t0, t1 in itertools.pairwise(ts)])
+    assert np.array_equal(moved, overlaps)
+
+
+def test_the_box_is_in_both_images_at_the_same_instant_and_not_in_the_static_scene():
+    rig = _rig("moving_box", 320, 200)
+    k = int(3.2 * FPS)
+    frame, depth = rig.render(k, 0)
+    mask = rig.moving_mask(k)
+    assert mask.mean() > 0.25
+    # SIFT matches on the box triangulate to the depth buffer: the right image shows the box
+    # where the left image's geometry says (an out-of-sync pair would be off by the box's motion)
+    sift = cv2.SIFT_create(1500)
+    kl, dl = sift.detectAndCompute(frame.left, mask.astype(np.uint8))
+    kr, dr = sift.detectAndCompute(frame.right, None)
+    m = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(dl, dr)
+    pl = np.array([kl[x.queryIdx].pt for x in m])
+    pr = np.array([kr[x.trainIdx].pt for x in m])
+    dy, d = pl[:, 1] - pr[:, 1], pl[:, 0] - pr[:, 0]
+    ok = (np.abs(dy) < 3) & (d > 2)
+    assert ok.sum() >= 40
+    assert np.median(np.abs(dy[ok])) < 0.5
+    mm = rig.model
+    xyz = triangulate(pl[ok, 0], pr[ok, 0], 0.5 * (pl[ok, 1] + pr[ok, 1]), mm.f_px, mm.px, mm.py, mm.baseline_m)
+    z = depth[np.rint(pl[ok, 1]).astype(int), np.rint(pl[ok, 0]).astype(int)]
+    assert np.median(np.abs(xyz[:, 0] - z) / z) < 0.03
+    # the static scene (what a map truth would be built from) does not hold it
+    names = {s.name.split(".")[0] for s in rig.world.surfaces}
+    assert "van" not in names and {s.name.split(".")[0] for s in rig.world.moving_surfaces(3.2)} == {"van"}
+    assert not _rig("yard").moving_mask(k).any()
+
+
+# --------------------------------------------------------------------------------------------
+# low_texture
+
+
+def test_low_texture_stretch_has_few_features_for_over_a_second():
+    """The front end's own ORB (its default parameters) finds plenty before and after, and fewer
+    than 30 features for more than a second while the rover faces the blank end of the yard."""
+    rig = _rig("low_texture", 320, 200)
+    det = make_detector(DetectorParams())
+    ks = np.arange(0, int(7.0 * FPS), 3)
+    counts = np.array([len(det.detect(rig.render(int(k), 0, depth=False)[0].left).xy) for k in ks])
+    t = ks / FPS
+    assert np.all(counts[t < 1.5] >= 300), counts
+    few = counts < 30
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], few.astype(int), [0]])))
+    longest_s = max((b - a for a, b in zip(edges[::2], edges[1::2], strict=True)), default=0) * 3 / FPS
+    assert longest_s >= 1.0, (longest_s, counts)
+    assert np.all(counts[t > 6.5] >= 300), counts  # and the texture comes back

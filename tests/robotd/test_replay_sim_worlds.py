@@ -1,0 +1,73 @@
+"""The hard-case sim:// worlds through the real pipeline (robotd.replay.replay, default config),
+with the rover's odometry and on vision alone (``odometry=0``).
+
+Bounds with margin over the measured figures (docs/sim.md, "What the pipeline does with them").
+Images are 320×200 to keep the runs short, except for the moving box (640×400: at 320×200 the
+background keeps too few features beside the van); each run covers its world's event (the first
+turn, the van's first crossing, the bare stretch).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import pytest
+
+from robotd.config import load_config
+from robotd.replay import replay
+
+SMALL = "width=320&height=200"
+
+
+@functools.cache
+def _replay(world: str, duration_s: float, odometry: int, size: str = SMALL) -> dict[str, Any]:
+    url = f"sim://?world={world}&duration={duration_s}&realtime=0&odometry={odometry}&{size}"
+    return replay(load_config(None, {}), url, progress=False)
+
+
+@pytest.mark.parametrize("odometry", [1, 0])
+def test_odometry_0_runs_on_vision_alone(odometry: int):
+    s = _replay("turn_in_place", 4.0, odometry)
+    n = s["frames"] - 1  # every frame after the first has a motion prior
+    assert (s["odometry_priors"], s["visual_priors"]) == ((n, 0) if odometry else (0, n))
+
+
+@pytest.mark.parametrize("odometry", [1, 0])
+def test_the_turn_on_the_spot_is_tracked(odometry: int):
+    """98° on the spot at up to 90 °/s (t = 2.0–3.4 s): measured 0 lost frames, ATE 9.9 mm with
+    odometry and 16.9 mm without, heading RMSE 2.0° and 0.9°."""
+    s = _replay("turn_in_place", 4.0, odometry)
+    assert s["lost_frames"] == 0
+    assert s["truth_ate_rmse_m"] < 0.05
+    assert s["truth_heading_rmse_deg"] < 5.0
+
+
+@pytest.mark.parametrize("odometry", [1, 0])
+def test_a_moving_box_covering_half_the_view_loses_the_consensus_to_the_background(odometry: int):
+    """The van crosses 3 m ahead, covering up to 54 % of the view, and carries more features than
+    the background. The constant-velocity prediction (or the odometry) picks the static
+    background's consensus, and the van's points, seen to move, are neither mapped nor fused.
+    Measured ATE 6 mm with odometry and 4 mm without (before: 0.1 m and 0.9 m over 8 s)."""
+    s = _replay("moving_box", 5.0, odometry, "width=640&height=400")
+    assert s["frames"] == 150 and s["lost_frames"] == 0
+    assert s["truth_ate_rmse_m"] < 0.03
+    assert s["truth_heading_rmse_deg"] < 2.0
+
+
+def test_on_vision_alone_the_bare_stretch_is_bridged_by_the_last_measured_velocity():
+    """No features for about 1 s: the frames count as lost, and the constant-velocity model
+    carries the pose with the last measured velocity (not the last, possibly poor, update).
+    Measured ATE 0.074 m, heading RMSE 4.6° (before: 0.5 m and a heading off by 108°)."""
+    s = _replay("low_texture", 6.0, 0)
+    assert s["lost_frames"] > 0
+    assert s["truth_ate_rmse_m"] < 0.2
+    assert s["truth_heading_rmse_deg"] < 10.0
+
+
+def test_with_odometry_the_bare_stretch_keeps_the_pose():
+    """The frames of the bare stretch count as lost, but the odometry carries the pose through:
+    measured ATE 11 mm, drift 0.2 %."""
+    s = _replay("low_texture", 6.0, 1)
+    assert s["truth_ate_rmse_m"] < 0.06
+    assert s["truth_drift_pct"] < 3.0
