@@ -106,10 +106,10 @@ class SlamConfig:
     filter: str = _f("fastslam2", "estimator", choices=FILTERS)
     dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
     measurement: str = _f(
-        "cartesian",
-        "measurement model: the triangulated point with its first-order covariance (the thesis's), or the"
-        " landmark's pixels (x_left, x_right, y) in the rectified pair with the constant noise"
-        " frontend.sigma_x_px / sigma_y_px (× cov_inflation)",
+        "pixel",
+        "measurement model: the landmark's pixels (x_left, x_right, y) in the rectified pair with the"
+        " constant noise frontend.sigma_x_px / sigma_y_px (× cov_inflation), or the triangulated point"
+        " with its first-order covariance (the thesis's)",
         choices=MEASUREMENTS,
     )
     n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)

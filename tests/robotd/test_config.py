@@ -87,7 +87,7 @@ def test_the_pixel_measurement_model_gets_the_rig_and_the_pixel_noise() -> None:
 
     rig = RectifiedStereo(718.0, 607.0, 185.0, 0.54, 1241, 376)
     default = slam_params_from_config(config_from_dict({}), rig)
-    assert default.measurement == "cartesian"
+    assert default.measurement == "pixel" and default.stereo_intrinsics == (718.0, 607.0, 185.0, 0.54)
     cfg = config_from_dict({"slam": {"measurement": "pixel"}, "frontend": {"sigma_x_px": 0.6, "cov_inflation": 4.0}})
     p = slam_params_from_config(cfg, rig)
     assert p.measurement == "pixel" and p.stereo_intrinsics == (718.0, 607.0, 185.0, 0.54)
