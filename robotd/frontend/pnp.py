@@ -368,7 +368,9 @@ def stereo_pnp(
         inl_p = np.isfinite(e2p) & (e2p < thr2)
         if inl_p.sum() >= 3:
             consider(prior.R, prior.t, inl_p)
-    budget, done = p.max_iterations, 0
+    # with binding odometry only the static points are asked for, and the odometry itself was
+    # scored first: the minimum budget (a moving vehicle's consensus is never taken anyway)
+    budget, done = (p.min_iterations if prior is not None and prior.binding else p.max_iterations), 0
     while done < budget:
         k = min(p.batch, budget - done)
         s = sample_indices(rng, n, 3, k)
