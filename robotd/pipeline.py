@@ -103,7 +103,6 @@ class Pipeline:
         self.relocaliser = Relocaliser()
         self.max_features = cfg.frontend.max_features
         self._last_t_ns: int | None = None
-        self._last_inc: MotionIncrement | None = None
         # the constant-velocity model: the filter's last pose (t_ns, T_world_robot) and its motion
         # over the last measured interval (R, t, dt_s); whether this frame's prior was measured
         self._last_pose: tuple[int, np.ndarray] | None = None
@@ -220,7 +219,6 @@ class Pipeline:
         fixed = self.relocaliser.attempt(screen.result, screen.similarity, self.estimator)
         self._last_pose, self._velocity, self._rates = None, None, []
         if fixed:
-            self._last_inc = None
             self.counters.relocalisations += 1
         elif not self.relocaliser.active:
             self.counters.relocalisation_failures += 1
@@ -255,7 +253,6 @@ class Pipeline:
             if k != 1.0:
                 inc = MotionIncrement(inc.t0_ns, inc.t1_ns, inc.dp_R_m, inc.drot_R_rad, inc.cov * k)
             self.estimator.predict(inc)
-            self._last_inc = inc
 
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend
@@ -300,19 +297,11 @@ class Pipeline:
             return vis
         cv = self._motion_prior(t_ns)
         if cv is not None:
-            # constant velocity: the filter's last motion (its poses, corrected by the map), scaled
-            # to this interval, uncertain by what the vehicle's acceleration limits allow
+            # constant velocity: the mean of the last measured increments, scaled to this interval,
+            # uncertain by what the vehicle's acceleration limits allow
             self.counters.constant_velocity_priors += 1
             sd = np.r_[np.full(3, cv.tol_t_m / 2.0), np.full(3, cv.tol_rot_rad / 2.0)]
             return MotionIncrement(self._last_t_ns, t_ns, cv.t, so3_log(cv.R), np.diag(sd * sd))
-        if self._last_inc is not None:
-            # constant velocity: repeat the last increment, scaled to this interval
-            self.counters.constant_velocity_priors += 1
-            dt_last = max(self._last_inc.t1_ns - self._last_inc.t0_ns, 1)
-            k = (t_ns - self._last_t_ns) / dt_last
-            return MotionIncrement(
-                self._last_t_ns, t_ns, self._last_inc.dp_R_m * k, self._last_inc.drot_R_rad * k, np.zeros((6, 6))
-            )
         return None
 
     def _result(

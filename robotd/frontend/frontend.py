@@ -211,13 +211,6 @@ def predicted_visible(
     vis &= (xl >= m) & (xl <= rig.width - 1 - m) & (xr >= m) & (y >= m) & (y <= rig.height - 1 - m)
     vis &= (d >= d_min) & (d <= d_max)
     return vis, np.c_[xl, xr, y]
-    xl, xr, y = project(np.where(vis[:, None], xyz_R, 1.0), rig.f_px, rig.px, rig.py, rig.baseline_m)
-    d_min, d_max = rig.disparity_bounds(stereo.depth_min_m, stereo.d_min_px)
-    d = xl - xr
-    m = margin_px
-    vis &= (xl >= m) & (xl <= rig.width - 1 - m) & (xr >= m) & (y >= m) & (y <= rig.height - 1 - m)
-    vis &= (d >= d_min) & (d <= d_max)
-    return vis
 
 
 def _check_map(map_landmarks_W: MapLandmarks | LandmarkMap) -> MapLandmarks:

@@ -137,3 +137,24 @@ def test_the_pixel_model_gets_the_front_ends_pixels_and_tracks(sim_frames, monke
     # 1.5 m of the simulated rover: within 2 cm at the end (measured 0.9 cm, as the Cartesian model)
     truth = (T0_inv @ frames[-1].truth_T_world_robot)[:3, 3]
     assert r.tracking and np.linalg.norm(r.pose.xyz_W_m - truth) < 0.02
+
+
+def test_non_finite_odometry_never_reaches_the_motion_stage_and_a_zero_interval_is_harmless(sim_frames):
+    """Odometry with NaN cannot be built (the message refuses it by name), so the motion stage's
+    odometry bounds never see it; an increment over a zero interval is used for the prediction
+    but not as a velocity, and the next frames go on tracking."""
+    from robotd.errors import InputError
+    from robotd.msgs import MotionIncrement
+
+    frames, rig = sim_frames
+    with pytest.raises(InputError, match="MotionIncrement.dp_R_m: expected finite"):
+        MotionIncrement(frames[4].t_ns, frames[5].t_ns, np.array([np.nan, 0, 0]), np.zeros(3), np.eye(6) * 1e-4)
+    p = _pipeline(rig)
+    for f in frames[:5]:
+        p.step(f, None)
+    velocity = p._velocity
+    zero = MotionIncrement(frames[4].t_ns, frames[4].t_ns, np.zeros(3), np.zeros(3), np.eye(6) * 1e-4)
+    r = p.step(frames[5], zero)
+    assert r.tracking and p._velocity is velocity  # not a velocity: no division by a zero interval
+    for f in frames[6:10]:
+        assert p.step(f, None).tracking
