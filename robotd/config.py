@@ -112,6 +112,14 @@ class SlamConfig:
         " with its first-order covariance (the thesis's)",
         choices=MEASUREMENTS,
     )
+    covariance: str = _f(
+        "consistent",
+        "the pose covariance reported (pose topic, MAVLink ODOMETRY, replay's T.cov.txt): consistent = the"
+        " filter's covariance of each fix, scaled by the innovation consistency monitor, plus the map's own"
+        " uncertainty from the anchors of the landmarks it was fixed against; filter = the filter's own"
+        " (FastSLAM: the particles' spread, over-confident on long runs)",
+        choices=("consistent", "filter"),
+    )
     n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(

@@ -34,9 +34,11 @@ from robotd.frontend.stereo_match import StereoMatches
 from robotd.geometry import se3, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import Relocaliser
+from robotd.slam.common import measurement_model, pixel_noise
 from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
+from robotd.slam.uncertainty import ReportedCovariance
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
 
@@ -97,7 +99,14 @@ class Pipeline:
         self.rig = rig
         self.rng = rng
         self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
-        self.estimator: Estimator = make_estimator(slam_params_from_config(cfg, rig), rng)
+        params = slam_params_from_config(cfg, rig)
+        self.estimator: Estimator = make_estimator(params, rng)
+        # the reported covariance (robotd.slam.uncertainty): anchors for the particle filters, whose
+        # own covariance is only the last fix; the EKF's joint covariance carries the map already
+        model = measurement_model(params)
+        self.covariance = ReportedCovariance(
+            cfg.slam.covariance, self.estimator.name != "ekf", model, pixel_noise(params) if model.intrinsics else None
+        )
         self.counters = PipelineCounters()
         self.tracker = TrackingMonitor(self.counters)
         self.relocaliser = Relocaliser()
@@ -148,8 +157,10 @@ class Pipeline:
         obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
         # predict with the motion prior, then fuse the frame's observations
         clock.run("predict", self._predict, inc)
+        if self.covariance.enabled:
+            clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
         report = clock.run("update", self._update, obs, landmarks)
-        pose = est.estimate()
+        pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
@@ -319,7 +330,9 @@ class Pipeline:
         self.counters.frames += 1
         counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
         counts["identified"] = n_identified
-        return StepResult(frame.t_ns, pose, report, clock.finish(), counts, tracking, relocalised)
+        return StepResult(
+            frame.t_ns, pose, report, clock.finish(), counts, tracking, relocalised, self.covariance.health()
+        )
 
     # ---------------------------------------------------------------- degradation hooks
     def set_max_features(self, n: int) -> None:
@@ -373,3 +386,5 @@ class Pipeline:
         self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)
         self._last_t_ns = None
         self._last_pose, self._velocity, self._rates = None, None, []
+        # the saved map is the world now: its landmarks anchor at zero covariance
+        self.covariance.reset()

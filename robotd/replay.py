@@ -37,7 +37,7 @@ from robotd.msgs import StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
 from robotd.progress import progress_bar
-from robotd.research.evaluate import write_tum
+from robotd.research.evaluate import cov_path_for, write_pose_cov, write_tum
 
 logger = logging.getLogger(__name__)
 
@@ -193,7 +193,10 @@ def replay(
     T = np.stack([r.pose.T_world_robot for r in results])
     if out_traj:
         write_tum(out_traj, stamps / 1e9, T)
-        logger.info("trajectory written to %s (%d poses)", out_traj, len(results))
+        write_pose_cov(cov_path_for(out_traj), stamps / 1e9, np.stack([r.pose.cov for r in results]))
+        logger.info(
+            "trajectory written to %s (%d poses; covariance in %s)", out_traj, len(results), cov_path_for(out_traj)
+        )
     total_ms = np.array([r.timings_ms.get("total", np.nan) for r in results])
     summary: dict[str, Any] = {
         "source": source,
@@ -217,13 +220,15 @@ def replay(
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}
     if truths:
-        summary.update(_truth_metrics(stamps, T, truths))
+        summary.update(_truth_metrics(stamps, T, truths, np.stack([r.pose.cov for r in results])))
     if out_traj:
         summary["trajectory"] = str(out_traj)
     return summary
 
 
-def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]]) -> dict[str, float | None]:
+def _truth_metrics(
+    stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]], cov: np.ndarray | None = None
+) -> dict[str, float | None]:
     """ATE/drift against the ground truth the source carried (evaluation only); the keys of
     :func:`robotd.research.evaluate.evaluate_trajectories` prefixed ``truth_``. Undefined figures
     (drift % and similarity scale on a path shorter than ``MIN_PATH_FOR_RELATIVE_M``) are None,
@@ -234,7 +239,7 @@ def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np
     G = np.stack([g for _, g in truths])
     G = np.linalg.inv(G[0]) @ G  # truth relative to the first truth pose, as the estimate is
     try:
-        m = evaluate_trajectories(Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G))
+        m = evaluate_trajectories(Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G), cov=cov)
     except RobotdError as exc:
         logger.warning("no truth metrics: %s", exc)
         return {}
