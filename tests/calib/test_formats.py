@@ -19,10 +19,12 @@ from calib.camchain import load_calibration, save_calibration
 from calib.cli import main
 from robotd.stereo import StereoCalibration, camera_matrix, rectify_opencv
 from tests.support.kalibr_camchain import KALIBR_CAMERA_KEYS, KalibrError, read_camchain
+from tests.support.paths import REPO
 from tests.support.ros_camera_info import read_camera_info
 from tests.support.tolerances import CONDITIONED_ATOL, CONDITIONED_RTOL
 
-DATA = Path(__file__).parent / "data"
+# calibration files as robotd wrote them before the Kalibr-readable format (version 1)
+DATA = REPO / "tests" / "support" / "data" / "calibration_v1"
 OAK_JSON = ("oakd-calibration", "BW1098OBC_14442C10218CCCD200.json")
 # rectified rows of one point in both cameras: undistortion iterates, so agreement to 1e-6 px
 ROW_ATOL_PX = 1e-6
