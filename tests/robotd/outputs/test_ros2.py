@@ -70,7 +70,11 @@ def link(request: pytest.FixtureRequest) -> Iterator[tuple[ZenohOutput, Inbox]]:
     inbox = Inbox()
     with zenoh.open(_client(port)) as s:
         sub = s.declare_subscriber("robotd/r1/**", inbox)
-        time.sleep(0.5)  # the subscription reaches the publisher's session
+        # a put before the subscription reached the publishing session would be lost
+        t_end = time.monotonic() + RECEIVE_TIMEOUT_S
+        while not out._pose.matching_status.matching and time.monotonic() < t_end:
+            time.sleep(0.02)
+        assert out._pose.matching_status.matching, "the subscription never reached robotd's session"
         try:
             yield out, inbox
         finally:
