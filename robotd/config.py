@@ -184,6 +184,11 @@ class ZenohConfig:
     multicast_scouting: bool = _f(False, "multicast scouting (off: never announce on the LAN)")
     map_period_s: float = _f(2.0, "period of map updates", min=0.1)
     health_period_s: float = _f(1.0, "period of health messages", min=0.1)
+    ros2: bool = _f(False, "also publish odom, landmarks, diagnostics as ROS 2 CDR for zenoh-bridge-ros2dds")
+    ros2_world_frame: str = _f("map", "ROS 2 frame_id of the world (REP-105)", pattern=r"[A-Za-z_][A-Za-z0-9_/]*")
+    ros2_body_frame: str = _f("base_link", "ROS 2 child_frame_id of the odometry", pattern=r"[A-Za-z_][A-Za-z0-9_/]*")
+    ros2_stamp: str = _f("wall", "ROS 2 header stamps: capture time on the wall clock or the monotonic one",
+                         choices=("wall", "monotonic"))  # fmt: skip
 
 
 @dataclass(frozen=True)
