@@ -73,6 +73,7 @@ logger = logging.getLogger(__name__)
 DIALECT = "ardupilotmega"
 MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
+PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
 
 # ids of the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz]
 DEFAULT_RATES_HZ: dict[str, float] = {
@@ -102,6 +103,7 @@ COUNTERS = (
     "drops",
     "stamped_by_arrival",
     "wheel_wraps",
+    "wheel_intervals_rejected",
     "tx_errors",
     "bad_values",
     "rejected_source",
@@ -498,53 +500,56 @@ class MavlinkVehicle(QueuedVehicleLink):
                 continue
             if msg is None:
                 continue
-            t_ns = time.monotonic_ns()
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                # includes signature failures and unsigned packets on a signed link
-                self.c["bad_data"] += 1
+            self._dispatch(msg, time.monotonic_ns(), self._src.addr if self._src is not None else None)
+
+    def _dispatch(self, msg: Any, t_ns: int, addr: tuple[str, int] | None) -> None:
+        """One received message (arrival ``t_ns``, UDP sender ``addr``) to its handler, if it is
+        the autopilot's; never raises on what a sender can put in a message (counted instead)."""
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            # includes signature failures and unsigned packets on a signed link
+            self.c["bad_data"] += 1
+            self._linkstate.record(t_ns, bad=1)
+            return
+        self.c["rx_messages"] += 1
+        self.rx_types[kind] = self.rx_types.get(kind, 0) + 1
+        handler = getattr(self, f"_on_{kind.lower()}", None)
+        if handler is None:
+            return
+        accepted: bool | None
+        if kind == "HEARTBEAT":
+            accepted = self._on_heartbeat(msg, t_ns, addr)
+            if accepted is None:
+                return
+        elif not self._from_autopilot(msg, addr):
+            accepted = False  # vehicle data from anyone but the autopilot is not vehicle data
+        else:
+            try:
+                handler(msg, t_ns)
+                accepted = True
+            except (RobotdError, ValueError, TypeError, IndexError, ArithmeticError, OverflowError) as exc:
+                # a message with values we cannot use (NaN, too few wheels): count, keep reading
+                self.c["bad_values"] += 1
                 self._linkstate.record(t_ns, bad=1)
-                continue
-            self.c["rx_messages"] += 1
-            self.rx_types[kind] = self.rx_types.get(kind, 0) + 1
-            handler = getattr(self, f"_on_{kind.lower()}", None)
-            if handler is None:
-                continue
-            addr = self._src.addr if self._src is not None else None
-            accepted: bool | None
-            if kind == "HEARTBEAT":
-                accepted = self._on_heartbeat(msg, t_ns, addr)
-                if accepted is None:
-                    continue
-            elif not self._from_autopilot(msg, addr):
-                accepted = False  # vehicle data from anyone but the autopilot is not vehicle data
-            else:
-                try:
-                    handler(msg, t_ns)
-                    accepted = True
-                except (RobotdError, ValueError, TypeError, IndexError, ArithmeticError, OverflowError) as exc:
-                    # a message with values we cannot use (NaN, too few wheels): count, keep reading
-                    self.c["bad_values"] += 1
-                    self._linkstate.record(t_ns, bad=1)
-                    logger.debug("%s: bad %s ignored: %s", self.url, kind, exc)
-                    continue
-            if accepted:
-                self._linkstate.record(t_ns, good=1)
-            elif self._ap_sysid is None:
-                self.c["before_heartbeat"] += 1  # nothing is vehicle data before the autopilot is known
-            else:
-                self.c["rejected_source"] += 1
-                n = self.c["rejected_source"]
-                if n == 1 or math.log10(n).is_integer():
-                    logger.warning(
-                        "%s: %s from system %d component %d%s is not the autopilot's: ignored (%d so far)",
-                        self.url,
-                        kind,
-                        msg.get_srcSystem(),
-                        msg.get_srcComponent(),
-                        "" if addr is None else f" at {addr[0]}:{addr[1]}",
-                        n,
-                    )
+                logger.debug("%s: bad %s ignored: %s", self.url, kind, exc)
+                return
+        if accepted:
+            self._linkstate.record(t_ns, good=1)
+        elif self._ap_sysid is None:
+            self.c["before_heartbeat"] += 1  # nothing is vehicle data before the autopilot is known
+        else:
+            self.c["rejected_source"] += 1
+            n = self.c["rejected_source"]
+            if n == 1 or math.log10(n).is_integer():
+                logger.warning(
+                    "%s: %s from system %d component %d%s is not the autopilot's: ignored (%d so far)",
+                    self.url,
+                    kind,
+                    msg.get_srcSystem(),
+                    msg.get_srcComponent(),
+                    "" if addr is None else f" at {addr[0]}:{addr[1]}",
+                    n,
+                )
 
     def _from_autopilot(self, msg: Any, addr: tuple[str, int] | None) -> bool:
         """The autopilot's system and component id (from its heartbeat) and, over UDP, its address."""
@@ -614,8 +619,9 @@ class MavlinkVehicle(QueuedVehicleLink):
         t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
-        if np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates)):
-            self._attitude = (t, rpy, rates)
+        if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
+            raise ValueError(f"ATTITUDE not finite: rpy {rpy}, rates {rates}")
+        self._attitude = (t, rpy, rates)
 
     def _fresh_attitude(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         a = self._attitude
@@ -630,6 +636,8 @@ class MavlinkVehicle(QueuedVehicleLink):
             raise ValueError(f"WHEEL_DISTANCE has {n} wheels, need indices {o.wheel_left} and {o.wheel_right}")
         t_us = int(msg.time_usec)
         s_l, s_r = float(msg.distance[o.wheel_left]), float(msg.distance[o.wheel_right])
+        if not (math.isfinite(s_l) and math.isfinite(s_r)):
+            raise ValueError(f"WHEEL_DISTANCE not finite: {s_l}, {s_r}")
         with self._lock:
             prev, self._wheels = self._wheels, (t_us, s_l, s_r)
         self._last_wheel_mono = time.monotonic()
@@ -637,6 +645,7 @@ class MavlinkVehicle(QueuedVehicleLink):
             return
         dt = (t_us - prev[0]) * 1e-6
         if not 0 < dt <= 1.0:
+            self.c["wheel_intervals_rejected"] += 1  # a stamp going backwards, or a gap: restart
             return
         ds_l, ds_r = self._unwrap_m(s_l - prev[1]), self._unwrap_m(s_r - prev[2])
         if o.track_width_m > 0:
@@ -673,16 +682,18 @@ class MavlinkVehicle(QueuedVehicleLink):
         if att is None:
             return  # cannot rotate NED into the body frame without an attitude
         v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        if not np.all(np.isfinite(v_ned)):
+            raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
         # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
         v_R = euler_to_R(att[0]).T @ v_ned
-        if np.all(np.isfinite(v_R)):
-            self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
+        self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
 
     def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
         o = self.opts
         t = self._clock.to_host(int(msg.time_usec) * 1000, t_ns)
         thr = getattr(msg, f"servo{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"servo{o.steering_channel}_raw", 0)
+        _check_pwm("SERVO_OUTPUT_RAW", thr, ste)
         if thr and ste:
             self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "SERVO_OUTPUT_RAW")
 
@@ -694,6 +705,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         thr = getattr(msg, f"chan{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"chan{o.steering_channel}_raw", 0)
         if thr and ste and thr != 0xFFFF and ste != 0xFFFF:
+            _check_pwm("RC_CHANNELS", thr, ste)
             self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "RC_CHANNELS")
 
     def _on_ekf_status_report(self, msg: Any, t_ns: int) -> None:
@@ -789,6 +801,13 @@ class MavlinkVehicle(QueuedVehicleLink):
                 0,
             )
             self.c["rate_requests"] += 1
+
+
+def _check_pwm(kind: str, *pwm_us: int) -> None:
+    """A pulse width outside 800–2200 µs (0: channel unused) is no servo or stick position."""
+    for v in pwm_us:
+        if v and not PWM_MIN_US <= v <= PWM_MAX_US:
+            raise ValueError(f"{kind}: pulse width {v} µs outside {PWM_MIN_US}–{PWM_MAX_US}")
 
 
 def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:

@@ -52,7 +52,7 @@ from drivers.serial_protocol import (
     seq_gap,
     tick_delta,
 )
-from robotd.errors import DriverError, RobotdError
+from robotd.errors import DriverError, ProtocolError, RobotdError
 from robotd.msgs import Odometry, PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -289,7 +289,10 @@ class SerialVehicle(QueuedVehicleLink):
         if isinstance(msg, WheelOdometry):
             self._on_wheels(msg, fr.t_mcu_us, t_ns)
         elif isinstance(msg, ControlInputs):
-            self._controls = ControlSample(t_ns, float(msg.throttle), float(msg.steering), "CONTROL_INPUTS")
+            thr, ste = float(msg.throttle), float(msg.steering)
+            if not (abs(thr) <= 1.0 and abs(ste) <= 1.0):  # NaN fails too
+                raise ProtocolError(f"CONTROL_INPUTS throttle {thr}, steering {ste}: expected -1…1")
+            self._controls = ControlSample(t_ns, thr, ste, "CONTROL_INPUTS")
         elif isinstance(msg, Heartbeat):
             if self._last_uptime_ms is not None and msg.uptime_ms + 1000 < self._last_uptime_ms:
                 self._on_mcu_reset(f"uptime fell from {self._last_uptime_ms} ms to {msg.uptime_ms} ms")
