@@ -2,9 +2,9 @@
 docs/topics.md) and the once-a-second status line (stderr, systemd STATUS=).
 
 The document's ``state`` is ``ok`` only when nothing is wrong now: ``starting`` before the first
-step, ``failed`` while tracking is lost, ``degraded`` with the reasons in ``problems`` when a
-vehicle link is not ``ok``, a stall happened in the last ``RECENT_S``, steps failed in that time or
-none completed for ``NO_STEP_S``, frames lately had no
+step, ``failed`` while tracking is lost or no step completed for ``RECENT_S``, ``degraded`` with
+the reasons in ``problems`` when a vehicle link is not ``ok``, a stall happened in the last
+``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, frames lately had no
 odometry while odometry flows, the last map save failed, the pose's position σ exceeds
 ``MAX_POSE_SIGMA_M``, or the latency budget runs below full settings (docs/reliability.md).
 """
@@ -215,6 +215,8 @@ class HealthMonitor:
         elif not h["tracking"]:
             state = "failed"
             problems.insert(0, "tracking lost")
+        elif now - st.last_step_ns > RECENT_S * 1e9:
+            state = "failed"  # frames come but no step completes: the pose is not being estimated
         else:
             state = "degraded" if problems else "ok"
         h["state"], h["problems"] = state, problems

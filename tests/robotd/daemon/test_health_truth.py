@@ -156,6 +156,8 @@ def test_assess_reports_each_problem_and_ok_only_without_any() -> None:
     h.stats.last_step_error_ns = 0
     h.stats.last_step_ns = time.monotonic_ns() - 3_000_000_000
     assert h.assess(_doc(), needs_vehicle=True)["problems"] == ["no SLAM step for 3.0 s"]
+    h.stats.last_step_ns = time.monotonic_ns() - 6_000_000_000
+    assert h.assess(_doc(), needs_vehicle=True)["state"] == "failed"
     h.stats.last_step_ns = time.monotonic_ns()
     got = h.assess(_doc(tracking=False), needs_vehicle=True)
     assert got["state"] == "failed" and got["problems"] == ["tracking lost"]
