@@ -105,3 +105,23 @@ def test_a_map_that_failed_to_resume_is_kept_not_overwritten(tmp_path: Path) -> 
     second.close()
     kept = sorted(tmp_path.glob("map.2*.robotd"))
     assert len(kept) == 1 and kept[0].read_bytes() == saved
+
+
+def test_failed_saves_are_counted_with_the_error_for_health(tmp_path: Path) -> None:
+    out = _output(tmp_path)
+    assert out.save(STATE, 1)
+    assert out.stats()["failures"] == 0 and not out.stats()["last_failed"]
+    # the map's name is taken by a non-empty directory: the rename into place fails (even as root)
+    (tmp_path / "map.robotd").unlink()
+    (tmp_path / "map.robotd").mkdir()
+    (tmp_path / "map.robotd" / "x").write_text("x")
+    assert not out.save(STATE, 2)
+    st = out.stats()
+    assert st["failures"] == 1 and st["last_failed"] and st["since_failure_s"] is not None
+    assert "map.robotd" in st["last_error"]
+    (tmp_path / "map.robotd" / "x").unlink()
+    (tmp_path / "map.robotd").rmdir()
+    assert out.save(STATE, 3)
+    st = out.stats()
+    assert st["failures"] == 1 and not st["last_failed"]  # the count stays; the current state is good
+    out.close()

@@ -1,0 +1,1 @@
+"""Property (fuzz) tests with hypothesis across the packages: bounded in time, run in CI."""
