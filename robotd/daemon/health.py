@@ -177,8 +177,7 @@ class HealthMonitor:
             "particles": res.pose.n_particles if res else 0,
             "features": res.counts.get("features_left", 0) if res else 0,
             "landmarks": res.counts.get("landmarks", 0) if res else 0,
-            # the reported covariance: its position standard deviation and the consistency monitor
-            "pose_sigma_m": None if not res else _position_sigma(res.pose.cov),
+            # the reported covariance's consistency monitor (pose_sigma_m above is its position sigma)
             "consistency": dict(res.consistency) if res else None,
             "error_vs_truth_m": None if not np.isfinite(self.stats.last_error_m) else self.stats.last_error_m,
             "rss_mb": round(rss_mb(), 1),
@@ -258,12 +257,6 @@ def _position_sigma_m(cov: np.ndarray) -> float:
     """sqrt of the trace of the position block of a (6, 6) pose covariance (x, y, z, roll, pitch, yaw)."""
     tr = float(np.trace(np.asarray(cov, float)[:3, :3]))
     return math.sqrt(tr) if np.isfinite(tr) and tr >= 0 else math.inf
-
-
-def _position_sigma(cov: np.ndarray) -> float | None:
-    """√trace of the position block: the reported position uncertainty [m] (None when not finite)."""
-    v = float(np.sqrt(max(0.0, float(np.trace(np.asarray(cov)[:3, :3])))))
-    return round(v, 4) if np.isfinite(v) else None
 
 
 def _safe_stats(dev: HasStats | None) -> dict[str, Any]:
