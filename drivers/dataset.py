@@ -797,6 +797,8 @@ class McapCamera(Driver):
                 yield e
             elif isinstance(e, Odometry):
                 yield e
+        if self.reader.stopped and self.reader.frames_read:  # a damaged or interrupted recording: say where
+            logger.info("%s: the recording ends early, %s", self.url, self.reader.stopped)
 
     def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
         for e in self.events():

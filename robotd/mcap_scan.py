@@ -156,8 +156,15 @@ def _decompress(compression: str, data: bytes, size: int, limit: int) -> bytes:
         try:
             # a forged frame header cannot ask for a window larger than robotd's writer ever uses
             dctx = zstandard.ZstdDecompressor(max_window_size=1 << 25)
+            parts: list[bytes] = []
+            got = 0
             with dctx.stream_reader(io.BytesIO(data)) as r:
-                out = r.read(size + 1)  # one byte more than stated shows a forged size
+                # in pieces, so memory follows what the stream really holds, not what the header
+                # claims; one byte more than stated shows a forged size
+                while got <= size and (piece := r.read(min(1 << 20, size + 1 - got))):
+                    parts.append(piece)
+                    got += len(piece)
+            out = b"".join(parts)
         except zstandard.ZstdError as exc:
             raise Damage(f"zstd: {exc}") from None
     else:
@@ -207,40 +214,40 @@ class McapScan:
         """Every message in file order, with its channel; stops at the first damage."""
         yield from self._walk(until_data=False)
 
-    def _fail(self, offset: int, what: str, reason: str) -> None:
-        self.stopped = f"stopped at byte {offset} of {self.size} ({what}): {reason}"
+    def _fail(self, offset: int, reason: str) -> None:
+        self.stopped = f"stopped at byte {offset} of {self.size}: {reason}"
 
     def _walk(self, until_data: bool) -> Iterator[tuple[ChannelRec, MessageRec]]:
         self.stopped, self.finished, self.position = None, False, 0
         with open(self.path, "rb") as f:
             magic = f.read(len(MAGIC))
             if magic != MAGIC:
-                self._fail(0, "magic", "not an MCAP file (no MCAP magic at its start)")
+                self._fail(0, "not an MCAP file (no MCAP magic at its start)")
                 return
             offset = len(MAGIC)
             self.position = offset
             while True:
                 head = f.read(9)
                 if not head:
-                    self._fail(offset, "end of file", "the file ends without its DataEnd/Footer (not closed cleanly)")
+                    self._fail(offset, "the file ends without its DataEnd/Footer (not closed cleanly)")
                     return
                 if len(head) < 9:
-                    self._fail(offset, "record header", f"truncated: {len(head)} of 9 bytes")
+                    self._fail(offset, f"a record header of {len(head)} of 9 bytes (truncated)")
                     return
                 op, length = struct.unpack("<BQ", head)
                 name = _NAMES.get(op, f"opcode 0x{op:02x}")
                 left = self.size - offset - 9
                 if length > left:
-                    self._fail(offset, name, f"record of {length} bytes but only {left} left in the file (truncated)")
+                    self._fail(offset, f"{name} record of {length} bytes, only {left} left in the file (truncated)")
                     return
                 if length > self.max_record_bytes:
-                    self._fail(offset, name, f"record of {length} bytes, limit {self.max_record_bytes}")
+                    self._fail(offset, f"{name} record of {length} bytes, limit {self.max_record_bytes}")
                     return
                 if until_data and op in (OP_CHUNK, OP_MESSAGE):
                     return
                 body = f.read(length)
                 if len(body) != length:
-                    self._fail(offset, name, f"read {len(body)} of {length} bytes")
+                    self._fail(offset, f"{name} record: read {len(body)} of {length} bytes")
                     return
                 try:
                     if op == OP_CHUNK:
@@ -249,14 +256,14 @@ class McapScan:
                         self.finished = self._check_end(f, offset + 9 + length)
                         self.position = self.size if self.finished else offset + 9 + length
                         if not self.finished:
-                            self._fail(offset + 9 + length, "summary", "the summary after DataEnd is damaged")
+                            self._fail(offset + 9 + length, "all data read; the summary after it is damaged")
                         return
                     else:
                         msg = self._record(op, _Body(body), offset)
                         if msg is not None:
                             yield msg
                 except Damage as exc:
-                    self._fail(offset, name, str(exc))
+                    self._fail(offset, f"{name} record: {exc}")
                     return
                 offset += 9 + length
                 self.position = offset

@@ -809,7 +809,7 @@ class SessionReader:
                     yield v
         except (PersistenceError, InputError, KeyError, TypeError, ValueError, OverflowError) as exc:
             # a message that is not what its schema says: the damage is here, and reading stops
-            where = f"byte {m.offset} of {scan.size}, {ch.topic} message" if (m and ch) else "opening"
+            where = f"byte {m.offset} of {scan.size}: a {ch.topic} message" if (m and ch) else "its start"
             self.stopped = f"stopped at {where}: {exc!s}"[:300]
             if self.strict:
                 raise PersistenceError(f"{self.path}: {self.stopped}") from None
@@ -819,9 +819,6 @@ class SessionReader:
             self.stopped, self.finished = scan.stopped, scan.finished
             if self.strict and self.stopped:
                 raise PersistenceError(f"{self.path}: {self.stopped}")
-        if self.stopped:
-            clean = "closed cleanly" if self.finished else "not closed cleanly (the recording was interrupted)"
-            logger.warning("%s: %s; read %d frames; %s", self.path, clean, self.frames_read, self.stopped)
 
     @staticmethod
     def _frame(d: Mapping[str, Any], imgs: Mapping[str, np.ndarray]) -> StereoFrame:

@@ -188,7 +188,7 @@ def replay(
                 break
     recording = camera.recording_status() if hasattr(camera, "recording_status") else None
     if not results:
-        why = f" ({recording['stopped']})" if recording and recording.get("stopped") else ""
+        why = f": {recording['stopped']}" if recording and recording.get("stopped") else ""
         raise RobotdError(f"{source}: no frame was processed{why}")
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
     T = np.stack([r.pose.T_world_robot for r in results])

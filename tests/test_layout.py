@@ -17,7 +17,7 @@ PACKAGES = ("robotd", "drivers", "calib", "systemd")
 TESTS = REPO / "tests"
 # repository-wide tests that belong to no one module
 TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py", "test_dev.py"}  # the last mirrors dev.py at the root
-NOT_MIRRORS = {"support", "__pycache__"}
+NOT_MIRRORS = {"support", "__pycache__", "fuzz"}  # fuzz/: property tests across modules (hypothesis)
 
 
 def test_the_packages_under_test_are_the_real_ones() -> None:
