@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import errno
 import io
-import json
 import re
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from robotd.errors import DatasetError, PersistenceError
 from robotd.msgs import Odometry, PoseEstimate, StereoFrame
 from robotd.record import SessionReader, SessionWriter, record_session
 from robotd.stereo import RectifiedStereo
+from tests.support.mcap_decode import decode_all
 
 MODEL = RectifiedStereo(430.34, 322.05, 199.18, 0.0755, 64, 40)
 T0 = 5_000_000_000_123  # a monotonic stamp with nanosecond digits
@@ -90,35 +90,6 @@ def test_round_trip_is_exact_and_deterministic(tmp_path: Path, rng: np.random.Ge
     again = list(SessionReader(path).events())
     for a, b in zip(back, again):
         assert_same(a, b)
-
-
-def decode_all(path: Path) -> dict[str, list[tuple[int, Any]]]:
-    """Every message of ``path`` through the ``mcap`` library's own reader (CRCs checked), decoded
-    with the schema the file declares for its channel: protobuf classes built from the file's
-    FileDescriptorSet (not robotd's), JSON parsed. topic -> [(log_time, message)]."""
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-    out: dict[str, list[tuple[int, Any]]] = {}
-    classes: dict[int, Any] = {}
-    with open(path, "rb") as f:
-        r = make_reader(f, validate_crcs=True)
-        for schema, channel, message in r.iter_messages(log_time_order=False):
-            assert schema is not None, channel.topic
-            if channel.message_encoding == "protobuf":
-                assert schema.encoding == "protobuf"
-                if schema.id not in classes:
-                    pool = descriptor_pool.DescriptorPool()
-                    for fd in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
-                        pool.Add(fd)
-                    classes[schema.id] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
-                msg = classes[schema.id].FromString(message.data)
-            else:
-                assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
-                props = json.loads(schema.data)["properties"]
-                msg = json.loads(message.data)
-                assert set(msg) <= set(props), (channel.topic, set(msg) - set(props))
-            out.setdefault(channel.topic, []).append((message.log_time, msg))
-    return out
 
 
 def test_every_channel_decodes_with_its_declared_foxglove_schema(tmp_path: Path, rng: np.random.Generator) -> None:
@@ -406,3 +377,41 @@ def test_a_recorder_that_was_killed_leaves_a_replayable_file_kept_by_the_next_on
     assert len(list(SessionReader(kept).frames())) == 11
     with open_camera(str(kept)) as cam:
         assert len(list(cam.frames())) == 11
+
+
+def _forged_png(img: np.ndarray, level: int) -> bytes:
+    """A valid PNG of ``img`` whose header (with a valid CRC) claims 30000×30000 pixels."""
+    import struct
+    import zlib
+
+    png = bytearray(cv2.imencode(".png", img)[1].tobytes())
+    struct.pack_into(">II", png, 16, 30000, 30000)
+    struct.pack_into(">I", png, 29, zlib.crc32(bytes(png[12:29])))
+    return bytes(png)
+
+
+@pytest.mark.parametrize("damage", ["junk", "header only", "forged PNG header", "newer format"])
+def test_a_bad_file_ends_replay_in_one_line_with_exit_2(
+    damage: str, tmp_path: Path, rng: np.random.Generator, monkeypatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import robotd.record
+    from robotd.cli import main
+
+    path = tmp_path / "bad.mcap"
+    if damage == "junk":
+        path.write_bytes(b"\x89MCAP0\r\n" + bytes(rng.integers(0, 256, 5000, dtype=np.uint8)))
+    elif damage == "header only":
+        write(path, session(rng, 4))
+        path.write_bytes(path.read_bytes()[:600])
+    else:
+        with monkeypatch.context() as m:
+            if damage == "forged PNG header":
+                m.setattr(robotd.record, "encode_png", _forged_png)
+            else:
+                m.setattr(robotd.record, "FORMAT_VERSION", 7)
+            write(path, session(rng, 4))
+    assert main(["replay", str(path), "--quiet", "--log-level", "WARNING"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"robotd: error: {path}"), err
+    if damage == "forged PNG header":
+        assert "no frame was processed: stopped at byte" in err[0] and "PNG header says 30000x30000" in err[0]

@@ -16,6 +16,7 @@ import pytest
 
 from robotd.cli import main
 from robotd.record import SessionReader
+from tests.support.mcap_decode import decode_all
 from tests.support.paths import REPO
 
 FLUSHES_BEFORE_KILL = 3  # seconds of recording (one chunk a second) before the kill
@@ -82,3 +83,16 @@ def test_a_sigkilled_record_leaves_a_replayable_recording(tmp_path: Path, capsys
     assert len(kept) == 1 and kept[0].stat().st_size == size
     assert len(list(SessionReader(kept[0]).frames())) == len(frames)
     assert out.exists() and SessionReader(out).format_version == 2
+
+    # what the daemon's recording holds besides the inputs: the SLAM, in Foxglove's schemas
+    msgs = decode_all(out)
+    assert len(msgs["/robotd/map"]) >= 1 and len(msgs["/robotd/map"][0][1].data) > 0
+    assert msgs["/robotd/map_covariance"][0][1].entities[0].spheres
+    feats = msgs["/camera/left/features"]
+    assert len(feats) >= 2 and any(len(a.points) > 10 for _, m in feats for a in m.points)
+    assert any(a.type == 4 and a.points for _, m in feats[1:] for a in m.points), "no track drawn"
+    assert len(msgs["/robotd/trajectory"][-1][1].poses) >= 2 and msgs["/truth/pose"]
+    frames = {(t.parent_frame_id, t.child_frame_id) for _, m in msgs["/tf"] for t in m.transforms}
+    assert {("world", "robot"), ("robot", "camera_left"), ("robot", "camera_right")} <= frames
+    # wall-clock log times: the recording is dated today, not 1970
+    assert abs(msgs["/camera/left/image"][0][0] / 1e9 - time.time()) < 3600
