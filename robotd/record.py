@@ -373,6 +373,7 @@ class SessionWriter:
     ``image_format`` ``"png"`` (default, lossless) or ``"raw"`` (mono8 RawImage), ``png_level``
     0–9 (1), ``calibration_period_s`` (1.0: how often the camera calibrations and the static
     transforms are repeated so seeking in Foxglove finds them), ``chunk_size`` (bytes),
+    ``max_ellipsoids`` (2000: the landmarks whose covariance ellipsoids are drawn),
     ``flush_period_s`` (1.0: the longest a written message waits before its chunk reaches the
     operating system, i.e. what a killed recorder can lose), ``trajectory_period_s`` (1.0: how
     often the trajectories are written), ``wall_offset_ns`` (wall clock minus ``t_ns``; default:
@@ -393,7 +394,7 @@ class SessionWriter:
         chunk_size: int = 4 * 1024 * 1024,
         flush_period_s: float = 1.0,
         trajectory_period_s: float = 1.0,
-        max_ellipsoids: int = 5000,
+        max_ellipsoids: int = 2000,
         wall_offset_ns: int | None = None,
         opener: Callable[[Path], IO[bytes]] | None = None,
     ) -> None:
@@ -610,14 +611,22 @@ class SessionWriter:
         self._add("features", obs.t_ns, fx.feature_annotations(self.wall_ns(obs.t_ns), obs.uv_px, obs.is_new, tracks))
         self._last_uv = {i: (float(u), float(v)) for i, (u, _, v) in zip(ids, obs.uv_px)}
 
-    def write_map(self, t_ns: int, landmarks: LandmarkMap) -> None:
-        """The landmark map as a point cloud, and (up to ``max_ellipsoids`` landmarks) its
-        covariance ellipsoids."""
-        self._check_open()
+    def map_messages(self, t_ns: int, landmarks: LandmarkMap) -> list[tuple[str, Any]]:
+        """The map's messages, built without touching the file (so a caller may build them
+        outside the lock that serialises the writer: the ellipsoids of 2000 landmarks take
+        ~17 ms): the point cloud, and the covariance ellipsoids of the ``max_ellipsoids`` newest
+        landmarks (the map lists them in creation order; the newest are the ones around the robot)."""
         wall = self.wall_ns(t_ns)
-        self._add("map", t_ns, fx.points_cloud(wall, landmarks.xyz_W_m, landmarks.ids))
         n = min(landmarks.n, self.max_ellipsoids)
-        self._add("map_covariance", t_ns, fx.covariance_ellipsoids(wall, landmarks.xyz_W_m[:n], landmarks.cov_W[:n]))
+        cov = fx.covariance_ellipsoids(wall, landmarks.xyz_W_m[landmarks.n - n :], landmarks.cov_W[landmarks.n - n :])
+        return [("map", fx.points_cloud(wall, landmarks.xyz_W_m, landmarks.ids)), ("map_covariance", cov)]
+
+    def write_map(self, t_ns: int, landmarks: LandmarkMap | list[tuple[str, Any]]) -> None:
+        """The landmark map (a :class:`LandmarkMap`, or what :meth:`map_messages` built from one)."""
+        self._check_open()
+        msgs = self.map_messages(t_ns, landmarks) if isinstance(landmarks, LandmarkMap) else landmarks
+        for channel, msg in msgs:
+            self._add(channel, t_ns, msg)
         self.counts["maps"] += 1
 
     def close(self) -> None:

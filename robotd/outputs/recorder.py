@@ -40,12 +40,14 @@ class RecorderOutput(Output):
 
     def publish(self, report: StepReport) -> None:
         res = report.result
+        # the map's messages are built before taking the lock the SLAM thread's inputs wait on
+        lm = None if report.landmarks is None else self.writer.map_messages(res.t_ns, report.landmarks)
         with self._lock:
             self.writer.write_pose(res.pose)
             if res.observations is not None:
                 self.writer.write_features(res.observations)
-            if report.landmarks is not None:
-                self.writer.write_map(res.t_ns, report.landmarks)
+            if lm is not None:
+                self.writer.write_map(res.t_ns, lm)
 
     def stats(self) -> dict[str, Any]:
         c = self.writer.counts

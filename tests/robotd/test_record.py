@@ -415,3 +415,17 @@ def test_a_bad_file_ends_replay_in_one_line_with_exit_2(
     assert len(err) == 1 and err[0].startswith(f"robotd: error: {path}"), err
     if damage == "forged PNG header":
         assert "no frame was processed: stopped at byte" in err[0] and "PNG header says 30000x30000" in err[0]
+
+
+def test_the_ellipsoids_are_capped_to_the_newest_landmarks(tmp_path: Path, rng: np.random.Generator) -> None:
+    from robotd.msgs import LandmarkMap
+
+    path = tmp_path / "s.mcap"
+    lm = LandmarkMap(np.arange(5, dtype=np.int64), np.arange(15, dtype=float).reshape(5, 3), np.stack([np.eye(3)] * 5))
+    with SessionWriter(path, MODEL, {}, max_ellipsoids=2) as w:
+        w.write_frame(next(e for e in session(rng, 1) if isinstance(e, StereoFrame)))
+        w.write_map(T0, w.map_messages(T0, lm))  # built outside the writer's lock, as the recorder does
+    msgs = decode_all(path)
+    assert len(np.frombuffer(msgs["/robotd/map"][0][1].data, np.uint8)) == 5 * 16  # every landmark in the cloud
+    spheres = msgs["/robotd/map_covariance"][0][1].entities[0].spheres
+    assert [s.pose.position.x for s in spheres] == [9.0, 12.0]  # ... the ellipsoids of the two newest
