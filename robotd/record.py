@@ -360,6 +360,197 @@ def _interrupted_name(tmp: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------------
+# The session as Foxglove messages
+
+# (topic, schema name) of each channel key; robotd.* schemas are JSON, the others protobuf
+CHANNELS: dict[str, tuple[str, str]] = {
+    "left": (TOPIC_IMAGE["left"], "foxglove.CompressedImage"),
+    "right": (TOPIC_IMAGE["right"], "foxglove.CompressedImage"),
+    "cal_left": (TOPIC_CAMERA_CAL["left"], "foxglove.CameraCalibration"),
+    "cal_right": (TOPIC_CAMERA_CAL["right"], "foxglove.CameraCalibration"),
+    "features": (TOPIC_FEATURES, "foxglove.ImageAnnotations"),
+    "tf": (TOPIC_TF, "foxglove.FrameTransforms"),
+    "pose": (TOPIC_POSE, "foxglove.PoseInFrame"),
+    "trajectory": (TOPIC_TRAJECTORY, "foxglove.PosesInFrame"),
+    "map": (TOPIC_MAP, "foxglove.PointCloud"),
+    "map_covariance": (TOPIC_MAP_COVARIANCE, "foxglove.SceneUpdate"),
+    "truth": (TOPIC_TRUTH, "foxglove.PoseInFrame"),
+    "truth_trajectory": (TOPIC_TRUTH_TRAJECTORY, "foxglove.PosesInFrame"),
+    "odometry": (TOPIC_ODOMETRY, "foxglove.Odometry"),
+    "frame": (TOPIC_FRAME, "robotd.FrameInfo"),
+    "pose_estimate": (TOPIC_POSE_ESTIMATE, "robotd.PoseEstimate"),
+    "calibration": (TOPIC_CALIBRATION, "robotd.Calibration"),
+}
+
+
+def schema_record(name: str) -> tuple[str, bytes]:
+    """(schema encoding, schema data) of a channel schema, as MCAP and Foxglove's WebSocket
+    protocol both declare it."""
+    if name in SCHEMAS:
+        return "jsonschema", json.dumps(SCHEMAS[name]).encode()
+    return "protobuf", fx.file_descriptor_set(fx.CLASSES[name])
+
+
+def message_encoding(schema: str) -> str:
+    return "json" if schema.startswith("robotd.") else "protobuf"
+
+
+def payload(msg: Any) -> bytes:
+    """A message's bytes: JSON for robotd's dicts, protobuf for Foxglove's messages."""
+    return _dumps(msg) if isinstance(msg, dict) else msg.SerializeToString()  # type: ignore[no-any-return]
+
+
+Item = tuple[str, int, Any, int]  # (channel key, t_ns, message, sequence)
+
+
+class FoxgloveScene:
+    """What a session looks like in Foxglove, as messages: no I/O, so the recording
+    (:class:`SessionWriter`) and the live view (``robotd.outputs.liveview``) send the same
+    channels. Each method returns ``(channel key, t_ns, message, sequence)`` items; the keys are
+    :data:`CHANNELS`'. Keeps the little state the messages need (the wall-clock offset, when the
+    calibration was last repeated, the trajectories, the last pixel of each tracked landmark).
+    Options as :class:`SessionWriter`'s."""
+
+    def __init__(
+        self,
+        calibration: RectifiedStereo,
+        calib_json: Mapping[str, Any],
+        *,
+        image_format: str = "png",
+        png_level: int = 1,
+        calibration_period_s: float = 1.0,
+        trajectory_period_s: float = 1.0,
+        max_ellipsoids: int = 2000,
+        wall_offset_ns: int | None = None,
+    ) -> None:
+        if image_format not in ("png", "raw"):
+            raise InputError(f"image_format: expected 'png' or 'raw', got {image_format!r}")
+        if not 0 <= int(png_level) <= 9:
+            raise InputError(f"png_level: expected 0..9, got {png_level}")
+        self.calibration = calibration
+        self.calib_json = calib_json
+        self.image_format = image_format
+        self.png_level = int(png_level)
+        self.calibration_period_ns = int(calibration_period_s * 1e9)
+        self.trajectory_period_ns = int(trajectory_period_s * 1e9)
+        self.max_ellipsoids = int(max_ellipsoids)
+        self._wall_offset = wall_offset_ns
+        self._last_cal_ns: int | None = None
+        self._last_traj_ns: int | None = None
+        self._truth0_inv: np.ndarray | None = None
+        self._path, self._truth_path = _Path(), _Path()
+        self._last_uv: dict[int, tuple[float, float]] = {}
+
+    def channels(self) -> dict[str, tuple[str, str]]:
+        """Channel key -> (topic, schema name), with the image schema this scene sends."""
+        img = "foxglove.CompressedImage" if self.image_format == "png" else "foxglove.RawImage"
+        return {k: (topic, img if k in ("left", "right") else schema) for k, (topic, schema) in CHANNELS.items()}
+
+    def wall_ns(self, t_ns: int) -> int:
+        """The wall-clock (Unix) time of an instant ``t_ns`` on the session's clock."""
+        if self._wall_offset is None:
+            mono, wall = time.monotonic_ns(), time.time_ns()
+            # host-monotonic stamps (a live camera) map exactly; a dataset's own clock starts now
+            self._wall_offset = wall - mono if abs(int(t_ns) - mono) < 86_400 * 10**9 else wall - int(t_ns)
+        return max(0, int(t_ns) + self._wall_offset)
+
+    def frame(self, frame: StereoFrame, k: int) -> list[Item]:
+        """Both images, the frame info, the ground truth when the frame carries one and (once per
+        ``calibration_period_s``) the camera calibrations and the robot → camera transforms."""
+        t = int(frame.t_ns)
+        wall = self.wall_ns(t)
+        out: list[Item] = []
+        if self._last_cal_ns is None:
+            out.append(("calibration", t, dict(self.calib_json), 0))
+        if self._last_cal_ns is None or t - self._last_cal_ns >= self.calibration_period_ns:
+            for side in ("left", "right"):
+                out.append((f"cal_{side}", t, camera_calibration_pb(self.calibration, side, wall), 0))
+            tfs = fx.FrameTransforms(transforms=fx.camera_transforms(wall, self.calibration.baseline_m))
+            out.append(("tf", t, tfs, 0))
+            self._last_cal_ns = t
+        for side, img in (("left", frame.left), ("right", frame.right)):
+            out.append((side, t, self._image(img, side, wall), k))
+        truth = None if frame.truth_T_world_robot is None else _floats(frame.truth_T_world_robot)
+        info = {"t_ns": t, "seq": int(frame.seq), "rectified": bool(frame.rectified), "truth_T_world_robot": truth}
+        out.append(("frame", t, info, k))
+        if frame.truth_T_world_robot is not None:
+            # shown from the first truth pose on, where the estimate's world frame starts
+            if self._truth0_inv is None:
+                self._truth0_inv = np.linalg.inv(frame.truth_T_world_robot)
+            G = self._truth0_inv @ frame.truth_T_world_robot
+            out.append(("truth", t, fx.PoseInFrame(timestamp=fx.stamp(wall), frame_id=WORLD_FRAME_ID,
+                                                   pose=fx.pose_pb(G)), 0))  # fmt: skip
+            self._truth_path.add(G)
+        return out
+
+    def _image(self, img: np.ndarray, side: str, wall: int) -> Any:
+        if self.image_format == "png":
+            return fx.CompressedImage(timestamp=fx.stamp(wall), frame_id=FRAME_ID[side],
+                                      data=encode_png(img, self.png_level), format="png")  # fmt: skip
+        h, w = img.shape
+        return fx.RawImage(timestamp=fx.stamp(wall), frame_id=FRAME_ID[side], width=w, height=h, encoding="mono8",
+                           step=w, data=np.ascontiguousarray(img).tobytes())  # fmt: skip
+
+    def odometry(self, o: Odometry, k: int) -> list[Item]:
+        msg = fx.odometry_pb(self.wall_ns(o.t_ns), o.t_ns, o.vel_R_mps, o.rate_R_radps, o.cov, o.source)
+        return [("odometry", int(o.t_ns), msg, k)]
+
+    def pose(self, pose: PoseEstimate, k: int) -> list[Item]:
+        """The published pose: foxglove.PoseInFrame and the world → robot transform (for the 3D
+        panel), the full robotd.PoseEstimate, and the trajectories (once per ``trajectory_period_s``)."""
+        t = int(pose.t_ns)
+        wall = self.wall_ns(t)
+        T = pose.T_world_robot
+        out: list[Item] = [
+            ("pose", t, fx.PoseInFrame(timestamp=fx.stamp(wall), frame_id=WORLD_FRAME_ID, pose=fx.pose_pb(T)), k),
+            ("tf", t, fx.FrameTransforms(transforms=[fx.transform(wall, fx.WORLD, fx.ROBOT, T)]), 0),
+            ("pose_estimate", t, pose_estimate_msg(pose), k),
+        ]
+        self._path.add(T)
+        if self._last_traj_ns is None or t - self._last_traj_ns >= self.trajectory_period_ns:
+            out += self.trajectories(t)
+        return out
+
+    def trajectories(self, t_ns: int | None = None) -> list[Item]:
+        """The trajectories that changed since they were last sent (``t_ns`` None: at the last
+        time they were sent, for the end of a session)."""
+        t = self._last_traj_ns if t_ns is None else t_ns
+        if t is None:
+            return []
+        wall = self.wall_ns(t)
+        out: list[Item] = []
+        if self._path.changed:
+            out.append(("trajectory", t, self._path.message(wall), 0))
+        if self._truth_path.changed:
+            out.append(("truth_trajectory", t, self._truth_path.message(wall), 0))
+        self._last_traj_ns = t
+        return out
+
+    def features(self, obs: Observations) -> list[Item]:
+        """The observations the filter took this frame, on the left image, with each re-observed
+        landmark's track from the previous annotated frame (nothing when they carry no pixels)."""
+        if obs.uv_px is None:
+            return []
+        ids = [int(i) for i in obs.ids]
+        tracks = [(*self._last_uv[i], float(u), float(v)) for i, (u, _, v), new in zip(ids, obs.uv_px, obs.is_new)
+                  if not new and i in self._last_uv]  # fmt: skip
+        msg = fx.feature_annotations(self.wall_ns(obs.t_ns), obs.uv_px, obs.is_new, tracks)
+        self._last_uv = {i: (float(u), float(v)) for i, (u, _, v) in zip(ids, obs.uv_px)}
+        return [("features", int(obs.t_ns), msg, 0)]
+
+    def map(self, t_ns: int, landmarks: LandmarkMap) -> list[Item]:
+        """The point cloud, and the covariance ellipsoids of the ``max_ellipsoids`` newest
+        landmarks (the map lists them in creation order; the newest are the ones around the
+        robot). Pure: the ellipsoids of 2000 landmarks take ~17 ms, so callers build them outside
+        any lock."""
+        wall = self.wall_ns(t_ns)
+        n = min(landmarks.n, self.max_ellipsoids)
+        cov = fx.covariance_ellipsoids(wall, landmarks.xyz_W_m[landmarks.n - n :], landmarks.cov_W[landmarks.n - n :])
+        return [("map", t_ns, fx.points_cloud(wall, landmarks.xyz_W_m, landmarks.ids), 0),
+                ("map_covariance", t_ns, cov, 0)]  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
 # Writer
 
 
@@ -400,31 +591,20 @@ class SessionWriter:
     ) -> None:
         from mcap.writer import CompressionType, Writer
 
-        if image_format not in ("png", "raw"):
-            raise InputError(f"image_format: expected 'png' or 'raw', got {image_format!r}")
-        if not 0 <= int(png_level) <= 9:
-            raise InputError(f"png_level: expected 0..9, got {png_level}")
         self.path = Path(path)
         self.tmp_path = self.path.with_name(self.path.name + ".tmp")
         self.calibration = calibration
-        self.image_format = image_format
-        self.png_level = int(png_level)
-        self.calibration_period_ns = int(calibration_period_s * 1e9)
         self.flush_period_s = float(flush_period_s)
-        self.trajectory_period_ns = int(trajectory_period_s * 1e9)
-        self.max_ellipsoids = int(max_ellipsoids)
         self.counts = {"frames": 0, "odometry": 0, "poses": 0, "maps": 0, "bytes": 0, "flushes": 0}
         self.kept_interrupted: Path | None = None
-        self._wall_offset = wall_offset_ns
-        self._last_cal_ns: int | None = None
-        self._last_traj_ns: int | None = None
         self._closed = False
         self._failed: PersistenceError | None = None
-        self._frame_index = 0
-        self._truth0_inv: np.ndarray | None = None
-        self._path, self._truth_path = _Path(), _Path()
-        self._last_uv: dict[int, tuple[float, float]] = {}
-        self._calib_json = calibration_to_json(calibration, raw_calibration)
+        calib_json = calibration_to_json(calibration, raw_calibration)
+        self.scene = FoxgloveScene(
+            calibration, calib_json, image_format=image_format, png_level=png_level,
+            calibration_period_s=calibration_period_s, trajectory_period_s=trajectory_period_s,
+            max_ellipsoids=max_ellipsoids, wall_offset_ns=wall_offset_ns,
+        )  # fmt: skip
         try:
             session_meta = {"format_version": FORMAT_VERSION, "meta": dict(meta or {})}
             meta_json = json.dumps(session_meta, allow_nan=False)
@@ -443,53 +623,26 @@ class SessionWriter:
             self._file: IO[bytes] = opener(self.tmp_path) if opener else open(self.tmp_path, "wb")
             self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
             self._writer.start(profile=PROFILE, library=f"robotd-record/{FORMAT_VERSION}")
-            self._schema_ids: dict[str, int] = {}
-            for name, cls in fx.CLASSES.items():
-                self._schema_ids[name] = self._writer.register_schema(name, "protobuf", fx.file_descriptor_set(cls))
-            for name, s in SCHEMAS.items():
-                self._schema_ids[name] = self._writer.register_schema(name, "jsonschema", json.dumps(s).encode())
-            img_schema = "foxglove.CompressedImage" if image_format == "png" else "foxglove.RawImage"
-            ch = self._channel
+            # every schema is registered (a format-2 file always declares the same set)
+            schema_ids = {name: self._writer.register_schema(name, *schema_record(name))
+                          for name in (*fx.CLASSES, *SCHEMAS)}  # fmt: skip
             self._ch = {
-                "left": ch(TOPIC_IMAGE["left"], img_schema),
-                "right": ch(TOPIC_IMAGE["right"], img_schema),
-                "cal_left": ch(TOPIC_CAMERA_CAL["left"], "foxglove.CameraCalibration"),
-                "cal_right": ch(TOPIC_CAMERA_CAL["right"], "foxglove.CameraCalibration"),
-                "features": ch(TOPIC_FEATURES, "foxglove.ImageAnnotations"),
-                "tf": ch(TOPIC_TF, "foxglove.FrameTransforms"),
-                "pose": ch(TOPIC_POSE, "foxglove.PoseInFrame"),
-                "trajectory": ch(TOPIC_TRAJECTORY, "foxglove.PosesInFrame"),
-                "map": ch(TOPIC_MAP, "foxglove.PointCloud"),
-                "map_covariance": ch(TOPIC_MAP_COVARIANCE, "foxglove.SceneUpdate"),
-                "truth": ch(TOPIC_TRUTH, "foxglove.PoseInFrame"),
-                "truth_trajectory": ch(TOPIC_TRUTH_TRAJECTORY, "foxglove.PosesInFrame"),
-                "odometry": ch(TOPIC_ODOMETRY, "foxglove.Odometry"),
-                "frame": ch(TOPIC_FRAME, "robotd.FrameInfo"),
-                "pose_estimate": ch(TOPIC_POSE_ESTIMATE, "robotd.PoseEstimate"),
-                "calibration": ch(TOPIC_CALIBRATION, "robotd.Calibration"),
+                key: self._writer.register_channel(topic, message_encoding(schema), schema_ids[schema])
+                for key, (topic, schema) in self.scene.channels().items()
             }
             # metadata go straight to the file, ahead of the first chunk: a killed recording
             # still says what it is
             self._writer.add_metadata("robotd.session", {"json": meta_json})
-            self._writer.add_metadata("robotd.calibration", {"json": json.dumps(self._calib_json)})
+            self._writer.add_metadata("robotd.calibration", {"json": json.dumps(calib_json)})
             self._file.flush()
         except OSError as exc:
             self._fail(exc, "opening")
         self._last_flush = time.monotonic()
         logger.info("recording to %s (via %s), images %s", self.path, self.tmp_path.name, image_format)
 
-    def _channel(self, topic: str, schema: str) -> int:
-        enc = "json" if schema.startswith("robotd.") else "protobuf"
-        return self._writer.register_channel(topic, enc, self._schema_ids[schema])  # type: ignore[no-any-return]
-
-    # -- clock -------------------------------------------------------------------------------
     def wall_ns(self, t_ns: int) -> int:
         """The wall-clock (Unix) time of an instant ``t_ns`` on the session's clock."""
-        if self._wall_offset is None:
-            mono, wall = time.monotonic_ns(), time.time_ns()
-            # host-monotonic stamps (a live camera) map exactly; a dataset's own clock starts now
-            self._wall_offset = wall - mono if abs(int(t_ns) - mono) < 86_400 * 10**9 else wall - int(t_ns)
-        return max(0, int(t_ns) + self._wall_offset)
+        return self.scene.wall_ns(t_ns)
 
     # -- error handling ----------------------------------------------------------------------
     def _fail(self, exc: BaseException, doing: str) -> None:
@@ -515,118 +668,53 @@ class SessionWriter:
         if self._closed:
             raise PersistenceError(f"{self.path}: writer is closed")
 
-    def _add(self, channel: str, t_ns: int, msg: Any, seq: int = 0) -> None:
-        data = _dumps(msg) if isinstance(msg, dict) else msg.SerializeToString()
-        wall = self.wall_ns(t_ns)
-        try:
-            self._writer.add_message(self._ch[channel], log_time=wall, data=data, publish_time=wall, sequence=seq)
-            now = time.monotonic()
-            if now - self._last_flush >= self.flush_period_s:
-                # close the chunk and hand it to the OS: a killed recorder loses at most this period
-                self._writer.flush()
-                self._last_flush = now
-                self.counts["flushes"] += 1
-        except (OSError, ValueError) as exc:
-            self._fail(exc, f"writing {channel}")
-        self.counts["bytes"] += len(data)
+    def _write(self, items: Iterable[Item]) -> None:
+        for channel, t_ns, msg, seq in items:
+            data = payload(msg)
+            wall = self.scene.wall_ns(t_ns)
+            try:
+                self._writer.add_message(self._ch[channel], log_time=wall, data=data, publish_time=wall, sequence=seq)
+                now = time.monotonic()
+                if now - self._last_flush >= self.flush_period_s:
+                    # close the chunk and hand it to the OS: a killed recorder loses at most this period
+                    self._writer.flush()
+                    self._last_flush = now
+                    self.counts["flushes"] += 1
+            except (OSError, ValueError) as exc:
+                self._fail(exc, f"writing {channel}")
+            self.counts["bytes"] += len(data)
 
     # -- public API --------------------------------------------------------------------------
     def write_frame(self, frame: StereoFrame) -> None:
-        """Both images, the frame info, the ground truth when the frame carries one and (once per
-        ``calibration_period_s``) the camera calibrations and the robot → camera transforms."""
+        """See :meth:`FoxgloveScene.frame`."""
         self._check_open()
-        t = int(frame.t_ns)
-        wall = self.wall_ns(t)
-        if self._last_cal_ns is None:
-            self._add("calibration", t, self._calib_json)
-        if self._last_cal_ns is None or t - self._last_cal_ns >= self.calibration_period_ns:
-            for side in ("left", "right"):
-                self._add(f"cal_{side}", t, camera_calibration_pb(self.calibration, side, wall))
-            self._add("tf", t, fx.FrameTransforms(transforms=fx.camera_transforms(wall, self.calibration.baseline_m)))
-            self._last_cal_ns = t
-        k = self._frame_index
-        for side, img in (("left", frame.left), ("right", frame.right)):
-            self._add(side, t, self._image(img, side, wall), seq=k)
-        truth = None if frame.truth_T_world_robot is None else _floats(frame.truth_T_world_robot)
-        info = {"t_ns": t, "seq": int(frame.seq), "rectified": bool(frame.rectified), "truth_T_world_robot": truth}
-        self._add("frame", t, info, seq=k)
-        if frame.truth_T_world_robot is not None:
-            # shown from the first truth pose on, where the estimate's world frame starts
-            if self._truth0_inv is None:
-                self._truth0_inv = np.linalg.inv(frame.truth_T_world_robot)
-            G = self._truth0_inv @ frame.truth_T_world_robot
-            self._add("truth", t, fx.PoseInFrame(timestamp=fx.stamp(wall), frame_id=WORLD_FRAME_ID, pose=fx.pose_pb(G)))
-            self._truth_path.add(G)
-        self._frame_index += 1
+        self._write(self.scene.frame(frame, self.counts["frames"]))
         self.counts["frames"] += 1
-
-    def _image(self, img: np.ndarray, side: str, wall: int) -> Any:
-        if self.image_format == "png":
-            return fx.CompressedImage(timestamp=fx.stamp(wall), frame_id=FRAME_ID[side],
-                                      data=encode_png(img, self.png_level), format="png")  # fmt: skip
-        h, w = img.shape
-        return fx.RawImage(timestamp=fx.stamp(wall), frame_id=FRAME_ID[side], width=w, height=h, encoding="mono8",
-                           step=w, data=np.ascontiguousarray(img).tobytes())  # fmt: skip
 
     def write_odometry(self, odometry: Odometry) -> None:
         self._check_open()
-        o = odometry
-        msg = fx.odometry_pb(self.wall_ns(o.t_ns), o.t_ns, o.vel_R_mps, o.rate_R_radps, o.cov, o.source)
-        self._add("odometry", o.t_ns, msg, seq=self.counts["odometry"])
+        self._write(self.scene.odometry(odometry, self.counts["odometry"]))
         self.counts["odometry"] += 1
 
     def write_pose(self, pose: PoseEstimate) -> None:
-        """The published pose: foxglove.PoseInFrame and the world → robot transform (for the 3D
-        panel), the full robotd.PoseEstimate, and the trajectory (written once per
-        ``trajectory_period_s``)."""
+        """See :meth:`FoxgloveScene.pose`."""
         self._check_open()
-        k, t = self.counts["poses"], int(pose.t_ns)
-        wall = self.wall_ns(t)
-        T = pose.T_world_robot
-        self._add("pose", t, fx.PoseInFrame(timestamp=fx.stamp(wall), frame_id=WORLD_FRAME_ID, pose=fx.pose_pb(T)), k)
-        self._add("tf", t, fx.FrameTransforms(transforms=[fx.transform(wall, fx.WORLD, fx.ROBOT, T)]))
-        self._add("pose_estimate", t, pose_estimate_msg(pose), seq=k)
-        self._path.add(T)
-        if self._last_traj_ns is None or t - self._last_traj_ns >= self.trajectory_period_ns:
-            self._write_trajectories(t)
+        self._write(self.scene.pose(pose, self.counts["poses"]))
         self.counts["poses"] += 1
 
-    def _write_trajectories(self, t_ns: int) -> None:
-        wall = self.wall_ns(t_ns)
-        if self._path.changed:
-            self._add("trajectory", t_ns, self._path.message(wall))
-        if self._truth_path.changed:
-            self._add("truth_trajectory", t_ns, self._truth_path.message(wall))
-        self._last_traj_ns = t_ns
-
     def write_features(self, obs: Observations) -> None:
-        """The observations the filter took this frame, on the left image, with each re-observed
-        landmark's track from the previous annotated frame (nothing when they carry no pixels)."""
+        """See :meth:`FoxgloveScene.features`."""
         self._check_open()
-        if obs.uv_px is None:
-            return
-        ids = [int(i) for i in obs.ids]
-        tracks = [(*self._last_uv[i], float(u), float(v)) for i, (u, _, v), new in zip(ids, obs.uv_px, obs.is_new)
-                  if not new and i in self._last_uv]  # fmt: skip
-        self._add("features", obs.t_ns, fx.feature_annotations(self.wall_ns(obs.t_ns), obs.uv_px, obs.is_new, tracks))
-        self._last_uv = {i: (float(u), float(v)) for i, (u, _, v) in zip(ids, obs.uv_px)}
+        self._write(self.scene.features(obs))
 
-    def map_messages(self, t_ns: int, landmarks: LandmarkMap) -> list[tuple[str, Any]]:
-        """The map's messages, built without touching the file (so a caller may build them
-        outside the lock that serialises the writer: the ellipsoids of 2000 landmarks take
-        ~17 ms): the point cloud, and the covariance ellipsoids of the ``max_ellipsoids`` newest
-        landmarks (the map lists them in creation order; the newest are the ones around the robot)."""
-        wall = self.wall_ns(t_ns)
-        n = min(landmarks.n, self.max_ellipsoids)
-        cov = fx.covariance_ellipsoids(wall, landmarks.xyz_W_m[landmarks.n - n :], landmarks.cov_W[landmarks.n - n :])
-        return [("map", fx.points_cloud(wall, landmarks.xyz_W_m, landmarks.ids)), ("map_covariance", cov)]
+    def map_messages(self, t_ns: int, landmarks: LandmarkMap) -> list[Item]:
+        """:meth:`FoxgloveScene.map`: built without touching the file, so outside any lock."""
+        return self.scene.map(t_ns, landmarks)
 
-    def write_map(self, t_ns: int, landmarks: LandmarkMap | list[tuple[str, Any]]) -> None:
+    def write_map(self, t_ns: int, landmarks: LandmarkMap | list[Item]) -> None:
         """The landmark map (a :class:`LandmarkMap`, or what :meth:`map_messages` built from one)."""
         self._check_open()
-        msgs = self.map_messages(t_ns, landmarks) if isinstance(landmarks, LandmarkMap) else landmarks
-        for channel, msg in msgs:
-            self._add(channel, t_ns, msg)
+        self._write(self.scene.map(t_ns, landmarks) if isinstance(landmarks, LandmarkMap) else landmarks)
         self.counts["maps"] += 1
 
     def close(self) -> None:
@@ -636,8 +724,7 @@ class SessionWriter:
             if self._failed is not None:
                 raise PersistenceError(f"{self.path}: writer failed earlier: {self._failed}")
             return
-        if self._last_traj_ns is not None and (self._path.changed or self._truth_path.changed):
-            self._write_trajectories(self._last_traj_ns)
+        self._write(self.scene.trajectories())
         try:
             self._writer.finish()
             self._file.flush()
