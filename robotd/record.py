@@ -454,8 +454,9 @@ class FoxgloveScene:
             self._wall_offset = wall - mono if abs(int(t_ns) - mono) < 86_400 * 10**9 else wall - int(t_ns)
         return max(0, int(t_ns) + self._wall_offset)
 
-    def frame(self, frame: StereoFrame, k: int) -> list[Item]:
-        """Both images, the frame info, the ground truth when the frame carries one and (once per
+    def frame(self, frame: StereoFrame, k: int, images: bool = True) -> list[Item]:
+        """Both images (unless ``images`` is False: the live view with no viewer spares the PNG
+        encoding), the frame info, the ground truth when the frame carries one and (once per
         ``calibration_period_s``) the camera calibrations and the robot → camera transforms."""
         t = int(frame.t_ns)
         wall = self.wall_ns(t)
@@ -468,7 +469,7 @@ class FoxgloveScene:
             tfs = fx.FrameTransforms(transforms=fx.camera_transforms(wall, self.calibration.baseline_m))
             out.append(("tf", t, tfs, 0))
             self._last_cal_ns = t
-        for side, img in (("left", frame.left), ("right", frame.right)):
+        for side, img in (("left", frame.left), ("right", frame.right)) if images else ():
             out.append((side, t, self._image(img, side, wall), k))
         truth = None if frame.truth_T_world_robot is None else _floats(frame.truth_T_world_robot)
         info = {"t_ns": t, "seq": int(frame.seq), "rectified": bool(frame.rectified), "truth_T_world_robot": truth}
