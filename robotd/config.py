@@ -192,6 +192,14 @@ class ZenohConfig:
 
 
 @dataclass(frozen=True)
+class LiveViewConfig:
+    enabled: bool = _f(False, "serve the recording's channels live to the Foxglove app (WebSocket, needs robotd[live])")
+    host: str = _f("127.0.0.1", "address the live view listens on (loopback only by default)")
+    port: int = _f(8765, "live view WebSocket port (Foxglove's default)", min=1, max=65535)
+    map_period_s: float = _f(1.0, "period of the landmark map in the live view", min=0.1)
+
+
+@dataclass(frozen=True)
 class MavlinkConfig:
     enabled: bool = _f(False, "send the pose to an autopilot")
     url: str = _f("mavlink+udp://127.0.0.1:14550", "autopilot link when different from vehicle.url")
@@ -230,6 +238,7 @@ class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    liveview: LiveViewConfig = field(default_factory=LiveViewConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
     log: LogConfig = field(default_factory=LogConfig)

@@ -165,7 +165,7 @@ class Pipeline:
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
-        return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising)
+        return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 
     # ---------------------------------------------------------------- the stages
     def _motion_prior(self, t_ns: int) -> MotionPrior | None:
@@ -325,13 +325,22 @@ class Pipeline:
         tracking: bool,
         n_identified: int,
         relocalised: bool = False,
+        obs: Observations | None = None,
     ) -> StepResult:
         self._last_t_ns = frame.t_ns
         self.counters.frames += 1
         counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
         counts["identified"] = n_identified
         return StepResult(
-            frame.t_ns, pose, report, clock.finish(), counts, tracking, relocalised, self.covariance.health()
+            frame.t_ns,
+            pose,
+            report,
+            clock.finish(),
+            counts,
+            tracking,
+            relocalised,
+            consistency=self.covariance.health(),
+            observations=obs,
         )
 
     # ---------------------------------------------------------------- degradation hooks
