@@ -322,9 +322,7 @@ calib.txt beside it) and stamped from the times.txt beside it, so `robotd replay
     sp.add_argument(
         "--cov", metavar="FILE", help="the estimate's pose covariance (default: T.cov.txt beside T.txt, if any)"
     )
-    sp.add_argument(
-        "--nees-plot", metavar="PNG", help="write the position NEES over time with its 95 %% band to PNG"
-    )
+    sp.add_argument("--nees-plot", metavar="PNG", help="write the position NEES over time with its 95 %% band to PNG")
     sp.add_argument("--planar", action="store_true", help="SE(2) alignment (2D runs)")
     sp.add_argument("--json", action="store_true")
 

@@ -251,7 +251,6 @@ def innovation_nis(
     return np.einsum("bi,bi->b", nu, sol)
 
 
-
 class ReportedCovariance:
     """The covariance robotd reports for each pose (``slam.covariance``): the pipeline's and the
     simulation studies' one implementation.

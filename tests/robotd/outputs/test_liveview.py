@@ -147,7 +147,7 @@ def test_robotd_run_serves_the_live_view(tmp_path: Path) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text(
         '[camera]\nurl = "sim://?fps=10&width=320&height=200"\n[vehicle]\nurl = "sim://?fps=10&width=320&height=200"\n'
-        f'[zenoh]\nenabled = false\n[liveview]\nenabled = true\nport = {port}\n'
+        f"[zenoh]\nenabled = false\n[liveview]\nenabled = true\nport = {port}\n"
         f'[persistence]\nstate_dir = "{tmp_path / "state"}"\n'
     )
     proc = subprocess.Popen([sys.executable, "-m", "robotd", "run", "--config", str(cfg), "--duration", "60"],
