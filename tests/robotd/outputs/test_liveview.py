@@ -82,7 +82,7 @@ def _step(t_ns: int) -> tuple[StereoFrame, Odometry, StepReport]:
                        np.array([[30.0, 25.0, 10.0], [40.0, 31.0, 20.0]]))  # fmt: skip
     lm = LandmarkMap(np.array([4, 5], np.int64), np.array([[3.0, 0.0, 0.0], [4.0, 1.0, 0.0]]),
                      np.stack([np.eye(3) * 0.01] * 2))  # fmt: skip
-    res = StepResult(t_ns, pose, UpdateReport(), {}, {}, True, False, obs)
+    res = StepResult(t_ns, pose, UpdateReport(), {}, {}, True, False, observations=obs)
     return frame, odo, StepReport(res, 1, 7, 50, 0, 10.0, "tracking", landmarks=lm)
 
 
