@@ -264,7 +264,7 @@ def _pose_part3t(Sg, d, R, sy: float, cy: float, T):  # type: ignore[no-untyped-
 
 def _noise3(R, rig):  # type: ignore[no-untyped-def]
     """Pixel model: A (6-tuple) of Q_w for the rotation R (9-tuple); Cartesian: 0.0 (unused). numba only."""
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_noise3, inline="always", jit_options={"fastmath": _FM})
@@ -310,7 +310,7 @@ def _meas3(x, m, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
     Cartesian (``rig`` None): ν_w = R z − d, Q_w = R Q Rᵀ, X̃ None. Pixel: see above, X̃ the clamped
     depth for the weight's log g (Qm is not read: the noise is rig[4:6]; A = _noise3(R, rig)).
     """
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_meas3, inline="always", jit_options={"fastmath": _FM})
@@ -349,7 +349,7 @@ def _init3(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
     Cartesian (``rig`` None): μ = p + R z, Σ = R Q Rᵀ. Pixel: q = π⁻¹(z) (triangulation),
     μ = p + R q, Σ = (R J_tri) Q_px (R J_tri)ᵀ = s² (2σx² D Dᵀ + A), D = R q.
     """
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_init3, inline="always", jit_options={"fastmath": _FM})
@@ -617,7 +617,7 @@ def _depth_acc(acc, g):  # type: ignore[no-untyped-def]
     weight terms need no division or logarithm of their own. The product is folded into the
     log sum before it can overflow or underflow (X̃ ∈ [0.05 m, ~1e4 m]).
     """
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_depth_acc, inline="always", jit_options={"fastmath": _FM})
@@ -636,7 +636,7 @@ def _depth_acc_impl(acc, g):  # type: ignore[no-untyped-def]
 
 def _depth_logw(xacc, rig, dz: int):  # type: ignore[no-untyped-def]
     """Σ over the weight terms of −½ log det(G)² (0 for the Cartesian model); numba only."""
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_depth_logw, inline="always", jit_options={"fastmath": _FM})
@@ -671,7 +671,7 @@ def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
 
 def _noise2(c: float, s: float, rig):  # type: ignore[no-untyped-def]
     """Pixel model: A = (σx² b²/2) r1 r1ᵀ (3-tuple), r1 = (−sin ψ, cos ψ); Cartesian: 0.0. numba only."""
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_noise2, inline="always", jit_options={"fastmath": _FM})
@@ -697,7 +697,7 @@ def _pixel_cov2(D0: float, D1: float, sc: float, A, vx: float):  # type: ignore[
 def _meas2(x, m, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
     """One 2D observation in the world frame: (d, ν_w, Q_w (3-tuple), X̃), as ``_meas3`` with
     R = R2(ψ) = [[c, −s], [s, c]]; pixel: z = (x_L, x_R), g = det(J_π)² = (f² b / X̃³)²; numba only."""
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_meas2, inline="always", jit_options={"fastmath": _FM})
@@ -728,7 +728,7 @@ def _meas2_impl(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
 
 def _init2(x, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
     """A new 2D landmark at pose x: (μ (2-tuple), Σ without the floor (3-tuple)), as ``_init3``."""
-    raise NotImplementedError
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_init2, inline="always", jit_options={"fastmath": _FM})

@@ -311,11 +311,16 @@ class ReportedCovariance:
     def report(self, pose: PoseEstimate, obs: Observations) -> PoseEstimate:
         """After the update: ``pose`` with the reported covariance; ``obs`` the frame's fused
         observations (identified ones re-observed map landmarks, new ones were created)."""
-        if not self.enabled or not np.all(np.isfinite(pose.cov)):
-            return pose
+        if not self.enabled:
+            return pose  # (a PoseEstimate's mean and covariance are finite: robotd.msgs refuses others)
         cov = pose.cov * self.monitor.scale
         if self.anchors is not None:
             cov = self.anchors.step(pose.xyz_W_m, pose.rpy_rad, cov, obs.ids[~obs.is_new], obs.ids[obs.is_new])
+            if not np.all(np.isfinite(cov)):
+                # never let one bad value live on in the anchors (every later covariance would be
+                # non-finite, which a PoseEstimate refuses: every step would fail): start them again
+                self.anchors.reset()
+                cov = pose.cov * self.monitor.scale
         return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, cov, pose.neff, pose.n_particles)
 
     def health(self) -> dict[str, object]:

@@ -153,3 +153,16 @@ def test_observe_feeds_the_monitor_with_the_map_landmarks_it_finds():
         rc.observe(_pose([0, 0, 0], np.eye(6) * 1e-12), obs, lm)
     # S = Σ + Q = 2e-4 per axis against 1e-2 of real variance: about 50× over-confident
     assert 35 < rc.monitor.ratio < 70 and rc.monitor.state == "overconfident"
+
+
+def test_a_non_finite_value_never_lives_on_in_the_anchors():
+    obs = Observations(1, np.ones((3, 3)), np.broadcast_to(np.eye(3), (3, 3, 3)).copy(), np.arange(3), np.ones(3, bool))
+    rc = ReportedCovariance("consistent", True, CARTESIAN_3D, None)
+    bad = rc.anchors
+    assert bad is not None
+    # a landmark anchored with an infinite covariance (e.g. a 90° pitch the pinv could not mend)
+    bad._anchor(np.arange(10, 13), np.zeros(3), np.full((6, 6), np.inf))
+    used = Observations(2, np.ones((3, 3)), obs.cov_R, np.arange(10, 13), np.zeros(3, bool))
+    out = rc.report(_pose([1.0, 0, 0], np.eye(6) * 1e-4), used)
+    np.testing.assert_allclose(out.cov, np.eye(6) * 1e-4)  # the fix alone, finite
+    assert bad.n_anchored == 0  # started again
