@@ -6,7 +6,6 @@ from __future__ import annotations
 import hashlib
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -15,15 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.net import free_port
 from tests.support.paths import REPO
 
 STOP_WITHIN_S = 5.0  # the bound on a clean stop after the signal
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
@@ -50,7 +44,7 @@ def _start(root: Path, tmp: Path) -> tuple[subprocess.Popen[str], list[str]]:
     cfg = tmp / "robotd.toml"
     cfg.write_text(
         f'[camera]\nurl = "sim://?fps=10"\n[vehicle]\nurl = "sim://?fps=10"\n'
-        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{_free_port()}"]\n'
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:{free_port()}"]\n'
         f'[persistence]\nstate_dir = "{tmp / "state"}"\n'
     )
     proc = subprocess.Popen(

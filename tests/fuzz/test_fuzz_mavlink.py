@@ -9,12 +9,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.mavlink_link import MavlinkVehicle, mavlink_module
 from robotd.odometry import OdometryGate
+from tests.support.odometry_checks import assert_finite_and_gated
 
 m = mavlink_module()
 KINDS = (
@@ -110,14 +110,7 @@ def test_arbitrary_messages_never_raise_and_bad_values_are_counted(items) -> Non
                 assert link.c["bad_values"] == before + 1, rx
     samples = link.drain()
     assert len(samples) == link.c["odometry"]
-    for s in samples:
-        assert np.all(np.isfinite(s.vel_R_mps)) and np.all(np.isfinite(s.rate_R_radps))
-    gate = OdometryGate()
-    accepted = [s for s in samples if gate.accept(s)]
-    assert gate.accepted + sum(gate.rejected.values()) == len(samples)
-    for s in accepted:
-        assert np.linalg.norm(s.vel_R_mps) <= gate.limits.max_speed_mps
-        assert np.linalg.norm(s.rate_R_radps) <= gate.limits.max_rate_radps
+    assert_finite_and_gated(samples)
     ctl = link.latest_controls()
     assert ctl is None or (abs(ctl.throttle) <= 1.4 and abs(ctl.steering) <= 1.4)  # 800–2200 µs
     st_ = link.stats()

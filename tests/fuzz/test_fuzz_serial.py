@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import struct
 
-import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -28,6 +27,7 @@ from drivers.serial_protocol import (
 )
 from robotd.errors import ProtocolError, RobotdError
 from robotd.odometry import OdometryGate
+from tests.support.odometry_checks import assert_finite_and_gated
 
 U32 = 1 << 32
 F32 = st.floats(width=32)  # NaN, ±inf, ±3.4e38 and everything between
@@ -150,14 +150,7 @@ def test_handler_with_arbitrary_values_counts_and_the_gate_refuses(items, source
             bad += 1  # the reader counts these as bad_values and reads on
     samples = link.drain()
     assert len(samples) == link.stats()["odometry"]
-    for s in samples:  # Odometry refuses non-finite values at construction
-        assert np.all(np.isfinite(s.vel_R_mps)) and np.all(np.isfinite(s.rate_R_radps))
-    gate = OdometryGate()
-    accepted = [s for s in samples if gate.accept(s)]
-    assert gate.accepted + sum(gate.rejected.values()) == len(samples)
-    for s in accepted:
-        assert np.linalg.norm(s.vel_R_mps) <= gate.limits.max_speed_mps
-        assert np.linalg.norm(s.rate_R_radps) <= gate.limits.max_rate_radps
+    assert_finite_and_gated(samples)
     ctl = link.latest_controls()
     assert ctl is None or (abs(ctl.throttle) <= 1.0 and abs(ctl.steering) <= 1.0)
     link._link.closed()

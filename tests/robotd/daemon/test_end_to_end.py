@@ -18,22 +18,9 @@ import pytest
 import zenoh
 
 from robotd.codec import decode_map
+from tests.support.net import free_port, zenoh_client
 
 FPS = 10  # the simulated camera's rate; the daemon must keep up with it on a loaded 2-core CI machine
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _client(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
 
 
 class Notify:
@@ -103,7 +90,7 @@ def _collect(
     ``seconds``), then one map query."""
     poses: list[dict] = []
     health: list[dict] = []
-    with zenoh.open(_client(port)) as s:
+    with zenoh.open(zenoh_client(port)) as s:
         sub_p = s.declare_subscriber("robotd/r1/pose", lambda smp: poses.append(json.loads(smp.payload.to_bytes())))
         sub_h = s.declare_subscriber("robotd/r1/health", lambda smp: health.append(json.loads(smp.payload.to_bytes())))
         t_end = time.monotonic() + seconds
@@ -142,7 +129,7 @@ def _stop(proc: subprocess.Popen[str]) -> tuple[int, float, str]:
 
 @pytest.mark.slow
 def test_daemon_end_to_end(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     sock = tmp_path / "notify.sock"
     notify = Notify(sock)
     proc = _start(tmp_path, port, sock, resume=False)

@@ -4,7 +4,6 @@ beside the first; so does a ``robotd record``, whose recording is written."""
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import time
@@ -12,13 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.net import free_port
 from tests.support.paths import REPO
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _config(tmp: Path, name: str, port: int) -> Path:
@@ -42,7 +36,7 @@ def _robotd(*args: str) -> subprocess.Popen[str]:
 
 @pytest.mark.slow
 def test_a_second_instance_fails_in_one_line_or_runs_beside_with_its_own_port(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     # long enough to outlast the three runs below on a loaded machine; it is stopped in `finally`
     first = _robotd("run", "--config", str(_config(tmp_path, "a", port)), "--duration", "120")
     try:
@@ -54,9 +48,9 @@ def test_a_second_instance_fails_in_one_line_or_runs_beside_with_its_own_port(tm
         assert same.returncode == 2, out[-2000:]
         assert len(errors) == 1 and f"zenoh.listen: tcp/127.0.0.1:{port} is already in use" in errors[0]
         # with its own port it runs beside the first; a recording beside both is written
-        beside = _robotd("run", "--config", str(_config(tmp_path, "c", _free_port())), "--duration", "3")
+        beside = _robotd("run", "--config", str(_config(tmp_path, "c", free_port())), "--duration", "3")
         rec_out = tmp_path / "beside.mcap"
-        rec = _robotd("record", str(rec_out), "--config", str(_config(tmp_path, "d", _free_port())), "--duration", "3")
+        rec = _robotd("record", str(rec_out), "--config", str(_config(tmp_path, "d", free_port())), "--duration", "3")
         out_beside, _ = beside.communicate(timeout=60)
         out_rec, _ = rec.communicate(timeout=60)
         assert beside.returncode == 0 and "ready:" in out_beside, out_beside[-2000:]

@@ -30,21 +30,16 @@ from robotd.outputs.base import StepReport
 from robotd.outputs.liveview import LiveViewOutput
 from robotd.record import CHANNELS
 from robotd.stereo import RectifiedStereo
+from tests.support.net import free_port
 from tests.support.paths import REPO
 
 RIG = RectifiedStereo(60.0, 32.0, 20.0, 0.075, 64, 40)
 SUBPROTOCOL = "foxglove.sdk.v1"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def live() -> Iterator[LiveViewOutput]:
-    out = LiveViewOutput(LiveViewConfig(enabled=True, port=_free_port()), RIG, "r1")
+    out = LiveViewOutput(LiveViewConfig(enabled=True, port=free_port()), RIG, "r1")
     try:
         yield out
     finally:
@@ -143,7 +138,7 @@ def test_off_by_default_on_loopback_when_on_and_a_taken_port_is_one_line() -> No
 
 @pytest.mark.slow
 def test_robotd_run_serves_the_live_view(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     cfg = tmp_path / "c.toml"
     cfg.write_text(
         '[camera]\nurl = "sim://?fps=10&width=320&height=200"\n[vehicle]\nurl = "sim://?fps=10&width=320&height=200"\n'

@@ -4,7 +4,6 @@ say what the JSON pose published at the same step says, in ROS's frames."""
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -19,6 +18,7 @@ from robotd.msgs import LandmarkMap, PoseEstimate, StepResult, UpdateReport
 from robotd.outputs.base import StepReport
 from robotd.outputs.ros2 import pose_to_ros
 from robotd.outputs.zenoh import ZenohOutput
+from tests.support.net import free_port, zenoh_client
 from tests.support.tolerances import ROUNDOFF_ATOL
 
 STORE = get_typestore(Stores.ROS2_JAZZY)  # decode with another release's definitions than robotd encodes with
@@ -27,20 +27,6 @@ RECEIVE_TIMEOUT_S = 10.0
 # an NTP slew moves it by microseconds at most over that interval
 OFFSET_SLACK_NS = 5_000_000
 FLIP = np.diag([1.0, -1.0, -1.0])
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _client(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
 
 
 class Inbox:
@@ -64,11 +50,11 @@ class Inbox:
 
 @pytest.fixture
 def link(request: pytest.FixtureRequest) -> Iterator[tuple[ZenohOutput, Inbox]]:
-    port = _free_port()
+    port = free_port()
     cfg = ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"], **getattr(request, "param", {"ros2": True}))
     out = ZenohOutput(cfg, "r1")
     inbox = Inbox()
-    with zenoh.open(_client(port)) as s:
+    with zenoh.open(zenoh_client(port)) as s:
         sub = s.declare_subscriber("robotd/r1/**", inbox)
         # a put before the subscription reached the publishing session would be lost
         t_end = time.monotonic() + RECEIVE_TIMEOUT_S
