@@ -40,3 +40,8 @@ class PersistenceError(RobotdError):
 
 class DatasetError(RobotdError):
     """A dataset folder or file does not have the expected layout."""
+
+
+class MapMismatchError(PersistenceError):
+    """A saved map that is valid but made for another configuration (filter, dimension, detector):
+    it is kept, not moved aside as corrupt."""
