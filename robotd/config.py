@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from robotd.choices import DETECTORS, FILTERS, MEASUREMENTS, OUTLIER_METHODS
+from robotd.config_bounds import check_bounds
 from robotd.errors import ConfigError
 
 
@@ -112,7 +113,7 @@ class SlamConfig:
         " with its first-order covariance (the thesis's)",
         choices=MEASUREMENTS,
     )
-    n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
+    n_particles: int = _f(100, "FastSLAM particles (bounded by memory and deadline: docs/reliability.md)", min=1)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(
         "sequential",
@@ -291,8 +292,11 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build a Config from nested dicts (what tomllib returns); validates every key."""
-    return _build(Config, data, "")  # type: ignore[no-any-return]
+    """Build a Config from nested dicts (what tomllib returns); validates every key, then the
+    values that size memory or time against this machine (robotd.config_bounds)."""
+    cfg: Config = _build(Config, data, "")
+    check_bounds(cfg)
+    return cfg
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
