@@ -230,43 +230,56 @@ def _type_name(tp: Any) -> str:
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
 
 
+def show_value(v: Any) -> str:
+    """A value for an error message: its repr, shortened; a huge integer by its size (an error
+    stays one readable line, and Python refuses to print integers of more than 4300 digits)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**30:
+        return f"an integer of {int(abs(v).bit_length() * math.log10(2)) + 1} digits"
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
+
+
 def _convert(path: str, tp: Any, value: Any, meta: typing.Mapping[str, Any]) -> Any:
     origin = typing.get_origin(tp)
     if origin in (list, tuple):
         (item_tp,) = typing.get_args(tp)[:1]
         if not isinstance(value, list):
-            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {show_value(value)}")
         return [_convert(f"{path}[{i}]", item_tp, v, {}) for i, v in enumerate(value)]
     if origin in (typing.Union, types.UnionType):
         raise ConfigError(f"{path}: union types are not supported in config")  # pragma: no cover
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected a boolean (true/false), got {type(value).__name__} {value!r}")
+            got = f"{type(value).__name__} {show_value(value)}"
+            raise ConfigError(f"{path}: expected a boolean (true/false), got {got}")
         out: Any = value
     elif tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {show_value(value)}")
         out = value
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {value!r}")
-        out = float(value)
+            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {show_value(value)}")
+        try:
+            out = float(value)
+        except OverflowError:  # an integer beyond 1.8e308
+            raise ConfigError(f"{path}: expected a finite number, got {show_value(value)}") from None
         if not math.isfinite(out):
-            raise ConfigError(f"{path}: expected a finite number, got {out!r}")
+            raise ConfigError(f"{path}: expected a finite number, got {show_value(out)}")
     elif tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {show_value(value)}")
         out = value
     else:  # pragma: no cover - every field type is one of the above
         raise ConfigError(f"{path}: unsupported field type {tp}")
     if "pattern" in meta and not re.fullmatch(meta["pattern"], out):
-        raise ConfigError(f"{path}: expected a name matching {meta['pattern']}, got {out!r}")
+        raise ConfigError(f"{path}: expected a name matching {meta['pattern']}, got {show_value(out)}")
     if "choices" in meta and out not in meta["choices"]:
-        raise ConfigError(f"{path}: expected one of {list(meta['choices'])}, got {out!r}")
+        raise ConfigError(f"{path}: expected one of {list(meta['choices'])}, got {show_value(out)}")
     if "min" in meta and out < meta["min"]:
-        raise ConfigError(f"{path}: expected {_type_name(tp)} >= {meta['min']}, got {out!r}")
+        raise ConfigError(f"{path}: expected {_type_name(tp)} >= {meta['min']}, got {show_value(out)}")
     if "max" in meta and out > meta["max"]:
-        raise ConfigError(f"{path}: expected {_type_name(tp)} <= {meta['max']}, got {out!r}")
+        raise ConfigError(f"{path}: expected {_type_name(tp)} <= {meta['max']}, got {show_value(out)}")
     return out
 
 
@@ -276,7 +289,8 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         where = prefix[:-1] if prefix else "top level"
-        raise ConfigError(f"{prefix}{unknown[0]}: unknown key in {where}; known keys: {', '.join(sorted(fields))}")
+        shown = unknown[0] if unknown[0].isprintable() and unknown[0] else repr(unknown[0])  # one line, always
+        raise ConfigError(f"{prefix}{shown}: unknown key in {where}; known keys: {', '.join(sorted(fields))}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         f = fields[name]
@@ -284,7 +298,7 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
         path = f"{prefix}{name}"
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, dict):
-                raise ConfigError(f"{path}: expected a table [{path}], got {type(value).__name__} {value!r}")
+                raise ConfigError(f"{path}: expected a table [{path}], got {type(value).__name__} {show_value(value)}")
             kwargs[name] = _build(tp, value, path + ".")  # type: ignore[arg-type]
         else:
             kwargs[name] = _convert(path, tp, value, f.metadata)
@@ -314,6 +328,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+        except ValueError as exc:  # an integer literal of more than 4300 digits
+            raise ConfigError(f"{p}: not valid TOML: {exc}") from None
         except RecursionError:  # tomllib recurses once per nesting level
             raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deep") from None
     if overrides:

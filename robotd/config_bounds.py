@@ -73,7 +73,7 @@ def particle_bound(cfg: Config) -> tuple[int, str]:
     by_memory = int(MEMORY_SHARE * mem // per_particle)
     obs = min(cfg.slam.max_updates_per_frame + cfg.slam.max_new_per_frame, cfg.frontend.max_features)
     us = STEP_US_PER_PARTICLE_OBS[cfg.slam.filter]
-    by_time = int(deadline_ms(cfg) * 1000.0 / (us * max(obs, 1)))
+    by_time = int(min(deadline_ms(cfg) * 1000.0 / (us * max(obs, 1)), float(MAX_PARTICLES)))
     bound = min(MAX_PARTICLES, by_memory, by_time)
     if bound == MAX_PARTICLES:
         why = "the fixed ceiling"
@@ -98,14 +98,16 @@ def feature_bound(cfg: Config) -> int:
 
 def check_bounds(cfg: Config) -> None:
     """ConfigError, one line naming the key, its value, the bound and why, for a value past its bound."""
+    from robotd.config import show_value  # (robotd.config imports this module)
+
     here = f"on this machine ({available_memory_bytes() / 1e9:.1f} GB available, {deadline_ms(cfg):.1f} ms deadline)"
     if cfg.slam.filter != "ekf":
         bound, why = particle_bound(cfg)
         if cfg.slam.n_particles > bound:
-            raise ConfigError(f"slam.n_particles = {cfg.slam.n_particles}: at most {bound} {here}: {why}")
+            raise ConfigError(f"slam.n_particles = {show_value(cfg.slam.n_particles)}: at most {bound} {here}: {why}")
     fb = feature_bound(cfg)
     if cfg.frontend.max_features > fb:
         raise ConfigError(
-            f"frontend.max_features = {cfg.frontend.max_features}: at most {fb} {here}: the frame-to-frame "
+            f"frontend.max_features = {show_value(cfg.frontend.max_features)}: at most {fb} {here}: the frame-to-frame "
             f"match holds {FEATURE_MATCH_BYTES} B per pair of features in {MEMORY_SHARE:.0%} of the memory available"
         )
