@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from robotd.choices import DETECTORS, FILTERS, MEASUREMENTS, OUTLIER_METHODS
-from robotd.config_bounds import check_bounds
-from robotd.errors import ConfigError
+from robotd.config_bounds import Sizing, check_bounds
+from robotd.errors import ConfigError, show_value
 
 
 def _f(default: Any, doc: str = "", **meta: Any) -> Any:
@@ -230,15 +230,6 @@ def _type_name(tp: Any) -> str:
     return {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}.get(tp, str(tp))
 
 
-def show_value(v: Any) -> str:
-    """A value for an error message: its repr, shortened; a huge integer by its size (an error
-    stays one readable line, and Python refuses to print integers of more than 4300 digits)."""
-    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**30:
-        return f"an integer of {int(abs(v).bit_length() * math.log10(2)) + 1} digits"
-    r = repr(v)
-    return r if len(r) <= 80 else r[:77] + "..."
-
-
 def _convert(path: str, tp: Any, value: Any, meta: typing.Mapping[str, Any]) -> Any:
     origin = typing.get_origin(tp)
     if origin in (list, tuple):
@@ -309,7 +300,18 @@ def config_from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (what tomllib returns); validates every key, then the
     values that size memory or time against this machine (robotd.config_bounds)."""
     cfg: Config = _build(Config, data, "")
-    check_bounds(cfg)
+    s = cfg.slam
+    check_bounds(
+        Sizing(
+            filter=s.filter,
+            dim=s.dim,
+            n_particles=s.n_particles,
+            max_updates_per_frame=s.max_updates_per_frame,
+            max_new_per_frame=s.max_new_per_frame,
+            max_features=cfg.frontend.max_features,
+            deadline_ms=cfg.budget.deadline_ms,
+        )
+    )
     return cfg
 
 

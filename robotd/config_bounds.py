@@ -27,13 +27,10 @@ from __future__ import annotations
 import functools
 import math
 import os
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 from robotd.choices import MAX_PARTICLES
-from robotd.errors import ConfigError
-
-if TYPE_CHECKING:
-    from robotd.config import Config
+from robotd.errors import ConfigError, show_value
 
 MEMORY_SHARE = 0.5  # of the memory available at start, for one of these consumers
 REFERENCE_LANDMARKS = 10_000  # map size of the memory bound (the largest bench/fastslam.py measured)
@@ -62,17 +59,31 @@ def available_memory_bytes() -> int:
         return 1 << 30  # unknown: assume the smallest board robotd runs on (1 GB)
 
 
-def deadline_ms(cfg: Config) -> float:
-    return cfg.budget.deadline_ms or 1000.0 / DEFAULT_FRAME_RATE_HZ
+@dataclass(frozen=True)
+class Sizing:
+    """The configuration values the bounds read (robotd.config builds it; this module does not
+    import the config, which imports it)."""
+
+    filter: str  # slam.filter
+    dim: int  # slam.dim
+    n_particles: int  # slam.n_particles
+    max_updates_per_frame: int  # slam.max_updates_per_frame
+    max_new_per_frame: int  # slam.max_new_per_frame
+    max_features: int  # frontend.max_features
+    deadline_ms: float  # budget.deadline_ms (0: one frame period)
 
 
-def particle_bound(cfg: Config) -> tuple[int, str]:
+def deadline_ms(cfg: Sizing) -> float:
+    return cfg.deadline_ms or 1000.0 / DEFAULT_FRAME_RATE_HZ
+
+
+def particle_bound(cfg: Sizing) -> tuple[int, str]:
     """The largest ``slam.n_particles`` for this configuration on this machine, and why."""
     mem = available_memory_bytes()
-    per_particle = LANDMARK_BYTES[cfg.slam.dim] * REFERENCE_LANDMARKS
+    per_particle = LANDMARK_BYTES[cfg.dim] * REFERENCE_LANDMARKS
     by_memory = int(MEMORY_SHARE * mem // per_particle)
-    obs = min(cfg.slam.max_updates_per_frame + cfg.slam.max_new_per_frame, cfg.frontend.max_features)
-    us = STEP_US_PER_PARTICLE_OBS[cfg.slam.filter]
+    obs = min(cfg.max_updates_per_frame + cfg.max_new_per_frame, cfg.max_features)
+    us = STEP_US_PER_PARTICLE_OBS[cfg.filter]
     by_time = int(min(deadline_ms(cfg) * 1000.0 / (us * max(obs, 1)), float(MAX_PARTICLES)))
     bound = min(MAX_PARTICLES, by_memory, by_time)
     if bound == MAX_PARTICLES:
@@ -91,23 +102,21 @@ def particle_bound(cfg: Config) -> tuple[int, str]:
     return bound, why
 
 
-def feature_bound(cfg: Config) -> int:
+def feature_bound(cfg: Sizing) -> int:
     """The largest ``frontend.max_features`` this machine's memory allows."""
     return math.isqrt(int(MEMORY_SHARE * available_memory_bytes() // FEATURE_MATCH_BYTES))
 
 
-def check_bounds(cfg: Config) -> None:
+def check_bounds(cfg: Sizing) -> None:
     """ConfigError, one line naming the key, its value, the bound and why, for a value past its bound."""
-    from robotd.config import show_value  # (robotd.config imports this module)
-
     here = f"on this machine ({available_memory_bytes() / 1e9:.1f} GB available, {deadline_ms(cfg):.1f} ms deadline)"
-    if cfg.slam.filter != "ekf":
+    if cfg.filter != "ekf":
         bound, why = particle_bound(cfg)
-        if cfg.slam.n_particles > bound:
-            raise ConfigError(f"slam.n_particles = {show_value(cfg.slam.n_particles)}: at most {bound} {here}: {why}")
+        if cfg.n_particles > bound:
+            raise ConfigError(f"slam.n_particles = {show_value(cfg.n_particles)}: at most {bound} {here}: {why}")
     fb = feature_bound(cfg)
-    if cfg.frontend.max_features > fb:
+    if cfg.max_features > fb:
         raise ConfigError(
-            f"frontend.max_features = {show_value(cfg.frontend.max_features)}: at most {fb} {here}: the frame-to-frame "
+            f"frontend.max_features = {show_value(cfg.max_features)}: at most {fb} {here}: the frame-to-frame "
             f"match holds {FEATURE_MATCH_BYTES} B per pair of features in {MEMORY_SHARE:.0%} of the memory available"
         )
