@@ -361,12 +361,13 @@ class Pipeline:
             "database": descriptors.state_dict() if descriptors is not None else {},
         }
 
-    def check_state_dict(self, state: Any) -> LandmarkDescriptors | None:
+    def check_state_dict(self, state: Any) -> tuple[dict[str, Any], LandmarkDescriptors | None]:
         """Check a saved state (:meth:`state_dict`) whole, every key, type, shape and range, and
         that the filter and the descriptor store hold the same landmarks, without touching this
         pipeline. Raises MapMismatchError when the map is valid but made for another filter,
         dimension or detector, PersistenceError (naming the key) when it is invalid. Returns the
-        saved descriptor store (None when the map has none)."""
+        filter's checked values (``Estimator.restore``) and the saved descriptor store (None when
+        the map has none)."""
         st = StateTable(state, "state")
         name = st.choice("estimator_name", FILTERS)
         dim = st.choice("dim", (2, 3))
@@ -374,12 +375,13 @@ class Pipeline:
             raise MapMismatchError(
                 f"saved map is from {name!r} in {dim}D, this run uses {self.estimator.name!r} in {self.estimator.dim}D"
             )
-        filter_ids = self.estimator.check_state_dict(st.table("estimator").data)["ids"]
+        checked = self.estimator.check_state_dict(st.table("estimator").data)
+        filter_ids = checked["ids"]
         saved_db = st.table("database")
         if not saved_db.data:  # no frame was detected before the save
             if filter_ids.size:
                 raise PersistenceError(f"state.database: empty, but the filter holds {filter_ids.size} landmarks")
-            return None
+            return checked, None
         descriptors = LandmarkDescriptors.from_state_dict(saved_db.data)
         probe = self.frontend.detector.detect(np.zeros((8, 8), np.uint8), 0)  # an empty set of this kind
         dim_here = int(probe.desc.shape[1])
@@ -394,13 +396,13 @@ class Pipeline:
                 f"state.database.ids: {descriptors.n} landmarks with descriptors, the filter holds {filter_ids.size} "
                 "and the two sets differ"
             )
-        return descriptors
+        return checked, descriptors
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Resume from a saved state, checked whole first (:meth:`check_state_dict`): when it
         fails, nothing of this pipeline has changed."""
-        descriptors = self.check_state_dict(state)
-        self.estimator.load_state_dict(state["estimator"])
+        checked, descriptors = self.check_state_dict(state)
+        self.estimator.restore(checked)
         if descriptors is not None:
             self.frontend.descriptors = descriptors
         self.frontend.reset()

@@ -19,7 +19,10 @@ from robotd.errors import PersistenceError
 POSITION_LIMIT_M = 1e6  # no rover is 1000 km from where it started its map
 ANGLE_LIMIT_RAD = 4 * np.pi  # the filters keep angles wrapped to [-π, π]
 VARIANCE_LIMIT = 1e8  # m² (σ = 10 km) or rad²: beyond this a Gaussian carries no information
-ID_LIMIT = 2**62  # landmark ids and the next id: int64 with room for 2**62 more landmarks
+INT64_MAX = 2**63 - 1
+# landmark ids and the next id of a saved map: int64 with room for 2**40 more ids (40 new landmarks
+# per frame at 30 Hz for 29 years)
+ID_LIMIT = INT64_MAX - 2**40
 COUNTER_LIMIT = 2**31  # existence counters move by one per frame
 T_NS_LIMIT = 2**62  # timestamps (int64 nanoseconds)
 
@@ -120,7 +123,9 @@ def check_covariances(name: str, C: np.ndarray) -> None:
     if float(diag.max()) > VARIANCE_LIMIT:
         raise PersistenceError(f"{name}: variance {float(diag.max()):.6g}, at most {VARIANCE_LIMIT:g} is plausible")
     scale = diag.max(axis=-1)[..., None, None] + 1e-300  # (..., 1, 1) each matrix's largest variance
-    if float(np.max(np.abs(C - np.swapaxes(C, -1, -2)) / scale)) > 1e-6:
+    with np.errstate(over="ignore"):  # an asymmetry huge against a tiny variance is inf: refused all the same
+        asymmetry = float(np.max(np.abs(C - np.swapaxes(C, -1, -2)) / scale))
+    if asymmetry > 1e-6:
         raise PersistenceError(f"{name}: not symmetric")
     jitter = (1e-9 * scale + 1e-12) * np.eye(d)
     try:

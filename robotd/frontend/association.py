@@ -23,7 +23,7 @@ import numpy as np
 
 from robotd.errors import ConfigError, InputError, PersistenceError
 from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check
-from robotd.statecheck import ID_LIMIT, StateTable
+from robotd.statecheck import ID_LIMIT, INT64_MAX, StateTable
 from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
@@ -141,8 +141,8 @@ class LandmarkDescriptors:
         if desc.ndim != 2 or desc.shape[1] != self.dim:
             raise InputError(f"LandmarkDescriptors.add: expected descriptors (K, {self.dim}), got {desc.shape}")
         k = desc.shape[0]
-        if self.next_id + k > ID_LIMIT:  # int64 ids: never wrap or overflow (a forged map's next_id)
-            raise InputError(f"LandmarkDescriptors.add: ids exhausted (next id {self.next_id}, limit {ID_LIMIT})")
+        if self.next_id + k > INT64_MAX:  # int64 ids never wrap (a saved map starts at most at ID_LIMIT)
+            raise InputError(f"LandmarkDescriptors.add: ids exhausted (next id {self.next_id}, limit {INT64_MAX})")
         new_ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
         self.next_id += k
         self.ids = np.r_[self.ids, new_ids]
@@ -243,7 +243,7 @@ class LandmarkDescriptors:
     def from_state_dict(cls, state: Any) -> LandmarkDescriptors:
         """Restore from :meth:`state_dict`, checked whole: ``dim`` and ``binary`` of a known
         descriptor kind, ids (M,) int64 strictly increasing in [0, next_id), descriptors (M, dim)
-        uint8 (binary) or finite float32, ``next_id`` below ID_LIMIT (room for 2**62 more ids).
+        uint8 (binary) or finite float32, ``next_id`` at most ID_LIMIT (room for 2**40 more ids).
         PersistenceError naming the key otherwise. Maps saved before the filter became the one
         owner of landmark existence also carry an ``existence`` array: it is ignored."""
         st = StateTable(state, "database")

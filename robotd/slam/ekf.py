@@ -284,5 +284,8 @@ class EkfSlam(UpdateEntryPoints):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
         and the filter is left as it was when it fails."""
-        c = self.check_state_dict(state)
+        self.restore(self.check_state_dict(state))
+
+    def restore(self, c: dict[str, Any]) -> None:
+        """Take the values :meth:`check_state_dict` returned."""
         self.mu, self.Sigma, self.book, self.t_ns = c["mu"].copy(), c["Sigma"].copy(), c["book"], c["t_ns"]

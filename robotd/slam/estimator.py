@@ -64,6 +64,10 @@ class Estimator(Protocol):
         """Restore from ``state_dict()``; raises PersistenceError on a foreign or corrupt state."""
         ...
 
+    def restore(self, checked: dict[str, Any]) -> None:
+        """Restore from what ``check_state_dict`` returned (cannot fail)."""
+        ...
+
 
 @runtime_checkable
 class PlanarEstimator(Estimator, Protocol):

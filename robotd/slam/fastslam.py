@@ -703,7 +703,10 @@ class FastSlam(UpdateEntryPoints):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
         and the filter is left as it was when it fails."""
-        c = self.check_state_dict(state)
+        self.restore(self.check_state_dict(state))
+
+    def restore(self, c: dict[str, Any]) -> None:
+        """Take the values :meth:`check_state_dict` returned."""
         self._post = None
         self.store = LandmarkStore.from_dense(c["mean"], c["cov"], self.params.landmark_block_size)
         self.pose, self.log_w, self.book = c["pose"].copy(), c["log_w"].copy(), c["book"]

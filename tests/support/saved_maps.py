@@ -26,8 +26,11 @@ from robotd.persist import MAGIC, STATE_SCHEMA
 from robotd.pipeline import Pipeline
 from robotd.stereo import RectifiedStereo
 
-N_MAP_FRAMES = 20  # frames the saved map is built from (~250 landmarks)
-N_PARTICLES = 20  # FastSLAM particles of the saved map: small, so each fuzz example is cheap
+N_MAP_FRAMES = 20  # frames the saved map is built from (~100 landmarks)
+# small, so that each fuzz example (EKF SLAM's cost grows with the square of the map) is cheap
+N_PARTICLES = 20
+MAX_NEW_PER_FRAME = 8
+MAX_UPDATES_PER_FRAME = 20
 
 
 @functools.cache
@@ -45,7 +48,13 @@ def config(filt: str = "fastslam2", dim: int = 3, state_dir: str | Path = "", **
     return load_config(
         None,
         {
-            "slam": {"filter": filt, "dim": dim, "n_particles": N_PARTICLES},
+            "slam": {
+                "filter": filt,
+                "dim": dim,
+                "n_particles": N_PARTICLES,
+                "max_new_per_frame": MAX_NEW_PER_FRAME,
+                "max_updates_per_frame": MAX_UPDATES_PER_FRAME,
+            },
             "frontend": frontend,
             "persistence": {"state_dir": str(state_dir), "save_period_s": 0.0, "resume": True},
         },
