@@ -272,6 +272,8 @@ class Daemon:
         devices = {"camera": self.camera, "vehicle": self.vehicle}
         doc = self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
         doc["odometry"] = self.odometry_gate.stats()
+        if self.maps is not None:  # saves, failed saves, and why this run saves nothing (else null)
+            doc["map_file"] = self.maps.stats()
         return doc
 
     # ------------------------------------------------------------------ main loop
