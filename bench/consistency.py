@@ -40,7 +40,7 @@ from robotd.research.evaluate import anees_band
 from robotd.research.experiments import make_scenario, run_filter
 from robotd.research.landmark_sim import SimConfig, SimRun
 
-STUDY_KEYS = ("q_scale", "m_scale")  # option keys applied to the data given to the filter
+STUDY_KEYS = ("q_scale", "m_scale", "covariance")  # option keys not passed to SlamParams
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
@@ -109,6 +109,10 @@ def _run_cases(
                 bar.set_postfix_str(f"{noise} {L:g} m {filt} {n or ''}".rstrip())
                 t0 = time.perf_counter()
                 slam_opt = {k: v for k, v in opt.items() if k not in STUDY_KEYS}
+                if slam_opt.get("measurement") == "pixel":
+                    # robotd's default model: the rig's pixels with the simulator's pixel noise
+                    slam_opt["stereo_intrinsics"] = (cfg.f_px, cfg.px, cfg.py, cfg.baseline_m)
+                    slam_opt["pixel_sigma_px"] = (cfg.sigma_px, cfg.sigma_px / np.sqrt(2.0))
                 try:
                     qs, ms = float(opt.get("q_scale", 1.0)), float(opt.get("m_scale", 1.0))
                 except (TypeError, ValueError):
@@ -123,6 +127,7 @@ def _run_cases(
                         n_particles=max(n, 1),
                         batch_ate=sc.batch_ate,
                         overrides=slam_opt,
+                        covariance=str(opt.get("covariance", "consistent")),
                     )
                     for s, sc in enumerate(scs)
                 ]
@@ -188,7 +193,12 @@ def main() -> None:
     ap.add_argument("--lengths", default="12,40")
     ap.add_argument("--particles", default="50")
     ap.add_argument("--noise", default="stereo,gaussian,isotropic")
-    ap.add_argument("--options", default="", help='FastSLAM variants: "k=v,k=v;k=v" (SlamParams overrides)')
+    ap.add_argument(
+        "--options",
+        default="measurement=pixel;covariance=filter;measurement=pixel,covariance=filter",
+        help='FastSLAM variants: "k=v,k=v;k=v" (SlamParams overrides, plus q_scale, m_scale and covariance = '
+        "consistent | filter, the reported covariance; measurement=pixel is robotd's default model)",
+    )
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
     res = run(

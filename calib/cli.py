@@ -3,6 +3,11 @@
     robotd-calib stereo DIR --board 9x6 [--square M] --out FILE [--json]
     robotd-calib import-oak (DEVICE_ID|EEPROM.json) --size 640x400 --out FILE [--json]
     robotd-calib check CALIB LEFT RIGHT [--method opencv|thesis] [--json]
+    robotd-calib ros-yaml CALIB [--out-dir DIR] [--json]
+    robotd-calib upgrade CALIB --out FILE [--json]
+
+stereo, import-oak and upgrade write a Kalibr camchain and, beside it, the ROS camera_info YAMLs
+``<stem>_left.yaml`` and ``<stem>_right.yaml`` (``--no-ros-yaml``: not).
 
 Logging goes to stderr (configured here only); results go to stdout, as text or, with --json,
 as exactly one JSON object. A :class:`robotd.errors.RobotdError` becomes one line on stderr and
@@ -54,8 +59,26 @@ def _check_out(path: Path) -> None:
         raise CalibrationError(f"--out {path}: directory {path.parent} does not exist")
 
 
+def _save(args: argparse.Namespace, calib: Any, out: Path, result: dict[str, Any]) -> list[str]:
+    """The camchain and (unless --no-ros-yaml) the ROS YAMLs beside it; the text lines saying so."""
+    from calib.camchain import calibration_to_dict, save_calibration
+    from calib.ros_yaml import camera_info_paths, write_camera_info
+
+    topics = (args.rostopic_left, args.rostopic_right)
+    save_calibration(calib, out, rostopics=topics)
+    fields = calibration_to_dict(calib, topics)["cam0"]["robotd"]["kalibr_fields"]
+    result["kalibr_fields"] = fields
+    what = "the raw cameras" if fields == "raw" else f"the rectified pinhole pair ({fields})"
+    lines = [f"Kalibr fields: {what}"]
+    result["ros_yaml"] = []
+    if args.ros_yaml:
+        paths = write_camera_info(calib, camera_info_paths(out))
+        result["ros_yaml"] = [str(p) for p in paths]
+        lines.append(f"ROS camera_info: {paths[0]}, {paths[1]}")
+    return lines
+
+
 def cmd_stereo(args: argparse.Namespace) -> int:
-    from calib.camchain import save_calibration
     from calib.chessboard import calibrate_directory, parse_board
 
     out = Path(args.out)
@@ -69,9 +92,9 @@ def cmd_stereo(args: argparse.Namespace) -> int:
         outlier_min_px=args.outlier_min_px,
         min_views=args.min_views,
     )
-    save_calibration(report.calibration, out)
     result = report.as_dict()
     result["out"] = str(out)
+    saved = _save(args, report.calibration, out, result)
     lines = [
         f"stereo calibration of {args.dir}: {len(report.views)} views used, {len(report.dropped)} dropped",
         "",
@@ -85,14 +108,13 @@ def cmd_stereo(args: argparse.Namespace) -> int:
         f"left  fx {result['fx_left']:.2f} fy {result['fy_left']:.2f} cx {result['cx_left']:.2f} "
         f"cy {result['cy_left']:.2f}",
         f"baseline {report.calibration.baseline_m:.6g} m (square {args.square} m); written to {out}",
+        *saved,
     ]
     _emit(args, result, lines)
     return 0
 
 
 def cmd_import_oak(args: argparse.Namespace) -> int:
-    from calib.camchain import save_calibration
-
     try:
         from drivers.oak import import_oak_calibration
     except ImportError as exc:
@@ -101,7 +123,6 @@ def cmd_import_oak(args: argparse.Namespace) -> int:
     _check_out(out)
     w, h = args.size
     calib = import_oak_calibration(args.source, w, h)
-    save_calibration(calib, out)
     K = calib.K_left
     result: dict[str, Any] = {
         "source": calib.source,
@@ -116,10 +137,12 @@ def cmd_import_oak(args: argparse.Namespace) -> int:
         "distortion_model": calib.distortion_model,
         "out": str(out),
     }
+    saved = _save(args, calib, out, result)
     lines = [
         f"{calib.source} at {w}x{h}",
         f"left fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}",
         f"baseline {calib.baseline_m:.5f} m, T {[round(t, 6) for t in calib.T.tolist()]} m; written to {out}",
+        *saved,
     ]
     _emit(args, result, lines)
     return 0
@@ -158,6 +181,40 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ros_yaml(args: argparse.Namespace) -> int:
+    from calib.camchain import load_calibration
+    from calib.ros_yaml import camera_info_paths, write_camera_info
+
+    calib = load_calibration(args.calib)
+    paths = write_camera_info(calib, camera_info_paths(args.calib, args.out_dir))
+    result = {"calib": str(args.calib), "ros_yaml": [str(p) for p in paths]}
+    _emit(args, result, [f"ROS camera_info: {paths[0]}, {paths[1]}"])
+    return 0
+
+
+def cmd_upgrade(args: argparse.Namespace) -> int:
+    from calib.camchain import load_calibration
+
+    out = Path(args.out)
+    _check_out(out)
+    calib = load_calibration(args.calib)
+    result: dict[str, Any] = {"calib": str(args.calib), "out": str(out)}
+    lines = [f"{args.calib} ({calib.distortion_model}, {calib.image_size[0]}x{calib.image_size[1]}) written to {out}"]
+    lines += _save(args, calib, out, result)
+    _emit(args, result, lines)
+    return 0
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    from calib.camchain import DEFAULT_ROSTOPICS
+
+    p.add_argument("--rostopic-left", default=DEFAULT_ROSTOPICS[0], help="cam0.rostopic: the left images in a bag")
+    p.add_argument("--rostopic-right", default=DEFAULT_ROSTOPICS[1], help="cam1.rostopic: the right images in a bag")
+    p.add_argument(
+        "--no-ros-yaml", dest="ros_yaml", action="store_false", help="do not write <stem>_left/_right.yaml beside it"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="robotd-calib", description="robotd stereo calibration tools")
     p.add_argument("-v", "--verbose", action="store_true", help="INFO logging on stderr")
@@ -173,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--outlier-min-px", type=_positive, default=0.5, help="never drop views below this RMS")
     s.add_argument("--min-views", type=int, default=5)
     s.add_argument("--json", action="store_true", help="print one JSON object")
+    _output_options(s)
     s.set_defaults(func=cmd_stereo)
 
     o = sub.add_parser("import-oak", help="import an OAK factory calibration (device id or EEPROM JSON)")
@@ -180,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--size", type=_size, default=(640, 400), help="output size WxH (default 640x400)")
     o.add_argument("--out", required=True, help="calibration file to write")
     o.add_argument("--json", action="store_true")
+    _output_options(o)
     o.set_defaults(func=cmd_import_oak)
 
     c = sub.add_parser("check", help="rectify a pair and measure the row offset of matched features")
@@ -191,6 +250,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--ratio", type=_positive, default=0.8)
     c.add_argument("--json", action="store_true")
     c.set_defaults(func=cmd_check)
+
+    r = sub.add_parser("ros-yaml", help="write the ROS camera_info YAMLs of a calibration file")
+    r.add_argument("calib", help="calibration file (any version robotd reads)")
+    r.add_argument("--out-dir", default=None, help="directory of <stem>_left/_right.yaml (default: beside CALIB)")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_ros_yaml)
+
+    u = sub.add_parser("upgrade", help="rewrite a calibration file (any version) in the current, Kalibr-readable form")
+    u.add_argument("calib", help="calibration file (any version robotd reads)")
+    u.add_argument("--out", required=True, help="camchain YAML to write")
+    u.add_argument("--json", action="store_true")
+    _output_options(u)
+    u.set_defaults(func=cmd_upgrade)
     return p
 
 

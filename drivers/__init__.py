@@ -116,7 +116,7 @@ _VEHICLES: dict[str, tuple[str, str]] = {
 def _scheme(url: str) -> str:
     if "://" not in url:
         # a bare path to a recording is a replay source
-        if url.endswith(".mcap"):
+        if url.endswith((".mcap", ".mcap.tmp")):  # .tmp: a recording whose recorder was killed
             return "mcap"
         raise DriverError(f"{url!r}: expected a URL such as sim://, oak://, kitti://DIR, got no scheme")
     return urlsplit(url).scheme.lower()

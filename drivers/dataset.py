@@ -747,6 +747,12 @@ class McapCamera(Driver):
         self.url = str(url)
         _reject_unknown(self.url, opts)
         if not path.is_file():
+            tmp = path.with_name(path.name + ".tmp")
+            if tmp.is_file():  # the recorder was killed before it could finish this file
+                raise DatasetError(
+                    f"{url!r}: recording {path} not found, but {tmp.name} is there: an interrupted recording "
+                    f"(robotd record did not finish); replay it as it is: robotd replay {tmp}"
+                )
             raise DatasetError(f"{url!r}: recording {path} not found (expected a .mcap written by robotd record)")
         try:
             self.reader = SessionReader(path)
@@ -791,11 +797,18 @@ class McapCamera(Driver):
                 yield e
             elif isinstance(e, Odometry):
                 yield e
+        if self.reader.stopped and self.reader.frames_read:  # a damaged or interrupted recording: say where
+            logger.info("%s: the recording ends early, %s", self.url, self.reader.stopped)
 
     def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]:
         for e in self.events():
             if isinstance(e, StereoFrame):
                 yield e
+
+    def recording_status(self) -> dict[str, Any]:
+        """After the frames were read: closed cleanly or not, and where reading stopped early
+        (robotd.record.SessionReader.status)."""
+        return self.reader.status()
 
     def recorded_odometry(self) -> list[Odometry]:
         return list(self.reader.odometry())

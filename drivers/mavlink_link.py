@@ -15,8 +15,17 @@ re-sent. ``HEARTBEAT`` at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_IN
 component 197 with ``system_status`` from the health. TIMESYNC requests are answered; our own
 requests estimate the autopilot clock offset.
 ``SET_GPS_GLOBAL_ORIGIN`` (when ``origin`` is configured) and the message-rate requests go out
-once the autopilot heartbeat is seen and again after an autopilot reboot (SYSTEM_TIME.time_boot_ms
-drops). Link loss: no autopilot heartbeat for ``link_timeout_s`` (3 s).
+once the autopilot heartbeat is seen and again after an autopilot reboot: a new boot clock in
+SYSTEM_TIME seen consistently, with the autopilot's heartbeat, while the old one fell silent
+(:class:`drivers.mavlink_guard.BootClock`). Link loss: no autopilot heartbeat for
+``link_timeout_s`` (3 s).
+
+Exposure (issue 15): with ``mode=out`` the socket is connected to the target, so the kernel binds
+it to the address that routes there (127.0.0.1 for a loopback target; ``bind=ADDR`` chooses) and
+delivers datagrams from the target's address only. Whatever the transport, vehicle messages are
+taken only from the autopilot: the system and component id of its first heartbeat and, over UDP,
+the address that heartbeat came from (others are counted in ``rejected_source``). TIMESYNC
+requests are answered only for the autopilot, at most ``timesync_reply_hz`` a second.
 
 In: ``WHEEL_DISTANCE`` (differential drive, track width from the options; ±100 000 m wrap) gives
 forward speed; ``ATTITUDE`` gives body rates (preferred for yaw rate) and the attitude used to
@@ -30,10 +39,12 @@ transmit thread that owns every ``*_send`` (the pose role's included: it only pa
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import logging
 import math
 import os
+import socket
 import stat
 import threading
 import time
@@ -48,6 +59,8 @@ import numpy as np
 from pymavlink import mavutil
 
 from drivers.base import ControlSample, QueuedVehicleLink
+from drivers.link_state import LOST, LinkState, LinkStateParams
+from drivers.mavlink_guard import BootClock, RateLimit
 from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.serial_protocol import diff_drive
 from robotd.autopilot import CovarianceFloors, TimesyncFilter
@@ -60,6 +73,7 @@ logger = logging.getLogger(__name__)
 DIALECT = "ardupilotmega"
 MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
+PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
 
 # ids of the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz]
 DEFAULT_RATES_HZ: dict[str, float] = {
@@ -89,8 +103,12 @@ COUNTERS = (
     "drops",
     "stamped_by_arrival",
     "wheel_wraps",
+    "wheel_intervals_rejected",
     "tx_errors",
     "bad_values",
+    "rejected_source",
+    "before_heartbeat",
+    "timesync_replies_limited",
 )
 
 
@@ -137,6 +155,8 @@ class MavlinkOptions:
     link_timeout_s: float = 3.0
     heartbeat_hz: float = 1.0
     timesync_hz: float = 1.0
+    timesync_reply_hz: float = 20.0  # at most this many TIMESYNC replies a second (PX4 asks at up to 10 Hz)
+    bind: str = ""  # udp mode=out: local address ("" = the one that routes to the target)
     request_rates: bool = True
     rates_hz: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_RATES_HZ))
     origin: tuple[float, float, float] | None = None  # (lat_deg, lon_deg, alt_m)
@@ -163,6 +183,8 @@ _SCALARS: dict[str, type] = {
     "link_timeout_s": float,
     "heartbeat_hz": float,
     "timesync_hz": float,
+    "timesync_reply_hz": float,
+    "bind": str,
     "request_rates": bool,
     "signing_key": str,
     "allow_unsigned": bool,
@@ -218,6 +240,13 @@ def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
         raise DriverError(f"{url!r}: yaw_rate_source={opts.yaw_rate_source!r}, expected 'attitude' or 'wheels'")
     if not 0 <= opts.sysid <= 255 or not 1 <= opts.compid <= 255:
         raise DriverError(f"{url!r}: sysid {opts.sysid} / compid {opts.compid} out of range")
+    if not (math.isfinite(opts.timesync_reply_hz) and opts.timesync_reply_hz >= 0):
+        raise DriverError(f"{url!r}: timesync_reply_hz={opts.timesync_reply_hz}: expected a number >= 0")
+    if opts.bind:
+        try:
+            ipaddress.IPv4Address(opts.bind)
+        except ValueError as exc:
+            raise DriverError(f"{url!r}: bind={opts.bind!r}: expected an IPv4 address") from exc
     for name in opts.rates_hz:
         if not hasattr(_mav(), f"MAVLINK_MSG_ID_{name}"):
             raise DriverError(f"{url!r}: rates_hz: unknown message {name!r}")
@@ -244,6 +273,74 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+class _DatagramSource:
+    """Replaces a pymavlink UDP connection's ``recv`` so that every message it parses is known to
+    come from one datagram's sender (``addr``): the rest of a datagram is parsed before the next one
+    is read, and a partial message left at a datagram's end is dropped, never glued to the next
+    sender's bytes. On a listening socket (mode=in) only the ``allowed`` sender (anyone until the
+    autopilot is known) becomes a client that robotd sends to."""
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+        self.addr: tuple[str, int] | None = None
+        self.allowed: tuple[str, int] | None = None
+        self._mark: tuple[int, int, int] | None = None
+
+    def recv(self, n: int | None = None) -> bytes:
+        mav = self.conn.mav
+        mark = (id(mav.buf), mav.buf_index, len(mav.buf))
+        if mav.buf_len() > 0 and mark != self._mark:
+            self._mark = mark  # the last parse consumed bytes: parse the rest of this datagram first
+            return b""
+        try:
+            data, addr = self.conn.port.recvfrom(65535)
+        except OSError as exc:
+            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED, errno.EINTR):
+                return b""
+            raise
+        mav.buf, mav.buf_index = bytearray(), 0
+        mav.expected_length = _mav().HEADER_LEN_V1 + 2
+        self._mark = None
+        self.addr = addr
+        if self.conn.udp_server and (self.allowed is None or addr == self.allowed):
+            self.conn.clients.add(addr)
+            self.conn.clients_last_alive[addr] = time.time()
+        return bytes(data)
+
+    def lock_to(self, addr: tuple[str, int] | None) -> None:
+        """From now on only ``addr`` is a client (mode=in); None: anyone again."""
+        self.allowed = addr
+        if self.conn.udp_server and addr is not None:
+            self.conn.clients.intersection_update({addr})
+            for a in [a for a in self.conn.clients_last_alive if a != addr]:
+                del self.conn.clients_last_alive[a]
+
+
+def _connect(url: str, device: str, opts: MavlinkOptions, **kw: Any) -> tuple[Any, _DatagramSource | None]:
+    """pymavlink's connection for ``device``; UDP ``out`` sockets are bound and connected to the
+    target (module docstring), UDP sockets get a :class:`_DatagramSource`."""
+    try:
+        conn = mavutil.mavlink_connection(device, **kw)
+    except Exception as exc:  # pymavlink raises OSError, SerialException, ValueError...
+        raise DriverError(f"{url!r}: cannot open {device}: {exc}") from exc
+    if not device.startswith("udp"):
+        return conn, None
+    if device.startswith("udpout:"):
+        host, port = device[len("udpout:") :].rsplit(":", 1)
+        try:
+            if opts.bind:
+                conn.port.bind((opts.bind, 0))
+            # a connected UDP socket takes the source address that routes to the target and is
+            # delivered datagrams from the target's address only
+            conn.port.connect((socket.gethostbyname(host), int(port)))
+        except OSError as exc:
+            conn.close()
+            raise DriverError(f"{url!r}: cannot bind/connect the UDP socket to {host}:{port}: {exc}") from exc
+    src = _DatagramSource(conn)
+    conn.recv = src.recv
+    return conn, src
 
 
 class _AutopilotClock:
@@ -296,9 +393,15 @@ class MavlinkVehicle(QueuedVehicleLink):
         self._outbox: deque[tuple[str, Any]] = deque()
         self._ap_sysid: int | None = None
         self._ap_compid = 1
+        self._ap_addr: tuple[str, int] | None = None  # where the autopilot's heartbeat came from (UDP)
+        self._src: _DatagramSource | None = None
+        self._boot = BootClock()
+        self._ts_limit = RateLimit(self.opts.timesync_reply_hz)
+        self._linkstate = LinkState(
+            LinkStateParams(stale_after_s=min(1.5, self.opts.link_timeout_s), lost_after_s=self.opts.link_timeout_s)
+        )
         self._last_ap_hb_mono: float | None = None
         self._link_up = False
-        self._last_boot_ms: int | None = None
         self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
         self._last_wheel_mono = -math.inf
@@ -318,10 +421,8 @@ class MavlinkVehicle(QueuedVehicleLink):
         kw: dict[str, Any] = {"source_system": sysid, "source_component": self.opts.compid, "dialect": DIALECT}
         if not self.device.startswith("udp"):
             kw.update(baud=self.opts.baud, autoreconnect=True)
-        try:
-            self._conn = mavutil.mavlink_connection(self.device, **kw)
-        except Exception as exc:  # pymavlink raises OSError, SerialException, ValueError...
-            raise DriverError(f"{self.url!r}: cannot open {self.device}: {exc}") from exc
+        self._conn, self._src = _connect(self.url, self.device, self.opts, **kw)
+        self._linkstate.opened(time.monotonic_ns())
         if not hasattr(self._conn.mav, "odometry_send"):
             raise DriverError(f"{self.url!r}: pymavlink loaded MAVLink 1 bindings (MAVLINK20 set too late)")
         if self._key is not None:
@@ -345,6 +446,7 @@ class MavlinkVehicle(QueuedVehicleLink):
             except OSError:
                 pass
             self._conn = None
+        self._linkstate.closed()
 
     # -- public API ----------------------------------------------------------------------------
     @property
@@ -365,11 +467,17 @@ class MavlinkVehicle(QueuedVehicleLink):
         return self._clock.filter.autopilot_to_host(t_ap_ns)
 
     def stats(self) -> dict[str, Any]:
+        link = self._linkstate.stats(time.monotonic_ns())  # state from the autopilot's recent messages
+        if self._ap_sysid is not None and not self._link_up:
+            link["state"] = LOST  # its heartbeat timed out
         return {
             **self.c,
             "link_up": self._link_up,
-            "state": "ok" if self._link_up else "degraded",
+            **link,
             "autopilot_sysid": self._ap_sysid,
+            "autopilot_compid": self._ap_compid if self._ap_sysid is not None else None,
+            "autopilot_address": None if self._ap_addr is None else f"{self._ap_addr[0]}:{self._ap_addr[1]}",
+            "reboot_candidates": self._boot.mismatches,
             "timesync_offset_ns": self._clock.filter.offset_ns,
             "timesync_rtt_ns": self._clock.filter.rtt_ns,
             "origin_confirmed": self.origin_confirmed,
@@ -392,57 +500,104 @@ class MavlinkVehicle(QueuedVehicleLink):
                 continue
             if msg is None:
                 continue
-            t_ns = time.monotonic_ns()
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                # includes signature failures and unsigned packets on a signed link
-                self.c["bad_data"] += 1
-                continue
-            self.c["rx_messages"] += 1
-            self.rx_types[kind] = self.rx_types.get(kind, 0) + 1
-            handler = getattr(self, f"_on_{kind.lower()}", None)
-            if handler is not None:
-                try:
-                    handler(msg, t_ns)
-                except (RobotdError, ValueError, TypeError, IndexError, ArithmeticError) as exc:
-                    # a message with values we cannot use (NaN, too few wheels): count, keep reading
-                    self.c["bad_values"] += 1
-                    logger.debug("%s: bad %s ignored: %s", self.url, kind, exc)
+            self._dispatch(msg, time.monotonic_ns(), self._src.addr if self._src is not None else None)
 
-    def _is_autopilot(self, msg: Any) -> bool:
-        src = msg.get_srcSystem()
-        return self._ap_sysid is None or src == self._ap_sysid
+    def _dispatch(self, msg: Any, t_ns: int, addr: tuple[str, int] | None) -> None:
+        """One received message (arrival ``t_ns``, UDP sender ``addr``) to its handler, if it is
+        the autopilot's; never raises on what a sender can put in a message (counted instead)."""
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            # includes signature failures and unsigned packets on a signed link
+            self.c["bad_data"] += 1
+            self._linkstate.record(t_ns, bad=1)
+            return
+        self.c["rx_messages"] += 1
+        self.rx_types[kind] = self.rx_types.get(kind, 0) + 1
+        handler = getattr(self, f"_on_{kind.lower()}", None)
+        if handler is None:
+            return
+        accepted: bool | None
+        if kind == "HEARTBEAT":
+            accepted = self._on_heartbeat(msg, t_ns, addr)
+            if accepted is None:
+                return
+        elif not self._from_autopilot(msg, addr):
+            accepted = False  # vehicle data from anyone but the autopilot is not vehicle data
+        else:
+            try:
+                handler(msg, t_ns)
+                accepted = True
+            except (RobotdError, ValueError, TypeError, IndexError, ArithmeticError, OverflowError) as exc:
+                # a message with values we cannot use (NaN, too few wheels): count, keep reading
+                self.c["bad_values"] += 1
+                self._linkstate.record(t_ns, bad=1)
+                logger.debug("%s: bad %s ignored: %s", self.url, kind, exc)
+                return
+        if accepted:
+            self._linkstate.record(t_ns, good=1)
+        elif self._ap_sysid is None:
+            self.c["before_heartbeat"] += 1  # nothing is vehicle data before the autopilot is known
+        else:
+            self.c["rejected_source"] += 1
+            n = self.c["rejected_source"]
+            if n == 1 or math.log10(n).is_integer():
+                logger.warning(
+                    "%s: %s from system %d component %d%s is not the autopilot's: ignored (%d so far)",
+                    self.url,
+                    kind,
+                    msg.get_srcSystem(),
+                    msg.get_srcComponent(),
+                    "" if addr is None else f" at {addr[0]}:{addr[1]}",
+                    n,
+                )
 
-    def _on_heartbeat(self, msg: Any, t_ns: int) -> None:
+    def _from_autopilot(self, msg: Any, addr: tuple[str, int] | None) -> bool:
+        """The autopilot's system and component id (from its heartbeat) and, over UDP, its address."""
+        if self._ap_sysid is None:
+            return False
+        if msg.get_srcSystem() != self._ap_sysid or msg.get_srcComponent() != self._ap_compid:
+            return False
+        return self._ap_addr is None or addr == self._ap_addr
+
+    def _on_heartbeat(self, msg: Any, t_ns: int, addr: tuple[str, int] | None = None) -> bool | None:
+        """True when the heartbeat is the autopilot's (the first one defines who that is; another
+        sender may take over only once the known autopilot's link is lost), False when it claims a
+        vehicle but is not ours, None for ground stations and other companions."""
         m = _mav()
         if msg.autopilot == m.MAV_AUTOPILOT_INVALID or msg.type in (m.MAV_TYPE_GCS, m.MAV_TYPE_ONBOARD_CONTROLLER):
-            return  # ground stations and other companions are not the vehicle
-        if self.opts.sysid and msg.get_srcSystem() != self.opts.sysid:
-            return  # a configured vehicle id: other vehicles on the network are not ours
-        if self._ap_sysid is None:
-            self._ap_sysid = msg.get_srcSystem()
-            self._ap_compid = msg.get_srcComponent()
+            return None  # ground stations and other companions: not the vehicle, nothing wrong either
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.opts.sysid and src != self.opts.sysid:
+            return False  # a configured vehicle id: other vehicles on the network are not ours
+        if self._ap_sysid is None or (not self._link_up and not self._from_autopilot(msg, addr)):
+            if self._ap_sysid is not None:
+                logger.warning("%s: autopilot link was lost; taking this heartbeat's sender as the autopilot", self.url)
+            first = self._ap_sysid is None
+            self._ap_sysid, self._ap_compid, self._ap_addr = src, comp, addr
+            if self._src is not None:
+                self._src.lock_to(addr)
             if not self.opts.sysid:
-                self._conn.mav.srcSystem = self._ap_sysid  # speak as part of the vehicle
-            logger.info("%s: autopilot sysid %d compid %d", self.url, self._ap_sysid, self._ap_compid)
-            self._outbox_put("vehicle_setup", "first heartbeat")
-        elif msg.get_srcSystem() != self._ap_sysid:
-            return
+                self._conn.mav.srcSystem = src  # speak as part of the vehicle
+            where = "" if addr is None else f" at {addr[0]}:{addr[1]}"
+            logger.info("%s: autopilot sysid %d compid %d%s", self.url, src, comp, where)
+            self._boot = BootClock()
+            if first:
+                self._outbox_put("vehicle_setup", "first heartbeat")
+        elif not self._from_autopilot(msg, addr):
+            return False
         self._last_ap_hb_mono = time.monotonic()
+        self._boot.heartbeat(t_ns)
         if not self._link_up:
             self._link_up = True
             logger.info("%s: autopilot link up", self.url)
+        return True
 
     def _on_system_time(self, msg: Any, t_ns: int) -> None:
-        if not self._is_autopilot(msg):
-            return
-        boot = int(msg.time_boot_ms)
-        last = self._last_boot_ms
-        self._last_boot_ms = boot
-        # a drop (beyond UDP reordering) means the autopilot rebooted (interfaces.md §1.6)
-        if last is not None and boot + 1000 < last:
+        # a reboot is a new boot clock seen consistently, with heartbeats, while the old one fell
+        # silent (drivers.mavlink_guard.BootClock; interfaces.md §1.6): never one SYSTEM_TIME
+        if self._boot.observe(int(msg.time_boot_ms), t_ns):
             self.c["autopilot_reboots"] += 1
-            logger.warning("%s: autopilot rebooted (time_boot_ms %d -> %d)", self.url, last, boot)
+            logger.warning("%s: autopilot rebooted (time_boot_ms now %d)", self.url, int(msg.time_boot_ms))
             self._clock.filter.reset()
             with self._lock:
                 self._wheels = None
@@ -451,19 +606,22 @@ class MavlinkVehicle(QueuedVehicleLink):
 
     def _on_timesync(self, msg: Any, t_ns: int) -> None:
         if msg.tc1 == 0:
-            # a request (PX4 needs 500 answered round trips before it uses our time_usec)
-            self._outbox_put("timesync_reply", int(msg.ts1))
+            # a request (PX4 needs 500 answered round trips before it uses our time_usec); a flood
+            # of them gets a bounded number of replies
+            if self._ts_limit.allow(t_ns):
+                self._outbox_put("timesync_reply", int(msg.ts1))
+            else:
+                self.c["timesync_replies_limited"] += 1
             return
         self._clock.on_reply(int(msg.ts1), int(msg.tc1), t_ns)
 
     def _on_attitude(self, msg: Any, t_ns: int) -> None:
-        if not self._is_autopilot(msg):
-            return
         t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         rpy = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
-        if np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates)):
-            self._attitude = (t, rpy, rates)
+        if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
+            raise ValueError(f"ATTITUDE not finite: rpy {rpy}, rates {rates}")
+        self._attitude = (t, rpy, rates)
 
     def _fresh_attitude(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         a = self._attitude
@@ -472,14 +630,14 @@ class MavlinkVehicle(QueuedVehicleLink):
         return a[1], a[2]
 
     def _on_wheel_distance(self, msg: Any, t_ns: int) -> None:
-        if not self._is_autopilot(msg):
-            return
         o = self.opts
         n = int(msg.count)
         if max(o.wheel_left, o.wheel_right) >= n:
             raise ValueError(f"WHEEL_DISTANCE has {n} wheels, need indices {o.wheel_left} and {o.wheel_right}")
         t_us = int(msg.time_usec)
         s_l, s_r = float(msg.distance[o.wheel_left]), float(msg.distance[o.wheel_right])
+        if not (math.isfinite(s_l) and math.isfinite(s_r)):
+            raise ValueError(f"WHEEL_DISTANCE not finite: {s_l}, {s_r}")
         with self._lock:
             prev, self._wheels = self._wheels, (t_us, s_l, s_r)
         self._last_wheel_mono = time.monotonic()
@@ -487,6 +645,7 @@ class MavlinkVehicle(QueuedVehicleLink):
             return
         dt = (t_us - prev[0]) * 1e-6
         if not 0 < dt <= 1.0:
+            self.c["wheel_intervals_rejected"] += 1  # a stamp going backwards, or a gap: restart
             return
         ds_l, ds_r = self._unwrap_m(s_l - prev[1]), self._unwrap_m(s_r - prev[2])
         if o.track_width_m > 0:
@@ -516,23 +675,25 @@ class MavlinkVehicle(QueuedVehicleLink):
         return d
 
     def _on_local_position_ned(self, msg: Any, t_ns: int) -> None:
-        if not self._is_autopilot(msg) or time.monotonic() - self._last_wheel_mono < 1.0:
+        if time.monotonic() - self._last_wheel_mono < 1.0:
             return  # wheel odometry flows: it is the better velocity source
         t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         att = self._fresh_attitude(t)
         if att is None:
             return  # cannot rotate NED into the body frame without an attitude
         v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        if not np.all(np.isfinite(v_ned)):
+            raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
         # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
         v_R = euler_to_R(att[0]).T @ v_ned
-        if np.all(np.isfinite(v_R)):
-            self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
+        self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
 
     def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
         o = self.opts
         t = self._clock.to_host(int(msg.time_usec) * 1000, t_ns)
         thr = getattr(msg, f"servo{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"servo{o.steering_channel}_raw", 0)
+        _check_pwm("SERVO_OUTPUT_RAW", thr, ste)
         if thr and ste:
             self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "SERVO_OUTPUT_RAW")
 
@@ -544,6 +705,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         thr = getattr(msg, f"chan{o.throttle_channel}_raw", 0)
         ste = getattr(msg, f"chan{o.steering_channel}_raw", 0)
         if thr and ste and thr != 0xFFFF and ste != 0xFFFF:
+            _check_pwm("RC_CHANNELS", thr, ste)
             self._controls = ControlSample(t, (thr - 1500) / 500.0, (ste - 1500) / 500.0, "RC_CHANNELS")
 
     def _on_ekf_status_report(self, msg: Any, t_ns: int) -> None:
@@ -641,6 +803,13 @@ class MavlinkVehicle(QueuedVehicleLink):
             self.c["rate_requests"] += 1
 
 
+def _check_pwm(kind: str, *pwm_us: int) -> None:
+    """A pulse width outside 800–2200 µs (0: channel unused) is no servo or stick position."""
+    for v in pwm_us:
+        if v and not PWM_MIN_US <= v <= PWM_MAX_US:
+            raise ValueError(f"{kind}: pulse width {v} µs outside {PWM_MIN_US}–{PWM_MAX_US}")
+
+
 def open_mavlink_vehicle(url: str, **options: Any) -> MavlinkVehicle:
     """Factory for ``mavlink+udp://HOST:PORT`` and ``mavlink+serial:///dev/ttyX?baud=…``."""
     return MavlinkVehicle(url, **options)
@@ -661,10 +830,7 @@ def wait_heartbeat(url: str, timeout_s: float = 3.0, **options: Any) -> tuple[in
     kw: dict[str, Any] = {"source_system": opts.sysid or 1, "source_component": opts.compid, "dialect": DIALECT}
     if not device.startswith("udp"):
         kw["baud"] = opts.baud
-    try:
-        conn = mavutil.mavlink_connection(device, **kw)
-    except Exception as exc:  # pymavlink raises OSError, SerialException, ValueError...
-        raise DriverError(f"{url!r}: cannot open {device}: {exc}") from exc
+    conn, _src = _connect(url, device, opts, **kw)
     try:
         if opts.signing_key:
             conn.setup_signing(read_signing_key(opts.signing_key), sign_outgoing=True)

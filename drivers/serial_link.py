@@ -8,7 +8,9 @@ Threads: one reader owns ``read_until`` and the decoder and puts :class:`robotd.
 samples into a bounded drop-oldest queue (drops counted); writes (version requests, forwarded
 poses) go through one lock. On ``SerialException``/``OSError`` the reader closes the port, backs
 off (doubling up to ``backoff_max_s``), reopens, and reports ``state = "degraded"`` meanwhile
-(interfaces.md §5.2). Wheel ticks are converted at this border with the configured geometry:
+(interfaces.md §5.2). ``stats()["state"]`` comes from the recent good frames
+(:mod:`drivers.link_state`): a silent port, or one that delivers only bad-CRC frames, is
+``degraded`` and then ``lost``, never ``ok``. Wheel ticks are converted at this border with the configured geometry:
 Δx = (Δs_l + Δs_r)/2, FRD yaw Δψ = (Δs_l − Δs_r)/W, divided by the MCU-clock interval, stamped
 at the interval's midpoint on the host clock (:class:`drivers.serial_protocol.ClockMapper`).
 """
@@ -28,6 +30,7 @@ import serial
 
 from drivers import AutopilotLink
 from drivers.base import ControlSample, QueuedVehicleLink
+from drivers.link_state import LinkState, LinkStateParams
 from drivers.serial_protocol import (
     MAX_ENCODED,
     PROTOCOL_VERSION,
@@ -39,6 +42,7 @@ from drivers.serial_protocol import (
     FrameDecoder,
     Heartbeat,
     HostPose,
+    McuStatus,
     Version,
     VersionRequest,
     WheelGeometry,
@@ -48,7 +52,7 @@ from drivers.serial_protocol import (
     seq_gap,
     tick_delta,
 )
-from robotd.errors import DriverError, RobotdError
+from robotd.errors import DriverError, ProtocolError, RobotdError
 from robotd.msgs import Odometry, PoseEstimate
 
 logger = logging.getLogger(__name__)
@@ -69,6 +73,8 @@ class SerialOptions:
     backoff_max_s: float = 2.0
     clock_window_s: float = 5.0
     max_tick_interval_s: float = 1.0  # a longer gap between wheel frames restarts the tick differencing
+    stale_after_s: float = 0.5  # no good frame this long: state "degraded"
+    lost_after_s: float = 2.0  # no good frame this long: state "lost"
 
 
 _OPTION_TYPES: dict[str, type] = {
@@ -83,6 +89,8 @@ _OPTION_TYPES: dict[str, type] = {
     "backoff_max_s": float,
     "clock_window_s": float,
     "max_tick_interval_s": float,
+    "stale_after_s": float,
+    "lost_after_s": float,
 }
 
 
@@ -109,6 +117,10 @@ def parse_serial_url(url: str, **options: Any) -> tuple[str, SerialOptions]:
         raise DriverError(f"{url!r}: wheel_source={opts.wheel_source!r}, expected 'ticks' or 'velocity'")
     if opts.baud <= 0 or opts.queue_size <= 0 or opts.read_timeout_s <= 0:
         raise DriverError(f"{url!r}: baud, queue_size and read_timeout_s must be positive, got {opts}")
+    if not 0 < opts.stale_after_s <= opts.lost_after_s:
+        raise DriverError(
+            f"{url!r}: expected 0 < stale_after_s <= lost_after_s, got {opts.stale_after_s} and {opts.lost_after_s}"
+        )
     return path, opts
 
 
@@ -149,7 +161,8 @@ class SerialVehicle(QueuedVehicleLink):
         self._last_seq: int | None = None
         self._last_uptime_ms: int | None = None
         self._prev_ticks: tuple[int, int, int] | None = None  # (unwrapped t_mcu_us, ticks_l, ticks_r)
-        self.state = "closed"
+        self._link = LinkState(LinkStateParams(self.opts.stale_after_s, self.opts.lost_after_s))
+        self._version_ok = True
         self.mcu_status: int | None = None
         self.fw_version: tuple[int, int, int] | None = None
 
@@ -160,7 +173,7 @@ class SerialVehicle(QueuedVehicleLink):
             self._open_port()
         except (serial.SerialException, OSError) as exc:
             raise DriverError(f"{self.url!r}: cannot open {self.path}: {exc}") from exc
-        self.state = "ok"
+        self._link.opened(time.monotonic_ns())
         self._stop.clear()
         self._thread = threading.Thread(target=self._reader, name="serial-reader", daemon=True)
         self._thread.start()
@@ -170,7 +183,21 @@ class SerialVehicle(QueuedVehicleLink):
             self._thread.join(timeout=2.0)
             self._thread = None
         self._close_port()
-        self.state = "closed"
+        self._link.closed()
+
+    @property
+    def state(self) -> str:
+        """``ok``, ``degraded``, ``lost`` (from the recent good frames) or ``closed``."""
+        return self._link.state(time.monotonic_ns())
+
+    def _set_fault(self) -> None:
+        why = None if self._port is not None else "disconnected"
+        if not self._version_ok:
+            why = "protocol version mismatch"
+        elif why is None and self.mcu_status not in (None, McuStatus.OK):
+            kind = "fault" if self.mcu_status == McuStatus.FAULT else "degraded"
+            why = f"MCU reports status {self.mcu_status} ({kind})"
+        self._link.fault(why)
 
     def _open_port(self) -> None:
         port = serial.Serial(
@@ -212,7 +239,7 @@ class SerialVehicle(QueuedVehicleLink):
                     continue
                 backoff = self.opts.backoff_min_s
                 self._counters["reconnects"] += 1
-                self.state = "ok"
+                self._set_fault()
                 logger.info("%s: reconnected to %s", self.url, self.path)
                 continue
             try:
@@ -222,20 +249,31 @@ class SerialVehicle(QueuedVehicleLink):
                 if self._stop.is_set():
                     break
                 self._counters["disconnects"] += 1
-                self.state = "degraded"
                 logger.warning("%s: link lost (%s); reconnecting", self.url, exc)
                 self._close_port()
+                self._set_fault()
                 continue
             if not data:
                 continue
             t_arrival = time.monotonic_ns()
-            for fr in self._decoder.feed(data):
+            errors_before = self._decoder_errors()
+            good = 0
+            frames = self._decoder.feed(data)
+            bad = self._decoder_errors() - errors_before
+            for fr in frames:
                 try:
                     self._handle(fr, t_arrival)
+                    good += 1
                 except RobotdError as exc:
                     # a well-framed message with bad values (NaN speeds...): count it, keep reading
                     self._counters["bad_values"] += 1
+                    bad += 1
                     logger.debug("%s: frame seq %d rejected: %s", self.url, fr.seq, exc)
+            self._link.record(t_arrival, good, bad)
+
+    def _decoder_errors(self) -> int:
+        d = self._decoder.stats
+        return d.crc_errors + d.cobs_errors + d.other_errors + d.oversize
 
     def _handle(self, fr: Frame, t_arrival_ns: int) -> None:
         if self._last_seq is not None:
@@ -251,17 +289,22 @@ class SerialVehicle(QueuedVehicleLink):
         if isinstance(msg, WheelOdometry):
             self._on_wheels(msg, fr.t_mcu_us, t_ns)
         elif isinstance(msg, ControlInputs):
-            self._controls = ControlSample(t_ns, float(msg.throttle), float(msg.steering), "CONTROL_INPUTS")
+            thr, ste = float(msg.throttle), float(msg.steering)
+            if not (abs(thr) <= 1.0 and abs(ste) <= 1.0):  # NaN fails too
+                raise ProtocolError(f"CONTROL_INPUTS throttle {thr}, steering {ste}: expected -1…1")
+            self._controls = ControlSample(t_ns, thr, ste, "CONTROL_INPUTS")
         elif isinstance(msg, Heartbeat):
             if self._last_uptime_ms is not None and msg.uptime_ms + 1000 < self._last_uptime_ms:
                 self._on_mcu_reset(f"uptime fell from {self._last_uptime_ms} ms to {msg.uptime_ms} ms")
             self._last_uptime_ms = msg.uptime_ms
             self.mcu_status = msg.status
+            self._set_fault()
         elif isinstance(msg, Version):
             self.fw_version = (msg.fw_major, msg.fw_minor, msg.fw_patch)
-            if msg.protocol != PROTOCOL_VERSION:
+            self._version_ok = msg.protocol == PROTOCOL_VERSION  # a reconnect may bring another MCU
+            self._set_fault()
+            if not self._version_ok:
                 self._counters["version_mismatch"] += 1
-                self.state = "degraded"
                 logger.error(
                     "%s: MCU speaks protocol %d, robotd %d: update one side", self.url, msg.protocol, PROTOCOL_VERSION
                 )
@@ -347,7 +390,7 @@ class SerialVehicle(QueuedVehicleLink):
             "resyncs": d.resyncs,
             "bytes_in": d.bytes_in,
             **self._counters,
-            "state": self.state,
+            **self._link.stats(time.monotonic_ns()),  # state, since_good_s, good_window, bad_window, fault
             "connected": self._port is not None,
             "mcu_status": self.mcu_status,
             "fw_version": self.fw_version,

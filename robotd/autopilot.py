@@ -253,6 +253,7 @@ class ResetEvent:
     MAP_LOAD = "map_load"
     FILTER_RESTART = "filter_restart"
     LOOP_CLOSURE = "loop_closure"
+    STALL = "stall"  # frames stopped for longer than a stall and no odometry covered the gap
 
 
 @dataclass

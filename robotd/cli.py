@@ -28,7 +28,7 @@ from typing import Any
 
 from robotd import __version__
 from robotd.config import Config, load_config, to_toml
-from robotd.errors import RobotdError
+from robotd.errors import InputError, RobotdError
 
 logger = logging.getLogger("robotd")
 
@@ -138,7 +138,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from robotd.research.evaluate import (
         associate_trajectories,
         evaluate_trajectories,
+        plot_nees,
         plot_trajectory,
+        position_nees,
         read_trajectory,
     )
 
@@ -149,9 +151,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     # stamped from the times.txt beside it (by index when it has none and the counts match)
     est = read_trajectory(args.traj)
     gt = read_trajectory(args.gt)
-    result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar))
+    cov = _pose_covariance(args, est)
+    result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar, cov=cov))
     result["frames"] = int(result["frames"])
     ie, ig, result["association"] = associate_trajectories(est, gt)
+    if cov is not None:
+        result["nees_pos_frames"] = int(result["nees_pos_frames"])
+        if args.nees_plot:
+            eps = position_nees(est.T[ie], gt.T[ig], cov[ie])
+            plot_nees(est.t_s[ie] - est.t_s[ie][0], eps, args.nees_plot, title=Path(args.traj).name)
+            result["nees_plot"] = args.nees_plot
+    elif args.nees_plot:
+        raise InputError(f"eval --nees-plot: no pose covariance beside {args.traj} (robotd replay --out writes one)")
     if args.plot:
         plot_trajectory(est.T[ie], gt.T[ig], None, args.plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
         result["plot"] = args.plot
@@ -162,6 +173,25 @@ def cmd_eval(args: argparse.Namespace) -> int:
         for k in sorted(result):
             print(f"{k:>22}: {_human_number(k, result[k])}")
     return 0
+
+
+def _pose_covariance(args: argparse.Namespace, est: Any) -> Any:
+    """The estimate's pose covariance: ``--cov FILE``, else the T.cov.txt beside T.txt when there is
+    one (robotd replay writes it), else None. Its stamps must be the trajectory's."""
+    import numpy as np
+
+    from robotd.research.evaluate import cov_path_for, read_pose_cov
+
+    path = Path(args.cov) if args.cov else cov_path_for(args.traj)
+    if not args.cov and not path.is_file():
+        return None
+    t, C = read_pose_cov(path)
+    if len(t) != len(est.t_s) or not np.allclose(t, est.t_s, atol=1e-6):
+        raise InputError(
+            f"eval: the pose covariance {path} has {len(t)} rows that do not match the {len(est.t_s)} poses of "
+            f"{args.traj} (stamps differ)"
+        )
+    return C
 
 
 def _json_number(v: Any) -> Any:
@@ -272,6 +302,13 @@ path_length_m); similarity_scale (diagnostic). drift_pct and similarity_scale ar
 association: how the poses were paired ("time", or "index" when one side has no recorded times
 and both have one pose per frame).
 
+With the pose covariance beside the trajectory (robotd replay --out T.txt writes T.cov.txt; see
+docs/slam.md "Reported covariance"): nees_pos_mean, the mean over poses of the position NEES
+e^T P^-1 e (3-D position error e after aligning the first poses, P the reported 3x3 position
+covariance, rotated with the alignment), nees_pos_in_band_frac, the share of poses inside the
+two-sided 95 % chi2(3) interval [0.216, 9.35], and nees_pos_frames (the start, known exactly, has
+none). A consistent covariance puts about 95 % inside.
+
 A KITTI poses.txt is read as a replay of its folder carries its truth: moved from the left
 camera's optical frame to the robot frame at the stereo baseline centre (baseline from the
 calib.txt beside it) and stamped from the times.txt beside it, so `robotd replay kitti://DIR
@@ -282,6 +319,10 @@ calib.txt beside it) and stamped from the times.txt beside it, so `robotd replay
     sp.add_argument("--plot", metavar="PNG", help="also write a plot of both trajectories to PNG (none by default)")
     # kept so that old scripts still run: a plot is opt-in now, so there is nothing to turn off
     sp.add_argument("--no-plot", action="store_true", help=argparse.SUPPRESS)
+    sp.add_argument(
+        "--cov", metavar="FILE", help="the estimate's pose covariance (default: T.cov.txt beside T.txt, if any)"
+    )
+    sp.add_argument("--nees-plot", metavar="PNG", help="write the position NEES over time with its 95 %% band to PNG")
     sp.add_argument("--planar", action="store_true", help="SE(2) alignment (2D runs)")
     sp.add_argument("--json", action="store_true")
 

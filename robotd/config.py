@@ -113,6 +113,14 @@ class SlamConfig:
         " with its first-order covariance (the thesis's)",
         choices=MEASUREMENTS,
     )
+    covariance: str = _f(
+        "consistent",
+        "the pose covariance reported (pose topic, MAVLink ODOMETRY, replay's T.cov.txt): consistent = the"
+        " filter's covariance of each fix, scaled by the innovation consistency monitor, plus the map's own"
+        " uncertainty from the anchors of the landmarks it was fixed against; filter = the filter's own"
+        " (FastSLAM: the particles' spread, over-confident on long runs)",
+        choices=("consistent", "filter"),
+    )
     n_particles: int = _f(100, "FastSLAM particles (bounded by memory and deadline: docs/reliability.md)", min=1)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(
@@ -177,6 +185,19 @@ class ZenohConfig:
     multicast_scouting: bool = _f(False, "multicast scouting (off: never announce on the LAN)")
     map_period_s: float = _f(2.0, "period of map updates", min=0.1)
     health_period_s: float = _f(1.0, "period of health messages", min=0.1)
+    ros2: bool = _f(False, "also publish odom, landmarks, diagnostics as ROS 2 CDR for zenoh-bridge-ros2dds")
+    ros2_world_frame: str = _f("map", "ROS 2 frame_id of the world (REP-105)", pattern=r"[A-Za-z_][A-Za-z0-9_/]*")
+    ros2_body_frame: str = _f("base_link", "ROS 2 child_frame_id of the odometry", pattern=r"[A-Za-z_][A-Za-z0-9_/]*")
+    ros2_stamp: str = _f("wall", "ROS 2 header stamps: capture time on the wall clock or the monotonic one",
+                         choices=("wall", "monotonic"))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class LiveViewConfig:
+    enabled: bool = _f(False, "serve the recording's channels live to the Foxglove app (WebSocket, needs robotd[live])")
+    host: str = _f("127.0.0.1", "address the live view listens on (loopback only by default)")
+    port: int = _f(8765, "live view WebSocket port (Foxglove's default)", min=1, max=65535)
+    map_period_s: float = _f(1.0, "period of the landmark map in the live view", min=0.1)
 
 
 @dataclass(frozen=True)
@@ -218,6 +239,7 @@ class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    liveview: LiveViewConfig = field(default_factory=LiveViewConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
     log: LogConfig = field(default_factory=LogConfig)

@@ -260,3 +260,6 @@ class StepResult:
     counts: dict[str, int] = field(default_factory=dict)  # features, stereo_matches, map_matches, inliers...
     tracking: bool = True  # False when no correspondences were accepted for several frames
     relocalised: bool = False  # the pose was reset against a loaded map in this step (a discontinuity)
+    # the reported covariance's consistency monitor (robotd.slam.uncertainty): state, nis_ratio, scale
+    consistency: dict[str, Any] = field(default_factory=dict)
+    observations: Observations | None = None  # what the filter took this frame (ids, pixels): for display

@@ -55,8 +55,8 @@ class MapStore:
         if self.protected is not None:
             self.failures += 1
             raise PersistenceError(
-                f"{self.path}: map not saved: the map there failed to resume ({self.protected}) and could not be "
-                "moved aside, so it is not written over"
+                f"{self.path}: the map there failed to resume ({self.protected}) and could not be moved aside, "
+                "so it is not written over"
             )
 
     def save(self, state: dict[str, Any], t_ns: int) -> Path:

@@ -35,9 +35,11 @@ from robotd.frontend.stereo_match import StereoMatches
 from robotd.geometry import se3, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import Relocaliser
+from robotd.slam.common import measurement_model, pixel_noise
 from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
+from robotd.slam.uncertainty import ReportedCovariance
 from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
@@ -99,7 +101,14 @@ class Pipeline:
         self.rig = rig
         self.rng = rng
         self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
-        self.estimator: Estimator = make_estimator(slam_params_from_config(cfg, rig), rng)
+        params = slam_params_from_config(cfg, rig)
+        self.estimator: Estimator = make_estimator(params, rng)
+        # the reported covariance (robotd.slam.uncertainty): anchors for the particle filters, whose
+        # own covariance is only the last fix; the EKF's joint covariance carries the map already
+        model = measurement_model(params)
+        self.covariance = ReportedCovariance(
+            cfg.slam.covariance, self.estimator.name != "ekf", model, pixel_noise(params) if model.intrinsics else None
+        )
         self.counters = PipelineCounters()
         self.tracker = TrackingMonitor(self.counters)
         self.relocaliser = Relocaliser()
@@ -150,13 +159,15 @@ class Pipeline:
         obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
         # predict with the motion prior, then fuse the frame's observations
         clock.run("predict", self._predict, inc)
+        if self.covariance.enabled:
+            clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
         report = clock.run("update", self._update, obs, landmarks)
-        pose = est.estimate()
+        pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
-        return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising)
+        return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 
     # ---------------------------------------------------------------- the stages
     def _motion_prior(self, t_ns: int) -> MotionPrior | None:
@@ -316,12 +327,23 @@ class Pipeline:
         tracking: bool,
         n_identified: int,
         relocalised: bool = False,
+        obs: Observations | None = None,
     ) -> StepResult:
         self._last_t_ns = frame.t_ns
         self.counters.frames += 1
         counts["landmarks"] = int(self.estimator.landmark_ids().shape[0])
         counts["identified"] = n_identified
-        return StepResult(frame.t_ns, pose, report, clock.finish(), counts, tracking, relocalised)
+        return StepResult(
+            frame.t_ns,
+            pose,
+            report,
+            clock.finish(),
+            counts,
+            tracking,
+            relocalised,
+            consistency=self.covariance.health(),
+            observations=obs,
+        )
 
     # ---------------------------------------------------------------- degradation hooks
     def set_max_features(self, n: int) -> None:
@@ -410,3 +432,5 @@ class Pipeline:
         self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)
         self._last_t_ns = None
         self._last_pose, self._velocity, self._rates = None, None, []
+        # the saved map is the world now: its landmarks anchor at zero covariance
+        self.covariance.reset()

@@ -20,6 +20,7 @@ rover give none, so the same world runs on vision alone (docs/sim.md).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -37,7 +38,7 @@ from robotd.msgs import StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
 from robotd.progress import progress_bar
-from robotd.research.evaluate import write_tum
+from robotd.research.evaluate import cov_path_for, write_pose_cov, write_tum
 
 logger = logging.getLogger(__name__)
 
@@ -55,30 +56,24 @@ def _frame_total(camera: Any, max_frames: int) -> int | None:
     if total is None and hasattr(camera, "entries"):  # KITTI / EuRoC: the selected frames, listed
         total = len(camera.entries)
     if total is None and hasattr(camera, "reader") and hasattr(camera, "replay"):  # a robotd recording
-        total = _mcap_frame_total(camera.reader.path, camera.replay)
+        total = _mcap_frame_total(camera.reader, camera.replay)
     if max_frames:
         total = max_frames if total is None else min(total, max_frames)
     return total
 
 
-def _mcap_frame_total(path: Any, sel: Any) -> int | None:
-    """Selected frames of a recording, from the MCAP summary's message counts (no message is read)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    from robotd.record import TOPIC_FRAME
-
-    try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
-    except (McapError, OSError, ValueError):  # a nicety: an unindexed file still replays, without a total
+def _mcap_frame_total(reader: Any, sel: Any) -> int | None:
+    """Selected frames of a recording, from the MCAP summary's message counts (no message is
+    read; None for a file without a summary, e.g. an interrupted recording)."""
+    n = reader.frame_count()
+    if n is None:
         return None
-    if summary is None or summary.statistics is None:
-        return None
-    ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_FRAME]
-    n = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
     stop = n if sel.stop is None else min(sel.stop, n)
     return len(range(sel.start, stop, sel.stride))
+
+
+def _is_recording(source: str) -> bool:
+    return source.startswith("mcap://") or ("://" not in source and source.endswith((".mcap", ".mcap.tmp")))
 
 
 def _opening_line(source: str) -> str:
@@ -107,6 +102,10 @@ def summary_line(summary: dict[str, Any]) -> str:
         line += " [EXPERIMENT: odometry from ground truth]"
     elif summary.get("odometry", "none") != "none":
         line += f" [odometry: {summary['odometry']}]"
+    rec = summary.get("recording") or {}
+    if rec.get("stopped"):
+        clean = "closed cleanly" if rec.get("finished") else "not closed cleanly (interrupted)"
+        line += f"; recording {clean}, read up to the damage: {rec['stopped']}"
     return line
 
 
@@ -143,7 +142,7 @@ def replay(
         if gt_odometry:
             logger.warning("EXPERIMENT: odometry synthesised from ground truth (never for reported figures)")
             vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source)))
-        elif source.endswith(".mcap") or source.startswith("mcap://"):
+        elif _is_recording(source):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
         elif source.startswith("sim://"):
             # the simulated rover's own noisy odometry (same world and clock as its camera);
@@ -180,20 +179,25 @@ def replay(
                 logger.error("frame %d skipped: %s", frame.seq, exc)
                 continue
             last_t = frame.t_ns
-            results.append(res)
+            results.append(dataclasses.replace(res, observations=None))  # the run's poses, not its features
             if frame.truth_T_world_robot is not None:
                 truths.append((frame.t_ns, frame.truth_T_world_robot))
             prog.set_postfix_str(f"lm {res.counts.get('landmarks', 0)}", refresh=False)
             prog.update(1)
             if max_frames and len(results) >= max_frames:
                 break
+    recording = camera.recording_status() if hasattr(camera, "recording_status") else None
     if not results:
-        raise RobotdError(f"{source}: no frame was processed")
+        why = f": {recording['stopped']}" if recording and recording.get("stopped") else ""
+        raise RobotdError(f"{source}: no frame was processed{why}")
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
     T = np.stack([r.pose.T_world_robot for r in results])
     if out_traj:
         write_tum(out_traj, stamps / 1e9, T)
-        logger.info("trajectory written to %s (%d poses)", out_traj, len(results))
+        write_pose_cov(cov_path_for(out_traj), stamps / 1e9, np.stack([r.pose.cov for r in results]))
+        logger.info(
+            "trajectory written to %s (%d poses; covariance in %s)", out_traj, len(results), cov_path_for(out_traj)
+        )
     total_ms = np.array([r.timings_ms.get("total", np.nan) for r in results])
     summary: dict[str, Any] = {
         "source": source,
@@ -216,14 +220,19 @@ def replay(
     }
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}
+    if recording is not None:
+        # a damaged or interrupted recording replays up to the damage; the summary says so
+        summary["recording"] = recording
     if truths:
-        summary.update(_truth_metrics(stamps, T, truths))
+        summary.update(_truth_metrics(stamps, T, truths, np.stack([r.pose.cov for r in results])))
     if out_traj:
         summary["trajectory"] = str(out_traj)
     return summary
 
 
-def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]]) -> dict[str, float | None]:
+def _truth_metrics(
+    stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]], cov: np.ndarray | None = None
+) -> dict[str, float | None]:
     """ATE/drift against the ground truth the source carried (evaluation only); the keys of
     :func:`robotd.research.evaluate.evaluate_trajectories` prefixed ``truth_``. Undefined figures
     (drift % and similarity scale on a path shorter than ``MIN_PATH_FOR_RELATIVE_M``) are None,
@@ -234,7 +243,7 @@ def _truth_metrics(stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np
     G = np.stack([g for _, g in truths])
     G = np.linalg.inv(G[0]) @ G  # truth relative to the first truth pose, as the estimate is
     try:
-        m = evaluate_trajectories(Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G))
+        m = evaluate_trajectories(Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G), cov=cov)
     except RobotdError as exc:
         logger.warning("no truth metrics: %s", exc)
         return {}

@@ -1,8 +1,17 @@
 """The daemon's health: counters kept by its threads, the health document (``robotd/<id>/health``,
-docs/topics.md) and the once-a-second status line (stderr, systemd STATUS=)."""
+docs/topics.md) and the once-a-second status line (stderr, systemd STATUS=).
+
+The document's ``state`` is ``ok`` only when nothing is wrong now: ``starting`` before the first
+step, ``failed`` while tracking is lost or no step completed for ``RECENT_S``, ``degraded`` with
+the reasons in ``problems`` when a vehicle link is not ``ok``, a stall happened in the last
+``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, frames lately had no
+odometry while odometry flows, the last map save failed, the pose's position σ exceeds
+``MAX_POSE_SIGMA_M``, or the latency budget runs below full settings (docs/reliability.md).
+"""
 
 from __future__ import annotations
 
+import math
 import os
 import resource
 import threading
@@ -29,6 +38,17 @@ def rss_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
 
 
+# a stall (a gap between processed frames) or a frame without odometry counts as a current problem
+# for this long; the counters keep them for good
+RECENT_S = 5.0
+# a pose whose position σ is larger than this is not a pose to call "ok" (a constant-velocity
+# prediction held across a 4 s stall once spread FastSLAM's particles to σ ≈ 84 m)
+MAX_POSE_SIGMA_M = 1.0
+NO_STEP_S = 1.0  # no completed step for this long: the published pose is stale
+STALL_MIN_S = 0.5  # a gap between processed frames longer than this and STALL_PERIODS frame periods
+STALL_PERIODS = 5  # (times the budget's 1-in-k frame skipping) is a stall
+
+
 class HasStats(Protocol):
     def stats(self) -> dict[str, Any]: ...
 
@@ -47,6 +67,16 @@ class DaemonStats:
     reset_counter: int = 0
     last_error_m: float = float("nan")
     max_latency_window: int = 2000
+    frames_missed: int = 0  # frames the camera never delivered (gaps in its sequence numbers)
+    camera_stalls: int = 0  # gaps in the camera's capture times beyond the stall threshold
+    stalls: int = 0  # gaps between processed frames beyond the stall threshold (any cause)
+    longest_stall_s: float = 0.0
+    last_stall_s: float = 0.0
+    last_stall_ns: int = 0  # monotonic time the last stall (either kind) was seen
+    frames_without_odometry: int = 0  # processed frames whose interval no odometry covered
+    last_without_odometry_ns: int = 0
+    stalls_without_odometry: int = 0  # of the stalls, those no odometry covered (a pose discontinuity)
+    last_step_error_ns: int = 0
 
     def add_latency(self, ms: float) -> None:
         self.latencies_ms.append(ms)
@@ -70,6 +100,17 @@ class HealthMonitor:
             self.timer.add(k, v)
         self.stats.steps += 1
         self.stats.last_step_ns = time.monotonic_ns()
+
+    def on_stall(self, gap_s: float, camera: bool) -> None:
+        """A gap of ``gap_s`` between frames: at the camera (capture times) or between processed frames."""
+        st = self.stats
+        if camera:
+            st.camera_stalls += 1
+        else:
+            st.stalls += 1
+        st.longest_stall_s = max(st.longest_stall_s, gap_s)
+        st.last_stall_s = gap_s
+        st.last_stall_ns = time.monotonic_ns()
 
     def on_published(self, report: StepReport, truth_T_world_robot: np.ndarray | None) -> None:
         """Publisher thread: a step's report went to the outputs; ``truth``: the simulator's pose."""
@@ -102,6 +143,9 @@ class HealthMonitor:
         lat = np.asarray(self.stats.latencies_ms[-300:]) if self.stats.latencies_ms else np.zeros(0)
         last = self.last
         res = last.result if last else None
+        st = self.stats
+        now = time.monotonic_ns()
+        sigma = _position_sigma_m(res.pose.cov) if res else None
         return {
             "t_ns": time.monotonic_ns(),
             "uptime_s": round((time.monotonic_ns() - self.stats.started_ns) / 1e9, 3),
@@ -118,16 +162,67 @@ class HealthMonitor:
             "frame_drops": frame_q.dropped,
             "odometry_drops": odo_q.dropped,
             "seq_gaps": self.stats.seq_gaps,
+            "frames_missed": st.frames_missed,
+            "stalls": st.stalls,
+            "camera_stalls": st.camera_stalls,
+            "longest_stall_s": round(st.longest_stall_s, 3),
+            "last_stall_s": round(st.last_stall_s, 3),
+            "since_stall_s": round((now - st.last_stall_ns) / 1e9, 1) if st.last_stall_ns else None,
+            "stalls_without_odometry": st.stalls_without_odometry,
+            "frames_without_odometry": st.frames_without_odometry,
+            "pose_sigma_m": None if sigma is None or not np.isfinite(sigma) else round(sigma, 4),
             "step_errors": self.stats.step_errors,
             "budget": budget.health(),
             "neff": None if not res or not np.isfinite(res.pose.neff) else float(res.pose.neff),
             "particles": res.pose.n_particles if res else 0,
             "features": res.counts.get("features_left", 0) if res else 0,
             "landmarks": res.counts.get("landmarks", 0) if res else 0,
+            # the reported covariance's consistency monitor (pose_sigma_m above is its position sigma)
+            "consistency": dict(res.consistency) if res else None,
             "error_vs_truth_m": None if not np.isfinite(self.stats.last_error_m) else self.stats.last_error_m,
             "rss_mb": round(rss_mb(), 1),
             **{name: _safe_stats(dev) for name, dev in devices.items()},
         }
+
+    def assess(self, h: dict[str, Any], needs_vehicle: bool) -> dict[str, Any]:
+        """Add ``state`` and ``problems`` to the health document ``h`` (module docstring)."""
+        st = self.stats
+        now = time.monotonic_ns()
+        problems: list[str] = []
+        vehicle = h.get("vehicle") or {}
+        link = vehicle.get("state")
+        if needs_vehicle and link not in (None, "ok"):
+            problems.append(f"vehicle link {link}")
+        if st.last_stall_ns and now - st.last_stall_ns < RECENT_S * 1e9:
+            problems.append(f"stall {st.last_stall_s:.1f} s")
+        lacking = st.last_without_odometry_ns and now - st.last_without_odometry_ns < RECENT_S * 1e9
+        if st.last_step_error_ns and now - st.last_step_error_ns < RECENT_S * 1e9:
+            problems.append(f"frames failing ({st.step_errors})")
+        if self.last is not None and now - st.last_step_ns > NO_STEP_S * 1e9:
+            problems.append(f"no SLAM step for {(now - st.last_step_ns) / 1e9:.1f} s")
+        if needs_vehicle and st.odometry_in > 0 and lacking:
+            problems.append(f"frames without odometry ({st.frames_without_odometry})")
+        saves = h.get("map_file") or {}
+        if saves.get("last_failed"):
+            problems.append(f"map save failed ({saves.get('failures')})")
+        sigma = h.get("pose_sigma_m")
+        if sigma is None and self.last is not None:
+            sigma = math.inf  # a covariance that is no longer finite
+        if sigma is not None and sigma > MAX_POSE_SIGMA_M:
+            problems.append(f"pose sigma {sigma:.2g} m")
+        if h["budget"].get("level", 0) > 0:
+            problems.append(f"budget L{h['budget']['level']}")
+        if self.last is None:
+            state = "starting"
+        elif not h["tracking"]:
+            state = "failed"
+            problems.insert(0, "tracking lost")
+        elif now - st.last_step_ns > RECENT_S * 1e9:
+            state = "failed"  # frames come but no step completes: the pose is not being estimated
+        else:
+            state = "degraded" if problems else "ok"
+        h["state"], h["problems"] = state, problems
+        return h
 
     def status_line(self, h: Mapping[str, Any], fps: float) -> str:
         """The once-a-second line: pose, error against truth, latency, rate, map and budget."""
@@ -145,13 +240,23 @@ class HealthMonitor:
         if b["level"] > 0:
             budget += f" ({b['max_features']} feat, {b['n_particles']} particles"
             budget += f", 1 frame in {b['skip_every']})" if b["skip_every"] > 1 else ")"
-        return (
+        line = (
             f"pose x {p.xyz_W_m[0]:+7.2f} y {p.xyz_W_m[1]:+7.2f} z {p.xyz_W_m[2]:+6.2f} m yaw {yaw:+6.1f}° | "
             f"err {'n/a' if err is None else f'{err:.3f} m'} | "
             f"latency p50 {lat['p50'] or 0:.1f} p99 {lat['p99'] or 0:.1f} ms | "
-            f"{fps:.1f} fps, dropped {h['frame_drops']} skipped {b['skipped_frames']} | "
+            f"{fps:.1f} fps, dropped {h['frame_drops'] + h.get('frames_missed', 0)} skipped {b['skipped_frames']} | "
             f"lm {h['landmarks']} feat {h['features']} | q {last.quality} {budget}"
         )
+        # what is wrong, when something is: the stalls, missing odometry, the links, failed saves
+        if h.get("state", "ok") != "ok":
+            line += f" | {h['state'].upper()}: {', '.join(h.get('problems', []))}"
+        return line
+
+
+def _position_sigma_m(cov: np.ndarray) -> float:
+    """sqrt of the trace of the position block of a (6, 6) pose covariance (x, y, z, roll, pitch, yaw)."""
+    tr = float(np.trace(np.asarray(cov, float)[:3, :3]))
+    return math.sqrt(tr) if np.isfinite(tr) and tr >= 0 else math.inf
 
 
 def _safe_stats(dev: HasStats | None) -> dict[str, Any]:

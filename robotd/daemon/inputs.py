@@ -4,6 +4,7 @@ drop-oldest queues (counted), until the source ends, fails, or the daemon stops.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Callable
 
@@ -23,14 +24,26 @@ def pump_frames(
     stats: DaemonStats,
     fail: Callable[[str, str], None],
     say_when_ended: bool,
+    stall_s: float = math.inf,
+    on_stall: Callable[[float], None] | None = None,
 ) -> None:
     """Frames into ``queue``; the queue is closed when the source ends (a replay's last frame) or
-    fails, which ``fail`` hears about: without frames there is nothing left to run on."""
+    fails, which ``fail`` hears about: without frames there is nothing left to run on. Frames the
+    camera never delivered (sequence gaps) are counted in ``stats.frames_missed``, and a gap of
+    more than ``stall_s`` between capture times goes to ``on_stall`` (the gap in seconds)."""
+    last: StereoFrame | None = None
     try:
         for frame in camera.frames(timeout_s=0.5):
             if stop.is_set():
                 break
             stats.frames_in += 1
+            if last is not None:
+                if frame.seq > last.seq + 1:
+                    stats.frames_missed += frame.seq - last.seq - 1
+                gap_s = (frame.t_ns - last.t_ns) / 1e9
+                if gap_s > stall_s and on_stall is not None:
+                    on_stall(gap_s)
+            last = frame
             queue.put(frame)
     except RobotdError as exc:
         fail("camera", f"camera stopped: {exc}")

@@ -33,7 +33,7 @@ from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
 from robotd.daemon.budget import LatencyBudget, StageTimer
 from robotd.daemon.devices import open_devices
-from robotd.daemon.health import DaemonStats, HealthMonitor
+from robotd.daemon.health import MAX_POSE_SIGMA_M, STALL_MIN_S, STALL_PERIODS, DaemonStats, HealthMonitor
 from robotd.daemon.inputs import pump_frames, pump_odometry
 from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
@@ -100,6 +100,7 @@ class Daemon:
         self.outputs: list[Output] = []
         self.threads: list[threading.Thread] = []
         self._ready = False
+        self._frame_period_s = 1.0 / 30.0  # the camera's, once it is open
         self.resumed = False
         self.exit_code = 0
         self.failed: list[str] = []  # threads that stopped the daemon (see _fail)
@@ -147,6 +148,7 @@ class Daemon:
         self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
         self._limits = limit_threads(self.pipeline.frontend.params.parallel_detect, cfg.slam.blas_threads)
         fps = dev.camera.fps or 30.0
+        self._frame_period_s = 1.0 / fps
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
         particles = cfg.slam.filter != "ekf"
         self.budget = LatencyBudget(
@@ -174,7 +176,8 @@ class Daemon:
     def _slam_loop(self) -> None:
         assert self.pipeline is not None and self.budget is not None
         pipeline, budget = self.pipeline, self.budget
-        last_t: int | None = None
+        last_t: int | None = None  # the last frame stepped
+        last_in: int | None = None  # the last frame given to the step (it may have failed)
         last_seq: int | None = None
         map_period = shortest_period(self.outputs, "map_period_s")
         state_period = shortest_period(self.outputs, "state_period_s")
@@ -198,11 +201,18 @@ class Daemon:
             if not budget.should_process():
                 continue
             inc = self.integrator.integrate(last_t, frame.t_ns) if last_t is not None else None
+            if last_t is not None and inc is None:
+                self.stats.frames_without_odometry += 1
+                self.stats.last_without_odometry_ns = time.monotonic_ns()
+            # a stall: measured between frames that reached the step, whether or not the step worked
+            stalled = last_in is not None and self._check_gap(frame.t_ns - last_in, inc is not None, budget)
+            last_in = frame.t_ns
             t0 = time.perf_counter()
             try:
                 result = pipeline.step(frame, inc)
             except RobotdError as exc:
                 self.stats.step_errors += 1
+                self.stats.last_step_error_ns = time.monotonic_ns()
                 logger.error("frame %d skipped: %s", frame.seq, exc)
                 continue
             frame_ms = (time.perf_counter() - t0) * 1e3
@@ -222,6 +232,10 @@ class Daemon:
             if now >= next_state:
                 next_state, snapshot = now + state_period, pipeline.state_dict()
             event = ResetEvent.RELOCALISATION if result.relocalised else None
+            if stalled and inc is None:
+                # nothing measured the motion across the stall: the pose after it is a guess, and
+                # the autopilot must not fuse the jump as motion (interfaces.md §1.5)
+                event = event or ResetEvent.STALL
             self.pub_q.put(_Stepped(frame, result, event, landmarks, snapshot))
         self.pub_q.close()
 
@@ -254,10 +268,30 @@ class Daemon:
                 except RobotdError as exc:
                     logger.warning("output %s: %s", out.name, exc)
 
+    def _check_gap(self, gap_ns: int, covered: bool, budget: LatencyBudget) -> bool:
+        """Count a stall (a gap between processed frames beyond STALL_PERIODS frame periods, times
+        the budget's frame skipping, and STALL_MIN_S); True on a stall."""
+        gap_s = gap_ns / 1e9
+        limit_s = max(STALL_MIN_S, STALL_PERIODS * self._frame_period_s * budget.state.skip_every)
+        if gap_s <= limit_s:
+            return False
+        self.health.on_stall(gap_s, camera=False)
+        if not covered:
+            self.stats.stalls_without_odometry += 1
+        logger.warning(
+            "stall: %.2f s between processed frames (more than %.2f s)%s",
+            gap_s,
+            limit_s,
+            "" if covered else "; no odometry covers it, the pose after it is a discontinuity",
+        )
+        return True
+
     def _health_state(self, result: StepResult) -> str:
         if not result.tracking:
             return "failed"
         if self.budget is not None and self.budget.state.level > 0:
+            return "degraded"
+        if not np.trace(result.pose.cov[:3, :3]) <= MAX_POSE_SIGMA_M**2:  # NaN too
             return "degraded"
         return "tracking"
 
@@ -271,10 +305,10 @@ class Daemon:
         assert self.budget is not None
         devices = {"camera": self.camera, "vehicle": self.vehicle}
         doc = self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
-        doc["odometry"] = self.odometry_gate.stats()
-        if self.maps is not None:  # saves, failed saves, and why this run saves nothing (else null)
+        doc["odometry"] = {**self.odometry_gate.stats(), "gaps": self.integrator.gaps}
+        if self.maps is not None:
             doc["map_file"] = self.maps.stats()
-        return doc
+        return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
@@ -301,9 +335,9 @@ class Daemon:
 
     def _start_threads(self) -> None:
         assert self.camera is not None and self.vehicle is not None
-        camera, vehicle, stop, stats = self.camera, self.vehicle, self.stop_event, self.stats
+        vehicle, stop, stats = self.vehicle, self.stop_event, self.stats
         for name, fn in (
-            ("camera", lambda: pump_frames(camera, self.frame_q, stop, stats, self._fail, self.duration_s == 0.0)),
+            ("camera", self._pump_frames),
             ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats)),
             ("slam", self._slam_loop),
             ("publisher", self._publisher_loop),
@@ -311,6 +345,20 @@ class Daemon:
             t = threading.Thread(target=self._guarded, args=(name, fn), name=f"robotd-{name}", daemon=True)
             t.start()
             self.threads.append(t)
+
+    def _pump_frames(self) -> None:
+        assert self.camera is not None
+        stall_s = max(STALL_MIN_S, STALL_PERIODS * self._frame_period_s)
+        pump_frames(
+            self.camera,
+            self.frame_q,
+            self.stop_event,
+            self.stats,
+            self._fail,
+            self.duration_s == 0.0,
+            stall_s,
+            lambda gap_s: self.health.on_stall(gap_s, camera=True),
+        )
 
     def _guarded(self, name: str, loop: Callable[[], None]) -> None:
         """Run a thread's loop; an exception nobody expected stops the daemon with exit status 1

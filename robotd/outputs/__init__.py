@@ -50,6 +50,14 @@ def _zenoh(ctx: OutputContext) -> Output | None:
     return ZenohOutput(ctx.cfg.zenoh, ctx.cfg.robot.id)
 
 
+def _liveview(ctx: OutputContext) -> Output | None:
+    if not ctx.cfg.liveview.enabled:
+        return None
+    from robotd.outputs.liveview import LiveViewOutput
+
+    return LiveViewOutput(ctx.cfg.liveview, ctx.rig, ctx.cfg.robot.id, ctx.raw_calibration)
+
+
 def _autopilot(ctx: OutputContext) -> Output | None:
     if ctx.autopilot is None:
         return None
@@ -62,6 +70,7 @@ def _autopilot(ctx: OutputContext) -> Output | None:
 # it cannot open (a second robotd holding the port), the start fails before a file is created.
 FACTORIES: tuple[tuple[str, Callable[[OutputContext], Output | None]], ...] = (
     ("zenoh", _zenoh),  # [zenoh] enabled
+    ("liveview", _liveview),  # [liveview] enabled: the Foxglove app, live (a port, like zenoh: before any file)
     ("recorder", _recorder),  # robotd record OUT.mcap
     ("autopilot", _autopilot),  # [mavlink] enabled, or a vehicle link with an autopilot role
 )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,11 @@ class MapFileOutput(Output):
         self.keep_maps = cfg.keep_maps
         self.resumed = False
         self._first_save = True
+        # failed saves, for the health document: how many, the last error and when (monotonic)
+        self.failures = 0
+        self.last_error: str | None = None
+        self.last_failure_ns: int | None = None
+        self.last_failed = False
         self.state_period_s = cfg.save_period_s if cfg.save_period_s > 0 else None
         self._queue: DropOldestQueue[tuple[int, Mapping[str, Any]]] = DropOldestQueue(1)
         self._thread = threading.Thread(target=self._writer, name="robotd-mapfile", daemon=True)
@@ -88,17 +94,28 @@ class MapFileOutput(Output):
                 self.store.keep_previous(self.keep_maps)
             self._first_save = False
             path = self.store.save(dict(state), t_ns)
-        except PersistenceError as exc:
-            logger.error("%s", exc)
+        except (PersistenceError, OSError) as exc:
+            logger.error("map not saved: %s", exc)
+            self.failures += 1
+            self.last_error, self.last_failure_ns, self.last_failed = str(exc), time.monotonic_ns(), True
             return False
+        self.last_failed = False
         n = len(state.get("database", {}).get("ids", ()))
         logger.info("map saved to %s (%d landmarks)", path, n)
         return True
 
     def stats(self) -> dict[str, Any]:
-        """Saves and failed saves; ``not_saving``: why this run never saves (a map that failed to
-        resume could not be moved aside), else None."""
-        return {"saves": self.store.saves, "failures": self.store.failures, "not_saving": self.store.protected}
+        """Saves and failed saves (the last error and how long ago); ``not_saving``: why this run
+        saves no map (a map that failed to resume could not be moved aside), else None."""
+        ago = None if self.last_failure_ns is None else round((time.monotonic_ns() - self.last_failure_ns) / 1e9, 1)
+        return {
+            "saves": self.store.saves,
+            "failures": self.failures,
+            "last_failed": self.last_failed,
+            "last_error": self.last_error,
+            "since_failure_s": ago,
+            "not_saving": self.store.protected,
+        }
 
     def close(self) -> None:
         self._stop_writer()

@@ -1,5 +1,6 @@
 """The recording output (``robotd record OUT.mcap``): the frames and odometry exactly as SLAM
-consumed them, and every published pose, in one MCAP file (robotd.record, docs/recording.md)."""
+consumed them, every published pose, the features the filter used and, once a second, the
+landmark map, in one MCAP file (robotd.record, docs/recording.md)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ class RecorderOutput(Output):
     """
 
     name = "recorder"
+    map_period_s = 1.0  # the landmark map (point cloud and ellipsoids) once a second
 
     def __init__(self, path: str, rig: RectifiedStereo, meta: Mapping[str, Any], raw_calibration: Any = None) -> None:
         self.path = path
@@ -37,8 +39,15 @@ class RecorderOutput(Output):
             self.writer.write_frame(frame)
 
     def publish(self, report: StepReport) -> None:
+        res = report.result
+        # the map's messages are built before taking the lock the SLAM thread's inputs wait on
+        lm = None if report.landmarks is None else self.writer.map_messages(res.t_ns, report.landmarks)
         with self._lock:
-            self.writer.write_pose(report.result.pose)
+            self.writer.write_pose(res.pose)
+            if res.observations is not None:
+                self.writer.write_features(res.observations)
+            if lm is not None:
+                self.writer.write_map(res.t_ns, lm)
 
     def stats(self) -> dict[str, Any]:
         c = self.writer.counts

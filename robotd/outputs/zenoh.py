@@ -8,6 +8,9 @@ Keys under ``robotd/<robot_id>/``:
 - ``health``  JSON at 1 Hz: stage latencies p50/p99, drops, deadline misses, N_eff, counts, budget
 - ``alive``   liveliness token (PUT while the daemon runs, DELETE when it stops or dies)
 
+With ``ros2 = true`` also ``odom``, ``landmarks`` and ``diagnostics``: the pose, the map and the
+health as ROS 2 messages in CDR, for zenoh-bridge-ros2dds (robotd.outputs.ros2).
+
 The session is loopback-only by default (listen on 127.0.0.1, multicast scouting off); a JSON5
 file (config/zenoh.json5) can switch to router/client mode, other endpoints or TLS. Puts never
 block the SLAM loop (congestion control DROP); the queryable replies from an immutable snapshot.
@@ -71,6 +74,10 @@ def session_error(cfg: ZenohConfig, exc: Exception) -> str:
     return f"zenoh: cannot open the session ({where}): {text}"
 
 
+def _zero() -> int:
+    return 0
+
+
 def pose_payload(
     pose: PoseEstimate, robot_id: str, seq: int, quality: int, reset_counter: int, latency_ms: float
 ) -> dict[str, Any]:
@@ -132,6 +139,20 @@ class ZenohOutput(Output):
             encoding=zenoh.Encoding.APPLICATION_JSON,
             congestion_control=zenoh.CongestionControl.DROP,
         )
+        self._ros: Any = None
+        self._ros_pubs: dict[str, Any] = {}
+        if cfg.ros2:
+            from robotd.outputs.ros2 import TOPICS, Ros2Encoder, wall_offset_ns
+
+            offset = wall_offset_ns if cfg.ros2_stamp == "wall" else _zero
+            self._ros = Ros2Encoder(robot_id, cfg.ros2_world_frame, cfg.ros2_body_frame, offset)
+            for name, rostype in TOPICS.items():
+                self._ros_pubs[name] = s.declare_publisher(
+                    f"{self.prefix}/{name}",
+                    encoding=zenoh.Encoding.APPLICATION_CDR.with_schema(rostype),
+                    congestion_control=zenoh.CongestionControl.DROP,
+                )
+                self.counts[name] = 0
         self._queryable = s.declare_queryable(f"{self.prefix}/map", self._on_map_query, complete=True)
         self._token = s.liveliness().declare_token(f"{self.prefix}/alive")
         self._closed = False
@@ -146,6 +167,8 @@ class ZenohOutput(Output):
         self.publish_pose(
             pose_payload(res.pose, self.robot_id, report.seq, report.quality, report.reset_counter, report.latency_ms)
         )
+        if self._ros is not None:
+            self._put(self._ros_pubs["odom"], self._ros.odometry(res.pose), "odom")
         if report.landmarks is not None:
             self.update_map(res.t_ns, report.landmarks)
 
@@ -180,9 +203,13 @@ class ZenohOutput(Output):
             self._map_blob = blob
         if publish:
             self._put(self._map, blob, "map")
+            if self._ros is not None:
+                self._put(self._ros_pubs["landmarks"], self._ros.point_cloud(t_ns, lm), "landmarks")
 
     def publish_health(self, doc: Mapping[str, Any]) -> None:
         self._put(self._health, json.dumps({"schema": HEALTH_SCHEMA, "robot": self.robot_id, **doc}), "health")
+        if self._ros is not None:
+            self._put(self._ros_pubs["diagnostics"], self._ros.diagnostics(doc), "diagnostics")
 
     def _put(self, pub: Any, payload: Any, name: str) -> None:
         try:
@@ -196,7 +223,7 @@ class ZenohOutput(Output):
         if self._closed:
             return
         self._closed = True
-        for ent in (self._token, self._queryable, self._pose, self._map, self._health):
+        for ent in (self._token, self._queryable, self._pose, self._map, self._health, *self._ros_pubs.values()):
             try:
                 ent.undeclare()
             except Exception as exc:

@@ -345,6 +345,50 @@ def nees(err: np.ndarray, cov: np.ndarray, angle_dims: Sequence[int] = ()) -> np
     return np.einsum("ti,ti->t", e, x)
 
 
+def position_nees(est_T: np.ndarray, gt_T: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Per-pose position NEES ε = eᵀ P⁻¹ e of a replay against truth, first poses aligned.
+
+    ``est_T``, ``gt_T``: (N, 4, 4) associated poses; ``cov``: (N, 6, 6) the estimate's reported
+    covariance (world frame, position block first). The estimate is moved by the alignment
+    A = Q₀ P₀⁻¹ (the drift convention, :func:`drift_m`) and its position covariance rotated with
+    it; e is the 3-D position error. The first pose (the alignment itself) and poses whose
+    position covariance is not positive definite get NaN.
+    """
+    P = poses_to_T(est_T)
+    Q = poses_to_T(gt_T)
+    C = np.asarray(cov, dtype=float)[:, :3, :3]
+    A = Q[0] @ se3_inverse(P[0])
+    e = Q[:, :3, 3] - (P[:, :3, 3] @ A[:3, :3].T + A[:3, 3])
+    C = A[:3, :3] @ C @ A[:3, :3].T
+    C = 0.5 * (C + np.swapaxes(C, 1, 2))
+    out = np.full(len(P), np.nan)
+    ok = np.linalg.eigvalsh(C)[:, 0] > 1e-12  # 1 µm standard deviation: anything less is "exact"
+    ok[0] = False
+    if np.any(ok):
+        out[ok] = nees(e[ok], C[ok])
+    return out
+
+
+def nees_band_3(p: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``p`` interval of χ²(3), the band one position NEES lies in when consistent."""
+    return anees_band(3, 1, p)
+
+
+def nees_summary(eps: np.ndarray) -> dict[str, float]:
+    """``nees_pos_mean`` and ``nees_pos_in_band_frac`` (share inside the 95 % χ²(3) interval) over
+    the poses with a NEES; ``nees_pos_frames`` says how many."""
+    v = np.asarray(eps, dtype=float)
+    v = v[np.isfinite(v)]
+    lo, hi = nees_band_3()
+    if not len(v):
+        return {"nees_pos_mean": math.nan, "nees_pos_in_band_frac": math.nan, "nees_pos_frames": 0.0}
+    return {
+        "nees_pos_mean": float(np.mean(v)),
+        "nees_pos_in_band_frac": float(np.mean((v >= lo) & (v <= hi))),
+        "nees_pos_frames": float(len(v)),
+    }
+
+
 def anees_band(n: int, runs: int, p: float = 0.95) -> tuple[float, float]:
     """Two-sided χ² band for the ANEES of ``runs`` Monte Carlo runs of an n-dim state (§11)."""
     a = (1.0 - p) / 2.0
@@ -392,6 +436,42 @@ def write_tum(path: str | Path, t_s: np.ndarray, T: np.ndarray) -> None:
         fh.write("# timestamp tx ty tz qx qy qz qw\n")
         for r in rows:
             fh.write(" ".join(f"{v:.9f}" if i == 0 else f"{v:.9g}" for i, v in enumerate(r)) + "\n")
+
+
+# The pose covariance beside a TUM file (``robotd replay --out T.txt`` writes ``T.cov.txt``): one
+# row per pose, ``t`` then the 21 upper-triangle entries (row-major) of the 6×6 covariance over
+# (x, y, z, roll, pitch, yaw) in the world frame (LOCAL_FRD), in m², m·rad and rad², the angles
+# being the ZYX Euler angles of the TUM pose. TUM itself stays plain, so evo reads it unchanged.
+_COV_IU = np.triu_indices(6)
+COV_HEADER = "# timestamp then upper triangle (row-major) of the 6x6 pose covariance over x y z roll pitch yaw [m, rad]"
+
+
+def cov_path_for(traj_path: str | Path) -> Path:
+    """Where the pose covariance of trajectory ``traj_path`` lives: ``T.txt`` -> ``T.cov.txt``
+    (``T`` -> ``T.cov``)."""
+    p = Path(traj_path)
+    return p.with_name(f"{p.stem}.cov{p.suffix}") if p.suffix else p.with_name(p.name + ".cov")
+
+
+def write_pose_cov(path: str | Path, t_s: np.ndarray, cov: np.ndarray) -> None:
+    """Write per-pose 6×6 covariances (see ``COV_HEADER``) with the same stamps as the TUM file."""
+    C = np.asarray(cov, dtype=float)
+    if C.ndim != 3 or C.shape[1:] != (6, 6) or len(C) != len(t_s):
+        raise InputError(f"pose covariance: expected ({len(t_s)}, 6, 6), got {C.shape}")
+    rows = np.column_stack([np.asarray(t_s, dtype=float), C[:, _COV_IU[0], _COV_IU[1]]])
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write(COV_HEADER + "\n")
+        for r in rows:
+            fh.write(" ".join(f"{v:.9f}" if i == 0 else f"{v:.9g}" for i, v in enumerate(r)) + "\n")
+
+
+def read_pose_cov(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a pose-covariance file -> (t_s (N,), cov (N, 6, 6)); symmetric by construction."""
+    a = _read_rows(Path(path), 22, "pose covariance")
+    C = np.zeros((len(a), 6, 6))
+    C[:, _COV_IU[0], _COV_IU[1]] = a[:, 1:]
+    C = C + np.swapaxes(C, 1, 2) - C * np.eye(6)
+    return a[:, 0].copy(), C
 
 
 def _read_rows(path: Path, ncols: int, what: str) -> np.ndarray:
@@ -495,9 +575,13 @@ def read_trajectory(path: str | Path) -> Trajectory:
     raise DatasetError(f"trajectory {p}: expected 8 (TUM) or 12 (KITTI) columns, got {n}")
 
 
-def evaluate_trajectories(est: Trajectory, gt: Trajectory, planar: bool = False) -> dict[str, float]:
+def evaluate_trajectories(
+    est: Trajectory, gt: Trajectory, planar: bool = False, cov: np.ndarray | None = None
+) -> dict[str, float]:
     """All trajectory metrics of §11 for two trajectories, paired by :func:`associate_trajectories`
-    (nearest time; by index when one side has no recorded times and the counts match)."""
+    (nearest time; by index when one side has no recorded times and the counts match). With
+    ``cov`` ((N, 6, 6), the estimate's reported pose covariance, one per estimated pose) also the
+    position NEES figures of :func:`nees_summary`."""
     ie, ig, _ = associate_trajectories(est, gt)
     if len(ie) < 2:
         raise InputError(
@@ -512,6 +596,8 @@ def evaluate_trajectories(est: Trajectory, gt: Trajectory, planar: bool = False)
     out["drift_m"] = drift_m(P, Q)
     out["path_length_m"] = path_length(Q[:, :3, 3])
     out["similarity_scale"] = similarity_scale(P[:, :3, 3], Q[:, :3, 3]) if len(P) >= 3 else math.nan
+    if cov is not None:
+        out.update(nees_summary(position_nees(P, Q, np.asarray(cov)[ie])))
     if out["path_length_m"] < MIN_PATH_FOR_RELATIVE_M:
         # undefined on a (nearly) stationary path: see MIN_PATH_FOR_RELATIVE_M; drift_m still says it
         out["drift_pct"] = math.nan
@@ -591,6 +677,35 @@ def plot_trajectory(
     ax.legend(loc="best", fontsize=7)
     if title:
         ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    out = Path(out_png)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def plot_nees(t_s: np.ndarray, eps: np.ndarray, out_png: str | Path, *, title: str = "") -> Path:
+    """The position NEES over time (log scale) with the two-sided 95 % χ²(3) band; writes a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lo, hi = nees_band_3()
+    v = np.asarray(eps, dtype=float)
+    ok = np.isfinite(v)
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    ax.axhspan(lo, hi, color="tab:green", alpha=0.15, label=f"95 % band [{lo:.3g}, {hi:.3g}]")
+    ax.axhline(3.0, color="tab:green", lw=0.8, ls="--", label="E[ε] = 3")
+    ax.semilogy(np.asarray(t_s)[ok], np.maximum(v[ok], 1e-3), ".-", c="tab:blue", lw=0.8, ms=3, label="ε (position)")
+    s = nees_summary(v)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("position NEES")
+    ax.set_title(
+        f"{title}  mean {s['nees_pos_mean']:.3g}, in band {100 * s['nees_pos_in_band_frac']:.0f} %".strip(), fontsize=9
+    )
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
     out = Path(out_png)
     fig.savefig(out)

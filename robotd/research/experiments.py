@@ -33,9 +33,11 @@ from robotd.geometry import wrap_angle
 from robotd.research.batch import solve_sim
 from robotd.research.evaluate import anees_band, ate, map_rmse, nees, plot_trajectory, poses_to_T
 from robotd.research.landmark_sim import SimConfig, SimRun, dead_reckoning, inject_mismatches, simulate
+from robotd.slam.common import measurement_model, pixel_noise
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.params import SlamParams
+from robotd.slam.uncertainty import ReportedCovariance
 
 logger = logging.getLogger(__name__)
 
@@ -174,12 +176,15 @@ def run_filter(
     batch_ate: float = math.nan,
     overrides: dict[str, Any] | None = None,
     cov_at: str = "measured",
+    covariance: str = "filter",
 ) -> FilterRun:
     """Run one filter over a simulated run and compute the §11 metrics against its truth.
 
     ``overrides``: further :class:`SlamParams` fields (e.g. for a study of one option).
     ``cov_at``: "measured" (the simulator's Q at the noisy pixels) or "predicted" (re-observations'
     Q re-evaluated at the filter's prediction, as the pipeline does: :func:`covariance_at_prediction`).
+    ``covariance``: the pose covariance the NEES is taken against: "filter" (the filter's own, the
+    thesis's) or "consistent" (what robotd reports by default, robotd.slam.uncertainty).
     """
     dim = run.dim
     params = SlamParams(
@@ -194,6 +199,10 @@ def run_filter(
     )
     rng = np.random.default_rng([seed, 7919])
     est = make_estimator(params, rng)
+    model = measurement_model(params)
+    reported = ReportedCovariance(
+        covariance, params.filter != "ekf", model, pixel_noise(params) if model.intrinsics else None
+    )
     K = len(run.steps)
     poses = np.zeros((K, 6))
     covs = np.zeros((K, 6, 6))
@@ -228,9 +237,11 @@ def run_filter(
                 c.sigma_px / math.sqrt(2.0),
                 planar=dim == 2,
             )
+        if reported.enabled:
+            reported.observe(est.estimate(), obs, est.landmarks())
         rep = est.update(obs)
         step_ms[k] = (time.perf_counter() - t0) * 1e3
-        e = est.estimate()
+        e = reported.report(est.estimate(), obs)
         poses[k, :3], poses[k, 3:] = e.xyz_W_m, e.rpy_rad
         covs[k] = e.cov
         map_size[k] = len(est.landmark_ids())

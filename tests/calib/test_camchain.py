@@ -47,16 +47,33 @@ def test_round_trip_is_exact(model: str, n: int, skew: float, tmp_path: Path, rn
 def test_kalibr_layout(tmp_path: Path, rng: np.random.Generator) -> None:
     c = _calib(rng)
     doc = yaml.safe_load(save_calibration(c, tmp_path / "c.yaml").read_text())
-    assert doc["robotd_calibration_version"] == 1
+    assert list(doc) == ["cam0", "cam1"]  # Kalibr counts every top-level key as a camera
     cam0, cam1 = doc["cam0"], doc["cam1"]
+    assert cam0["robotd"]["calibration_version"] == 2 and cam0["robotd"]["kalibr_fields"] == "raw"
     assert cam0["camera_model"] == "pinhole" and cam0["distortion_model"] == "radtan"
     assert cam0["intrinsics"] == [c.K_left[0, 0], c.K_left[1, 1], c.K_left[0, 2], c.K_left[1, 2]]
     assert cam0["resolution"] == [640, 400] and "skew" not in cam0
+    assert (cam0["rostopic"], cam1["rostopic"]) == ("/cam0/image_raw", "/cam1/image_raw")
+    assert (cam0["cam_overlaps"], cam1["cam_overlaps"]) == ([1], [0])
     T = np.array(cam1["T_cn_cnm1"])
     # T_cn_cnm1 maps a left-camera point into the right camera
     x_left = np.array([0.3, -0.2, 2.0])
     assert np.allclose(T[:3, :3] @ x_left + T[:3, 3], c.R @ x_left + c.T)
     assert "T_cn_cnm1" not in cam0
+
+
+def test_models_kalibr_lacks_go_under_robotd_raw(tmp_path: Path, rng: np.random.Generator) -> None:
+    c = _calib(rng, "rational", 14)
+    doc = yaml.safe_load(save_calibration(c, tmp_path / "c.yaml").read_text())
+    assert doc["cam0"]["robotd"]["kalibr_fields"] == "rectified-opencv"
+    assert doc["cam0"]["distortion_model"] == "radtan" and doc["cam0"]["distortion_coeffs"] == [0.0] * 4
+    raw0, raw1 = doc["cam0"]["robotd"]["raw"], doc["cam1"]["robotd"]["raw"]
+    assert raw0["distortion_model"] == "rational" and raw0["distortion_coeffs"] == c.D_left.tolist()
+    assert np.array_equal(raw1["T_cn_cnm1"], c.T_right_left())
+    skewed = _calib(rng, "radtan", 4, skew=0.7)  # Kalibr's pinhole has no skew; OpenCV ignores it
+    doc = yaml.safe_load(save_calibration(skewed, tmp_path / "s.yaml").read_text())
+    assert doc["cam0"]["robotd"]["kalibr_fields"] == "rectified-thesis"
+    assert doc["cam0"]["robotd"]["raw"]["skew"] == 0.7
 
 
 def _doc(rng: np.random.Generator) -> dict:
@@ -66,8 +83,14 @@ def _doc(rng: np.random.Generator) -> dict:
 @pytest.mark.parametrize(
     ("mutate", "message"),
     [
+        (lambda d: d["cam0"]["robotd"].update(calibration_version=3), "calibration_version 3 is not supported"),
+        (lambda d: d["cam0"]["robotd"].pop("calibration_version"), r"missing key cam0\.robotd\.'calibration_version'"),
+        (lambda d: d["cam0"]["robotd"].update(kalibr_fields="scaled"), "kalibr_fields 'scaled' is not one of"),
+        (lambda d: d["cam0"]["robotd"].update(kalibr_fields="rectified-opencv"), r"missing key cam0\.robotd\.'raw'"),
+        (lambda d: d["cam0"].update(robotd=[1]), "cam0.robotd must be a mapping"),
         (lambda d: d.update(robotd_calibration_version=2), "robotd_calibration_version 2 is not supported"),
-        (lambda d: d.pop("robotd_calibration_version"), "missing key 'robotd_calibration_version'"),
+        (lambda d: d.update(robotd_source="x"), "missing key 'robotd_calibration_version'"),
+        (lambda d: d.update(cam2={}), "cam0 and cam1 only at the top level; found cam2"),
         (lambda d: d.pop("cam1"), "missing key 'cam1'"),
         (lambda d: d["cam0"].pop("intrinsics"), r"missing key cam0\.'intrinsics'"),
         (lambda d: d["cam1"].pop("T_cn_cnm1"), r"missing key cam1\.'T_cn_cnm1'"),

@@ -55,6 +55,8 @@ def test_check_on_synthetic_pair(tmp_path: Path, capsys) -> None:
         (["stereo", ".", "--board", "9by6", "--out", "x.yaml"], "--board"),
         (["import-oak", "/nonexistent/eeprom.json", "--out", "x.yaml"], "not found"),
         (["check", "/nonexistent/calib.yaml", "l.png", "r.png"], "cannot read"),
+        (["ros-yaml", "/nonexistent/calib.yaml"], "cannot read"),
+        (["upgrade", "/nonexistent/calib.yaml", "--out", "/nonexistent/dir/new.yaml"], "does not exist"),
     ],
 )
 def test_errors_are_one_clear_line(argv: list[str], message: str, capsys) -> None:

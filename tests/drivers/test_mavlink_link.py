@@ -182,7 +182,7 @@ def test_link_loss_after_3_s_and_recovery() -> None:
             t0 = time.monotonic()
             assert wait_for(lambda: not link.link_up, 6.0)
             lost_after = time.monotonic() - t0
-            assert link.stats()["link_losses"] == 1 and link.stats()["state"] == "degraded"
+            assert link.stats()["link_losses"] == 1 and link.stats()["state"] == "lost"
             ap.heartbeat_enabled = True
             assert wait_for(lambda: link.link_up, 3.0)
     assert 2.0 < lost_after < 5.0  # 3 s timeout after the last heartbeat (up to 1 s earlier)
@@ -334,3 +334,120 @@ def test_bad_input_values_are_counted_not_fatal() -> None:
 def test_mavlink_serial_missing_device() -> None:
     with pytest.raises(DriverError, match="cannot open /nonexistent/ttyACM9"):
         open_vehicle("mavlink+serial:///nonexistent/ttyACM9?baud=57600").open()
+
+
+# --- exposure (issue 15, item 9) ---------------------------------------------------------------
+
+
+def _wheel_spoofer(port: int, speed_mps: float, sysid: int = 1) -> tuple[object, Callable[[int], None]]:
+    """An unrelated UDP socket (its own ephemeral port) speaking valid MAVLink as ``sysid``/1:
+    heartbeats of a Rover and WHEEL_DISTANCE of a rover driving at ``speed_mps``."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=1)
+    t0 = time.monotonic()
+
+    def send(k: int) -> None:
+        t_us = int((time.monotonic() - t0) * 1e6)
+        if k % 10 == 0:
+            conn.mav.heartbeat_send(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+        s = speed_mps * t_us * 1e-6
+        conn.mav.wheel_distance_send(t_us, 2, [s, s] + [0.0] * 14)
+        conn.mav.attitude_send(t_us // 1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        conn.mav.system_time_send(0, k)  # and a "reboot" in every message
+
+    return conn, send
+
+
+def test_udpout_binds_loopback_and_ignores_an_unrelated_sender() -> None:
+    with MockAutopilot(speed_mps=0.5, yaw_rate_radps=0.0) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4) as link:
+            assert isinstance(link, MavlinkVehicle)
+            local = link._conn.port.getsockname()
+            assert local[0] == "127.0.0.1"  # not 0.0.0.0: nothing off this host reaches it
+            assert wait_for(lambda: link.link_up, 3.0)
+            spoof, send = _wheel_spoofer(local[1], speed_mps=7.0)
+            for k in range(150):
+                send(k)
+                time.sleep(0.005)
+            time.sleep(0.3)
+            samples = link.drain()
+            st = link.stats()
+            spoof.close()  # type: ignore[attr-defined]
+    assert samples and all(abs(s.vel_R_mps[0] - 0.5) < 0.2 for s in samples)
+    assert st["autopilot_reboots"] == 0 and st["origins_sent"] == 0 and st["autopilot_sysid"] == 1
+
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_listening_link_takes_vehicle_data_from_the_autopilots_address_only() -> None:
+    port = _free_udp_port()
+    with open_vehicle(f"mavlink+udp://127.0.0.1:{port}?mode=in", track_width_m=0.4) as link:
+        autopilot_conn, autopilot_send = _wheel_spoofer(port, speed_mps=0.5)
+        spoof, spoof_send = _wheel_spoofer(port, speed_mps=7.0)  # same ids, another socket
+        for k in range(20):  # the autopilot speaks first
+            autopilot_send(k)
+            time.sleep(0.005)
+        assert wait_for(lambda: link.link_up, 2.0)
+        for k in range(20, 170):
+            autopilot_send(k)
+            spoof_send(k)
+            time.sleep(0.005)
+        time.sleep(0.3)
+        samples = link.drain()
+        st = link.stats()
+        ap_port = autopilot_conn.port.getsockname()[1]  # type: ignore[attr-defined]
+        autopilot_conn.close()  # type: ignore[attr-defined]
+        spoof.close()  # type: ignore[attr-defined]
+    assert len(samples) > 100
+    assert all(abs(s.vel_R_mps[0] - 0.5) < 0.05 for s in samples), max(s.vel_R_mps[0] for s in samples)
+    assert st["rejected_source"] >= 3 * 150  # its wheels, attitudes and system times (and heartbeats)
+    assert st["autopilot_address"] == f"127.0.0.1:{ap_port}"
+
+
+def test_timesync_flood_gets_bounded_replies() -> None:
+    with MockAutopilot(send_timesync_requests=False) as ap:
+        with open_vehicle(ap.url, timesync_reply_hz=20.0) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            t0 = time.monotonic()
+            base = 10**15
+            for k in range(7376):
+                ap.conn.mav.timesync_send(0, base + k)
+            flood_s = time.monotonic() - t0
+            time.sleep(1.0)
+            replies = [r for r in ap.messages("TIMESYNC") if r.msg.tc1 != 0 and r.msg.ts1 >= base]
+            st = link.stats()
+    bound = 20 + 20 * (flood_s + 1.0) + 5
+    assert 10 <= len(replies) <= bound, (len(replies), bound)
+    # every request that reached robotd (the socket buffer overflows under the flood) was counted
+    assert st["timesync_replies_limited"] >= 1000
+    assert st["timesync_replies_limited"] + len(replies) <= 7376
+
+
+def test_spoofed_system_times_are_no_reboot_and_a_real_reboot_is_one() -> None:
+    rng = np.random.default_rng(7)
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, origin=(10.0, 20.0, 30.0)) as link:
+            assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 1, 3.0)
+            assert wait_for(lambda: link.stats()["rx_types"].get("SYSTEM_TIME", 0) >= 2, 3.0)
+            ap.boot_ns -= 5_000_000_000  # the autopilot has been up 5 s
+            # 567 SYSTEM_TIMEs from the autopilot's own socket, ids and address (what no source check
+            # can tell apart), with random boot times, interleaved with the real stream for 3 s
+            for _ in range(567):
+                ap.conn.mav.system_time_send(0, int(rng.integers(0, 2**32)))
+                time.sleep(3.0 / 567)
+            time.sleep(0.5)
+            st = link.stats()
+            assert st["autopilot_reboots"] == 0 and st["origins_sent"] == 1
+            assert st["rx_types"]["SYSTEM_TIME"] >= 567
+            ap.reboot()  # a real one: the boot clock restarts and carries on
+            assert wait_for(lambda: link.stats()["autopilot_reboots"] == 1, 5.0)
+            assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 2, 2.0)
+            time.sleep(1.5)
+            assert link.stats()["autopilot_reboots"] == 1

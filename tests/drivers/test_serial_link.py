@@ -266,3 +266,62 @@ def test_nan_wheel_speeds_are_counted_not_fatal() -> None:
             assert wait_for(lambda: link.stats()["bad_values"] == 1)
             n0 = link.stats()["odometry"]
             assert wait_for(lambda: link.stats()["odometry"] > n0 + 3)  # the reader lives on
+
+
+# --- the link's state tells the truth (issue 15, item 8) --------------------------------------
+STATE_QUERY = f"{QUERY}&stale_after_s=0.2&lost_after_s=0.6"
+
+
+def test_a_silent_port_is_degraded_then_lost_never_ok() -> None:
+    master, slave, path = open_pty()
+    try:
+        with SerialVehicle(f"serial://{path}?{STATE_QUERY}") as link:
+            states = set()
+            t_end = time.monotonic() + 1.0
+            while time.monotonic() < t_end:
+                states.add(link.stats()["state"])
+                time.sleep(0.02)
+            assert "ok" not in states
+            assert link.stats()["state"] == "lost" and link.stats()["since_good_s"] is None
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_only_bad_crc_frames_is_lost_never_ok() -> None:
+    with mcu(rate_hz=100) as (sim, path, _):
+        sim.corrupt_next(10**9)  # every frame from now on fails its CRC
+        with SerialVehicle(f"serial://{path}?{STATE_QUERY}") as link:
+            states = set()
+            t_end = time.monotonic() + 1.0
+            while time.monotonic() < t_end:
+                states.add(link.stats()["state"])
+                time.sleep(0.02)
+            st = link.stats()
+    assert st["crc_errors"] > 50 and st["odometry"] == 0
+    assert "ok" not in states and st["state"] == "lost"
+    assert st["bad_window"] > 0 and st["good_window"] == 0
+
+
+def test_state_follows_the_good_frames_ok_degraded_lost_and_back() -> None:
+    with mcu(rate_hz=100) as (sim, path, _):
+        with SerialVehicle(f"serial://{path}?{STATE_QUERY}") as link:
+            assert wait_for(lambda: link.stats()["state"] == "ok", 2.0)
+            sim.corrupt_next(150)  # 1.5 s of bad CRCs (the heartbeat and controls too): most of the window
+            assert wait_for(lambda: link.stats()["state"] == "degraded", 2.0)
+            assert wait_for(lambda: link.stats()["state"] == "ok", 3.0)
+            sim.stop()  # the MCU falls silent; the port stays open
+            assert wait_for(lambda: link.stats()["state"] == "degraded", 1.0)
+            assert wait_for(lambda: link.stats()["state"] == "lost", 2.0)
+            assert link.stats()["connected"]
+
+
+def test_protocol_mismatch_is_degraded_while_frames_flow() -> None:
+    with mcu(rate_hz=100, protocol=1) as (sim, path, _):
+        with SerialVehicle(f"serial://{path}?{STATE_QUERY}") as link:
+            assert wait_for(lambda: link.stats()["state"] == "ok", 2.0)
+            from drivers.serial_protocol import Version
+
+            sim.send(Version(9, 1, 0, 0))
+            assert wait_for(lambda: link.stats()["version_mismatch"] == 1, 2.0)
+            assert link.stats()["state"] == "degraded" and "version" in link.stats()["fault"]

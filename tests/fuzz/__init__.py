@@ -1,1 +1,1 @@
-"""Property tests (hypothesis) of the parsers and loaders; tests/fuzz/ mirrors no source directory."""
+"""Property (fuzz) tests with hypothesis across the packages: bounded in time, run in CI."""

@@ -33,8 +33,13 @@ def test_replay_kitti_is_deterministic_and_evaluates(
     capsys.readouterr()
     ta, tb = read_tum(a), read_tum(b)
     assert np.array_equal(ta.t_s, tb.t_s) and np.array_equal(ta.T, tb.T), "same seed, same input: same poses"
-    assert main(["eval", str(a), str(root / "poses.txt"), "--json", "--plot", str(tmp_path / "p.png")]) == 0
+    assert (tmp_path / "a.cov.txt").is_file()  # the pose covariance beside the TUM file
+    nees_png = tmp_path / "nees.png"
+    assert main(["eval", str(a), str(root / "poses.txt"), "--json", "--plot", str(tmp_path / "p.png"),
+                 "--nees-plot", str(nees_png)]) == 0  # fmt: skip
     m = _json_out(capsys)
+    assert m["nees_pos_frames"] == 11 and 0.0 <= m["nees_pos_in_band_frac"] <= 1.0 and m["nees_pos_mean"] > 0
+    assert nees_png.stat().st_size > 1000
     for key in ("ate_rmse_m", "rpe_trans_m", "drift_pct", "path_length_m", "frames"):
         assert key in m
     assert m["frames"] == 12 and 12.0 < m["path_length_m"] < 14.5

@@ -63,6 +63,7 @@ def test_step_times_every_stage_in_data_flow_order(sim_frames):
         "outliers",
         "select",
         "predict",
+        "consistency",
         "update",
         "total",
     ]

@@ -259,3 +259,23 @@ def test_a_bad_map_that_cannot_be_moved_is_never_saved_over_and_stats_say_why(tm
     assert out.stats()["failures"] == 2 and out.stats()["saves"] == 0
     assert sorted(q.name for q in tmp_path.iterdir()) == ["map.robotd"]
     assert (tmp_path / "map.robotd").read_bytes() == blob
+
+
+def test_failed_saves_are_counted_with_the_error_for_health(tmp_path: Path) -> None:
+    out = _output(tmp_path)
+    assert out.save(STATE, 1)
+    assert out.stats()["failures"] == 0 and not out.stats()["last_failed"]
+    # the map's name is taken by a non-empty directory: the rename into place fails (even as root)
+    (tmp_path / "map.robotd").unlink()
+    (tmp_path / "map.robotd").mkdir()
+    (tmp_path / "map.robotd" / "x").write_text("x")
+    assert not out.save(STATE, 2)
+    st = out.stats()
+    assert st["failures"] == 1 and st["last_failed"] and st["since_failure_s"] is not None
+    assert "map.robotd" in st["last_error"]
+    (tmp_path / "map.robotd" / "x").unlink()
+    (tmp_path / "map.robotd").rmdir()
+    assert out.save(STATE, 3)
+    st = out.stats()
+    assert st["failures"] == 1 and not st["last_failed"]  # the count stays; the current state is good
+    out.close()

@@ -310,3 +310,41 @@ def test_kitti_truth_errors_and_a_missing_calibration(tmp_path, caplog):
     from robotd.geometry import T_optical_to_robot
 
     assert np.allclose(tr.T, T_optical_to_robot(read_kitti_poses(poses).T), atol=1e-12)
+
+
+def test_pose_covariance_file_round_trips_and_sits_beside_the_trajectory(tmp_path):
+    from robotd.research.evaluate import cov_path_for, read_pose_cov, write_pose_cov
+
+    assert cov_path_for(tmp_path / "T.txt") == tmp_path / "T.cov.txt"
+    assert cov_path_for(tmp_path / "T") == tmp_path / "T.cov"
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(4, 6, 6))
+    C = A @ np.swapaxes(A, 1, 2)
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    write_pose_cov(tmp_path / "c.txt", t, C)
+    t2, C2 = read_pose_cov(tmp_path / "c.txt")
+    np.testing.assert_allclose(t2, t)
+    np.testing.assert_allclose(C2, C, rtol=1e-8)
+    (tmp_path / "bad.txt").write_text("0.0 1 2 3\n")
+    with pytest.raises(DatasetError, match="expected 22 numbers"):
+        read_pose_cov(tmp_path / "bad.txt")
+
+
+def test_position_nees_by_hand_after_first_pose_alignment():
+    from robotd.research.evaluate import nees_summary, position_nees
+
+    # truth: straight along x; the estimate starts rotated by 90° (its own world frame) and is 0.2 m
+    # off sideways at the end: after the alignment the error is (0, 0.2, 0) in the truth's frame
+    Q = np.stack([se3(np.eye(3), np.array([k, 0.0, 0.0])) for k in range(3)])
+    Rz = rot_z(math.pi / 2)
+    P = np.stack([se3(Rz, Rz @ np.array([k, 0.0, 0.0])) for k in range(3)])
+    P[2, :3, 3] = Rz @ np.array([2.0, 0.2, 0.0])
+    C = np.zeros((3, 6, 6))
+    C[:, :3, :3] = np.diag([0.01, 0.04, 0.09])  # in the estimate's frame: its y is the truth's x
+    eps = position_nees(P, Q, C)
+    assert math.isnan(eps[0])  # the alignment pose itself
+    assert eps[1] == pytest.approx(0.0, abs=1e-12)
+    # rotated: the estimate's x variance (0.01) is now along the truth's y
+    assert eps[2] == pytest.approx(0.2**2 / 0.01, rel=1e-9)
+    s = nees_summary(eps)
+    assert s["nees_pos_frames"] == 2 and s["nees_pos_in_band_frac"] == 0.5  # 0 is below the band, 4.0 inside

@@ -1,0 +1,326 @@
+"""The pose covariance robotd reports: consistent with its real error (docs/slam.md "Reported covariance").
+
+A FastSLAM particle set cannot carry the map's own uncertainty for long: after a few resampling
+rounds every particle descends from one ancestor, and the spread of their poses is only the last
+fix against that ancestor's map (Bailey, Nieto and Nebot 2006; docs/experiments/consistency.md).
+The error of the pose in the world, though, is the error of the map it was fixed against plus the
+error of the fix. Two parts make the reported covariance honest:
+
+:class:`AnchoredCovariance`
+    Every landmark remembers the world covariance of the pose it was first mapped from (its
+    *anchor*). A pose fixed against landmarks inherits their anchors' covariance, transported
+    rigidly to where the robot is now (a heading error at the anchor is a lateral error here), and
+    adds the filter's own covariance of the fix. With landmarks of several anchors it takes their
+    convex combination, weighted by how many of each were used, which bounds the covariance of the
+    weighted combination of correlated errors from above (the errors of anchors share their
+    history). New landmarks then anchor at the pose's reported covariance, so the uncertainty
+    grows like the real drift while the rover explores and falls back to an old anchor's when it
+    re-observes old landmarks.
+
+:class:`ConsistencyMonitor`
+    The normalised innovation squared (NIS) of each frame's re-observations at the predicted pose,
+    νᵀ S⁻¹ ν with S the filter's own innovation covariance, has a χ²(d) distribution when the noise
+    model is right. The monitor keeps a running robust estimate of NIS / E[NIS] (medians, so the
+    few outliers the screens let through do not dominate) and scales the fix's covariance by it
+    when the filter is over-confident. Its state is in the health topic.
+
+Errors are handled in the world-frame error state (δp, δθ): δp the position error [m], δθ the
+small rotation [rad] with R_true = exp([δθ]×) R. The reported 6×6 covariance is over
+(x, y, z, roll, pitch, yaw); :func:`euler_error_jacobian` converts between the two.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from robotd.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.slam.models import MeasurementModel
+
+# The χ² medians the robust NIS ratio divides by, per measurement size.
+_CHI2_MEDIAN = {d: float(chi2.median(d)) for d in (1, 2, 3, 4, 6)}
+
+
+def euler_error_jacobian(rpy: np.ndarray) -> np.ndarray:
+    """E (3, 3) with δθ = E δ(roll, pitch, yaw): ZYX Euler-angle errors -> world-frame rotation.
+
+    R = Rz(ψ) Ry(θ) Rx(φ), so δR Rᵀ = [ω]× with ω = Rz Ry e_x δφ + Rz e_y δθ + e_z δψ.
+    """
+    _, p, y = (float(v) for v in rpy)
+    cy, sy, cp, sp = math.cos(y), math.sin(y), math.cos(p), math.sin(p)
+    return np.array([[cy * cp, -sy, 0.0], [sy * cp, cy, 0.0], [-sp, 0.0, 1.0]])
+
+
+def _to_world_error(cov6: np.ndarray, rpy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(G C Gᵀ, G): a covariance over (x, y, z, roll, pitch, yaw) in the (δp, δθ) error state."""
+    G = np.eye(6)
+    G[3:, 3:] = euler_error_jacobian(rpy)
+    return G @ cov6 @ G.T, G
+
+
+def _from_world_error(C: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_to_world_error` (pinv near the ZYX singularity, where ±90° pitch has no yaw)."""
+    Gi = np.linalg.pinv(G) if abs(np.linalg.det(G)) < 1e-6 else np.linalg.inv(G)
+    out = Gi @ C @ Gi.T
+    return 0.5 * (out + out.T)
+
+
+def transport(C: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Covariances (A, 6, 6) in (δp, δθ) at anchors moved rigidly by d (A, 3) = p_now − p_anchor:
+    δp_now = δp + δθ × d = δp − [d]× δθ, δθ_now = δθ (the map turns about the anchor with its error)."""
+    A = C.shape[0]
+    J = np.broadcast_to(np.eye(6), (A, 6, 6)).copy()
+    J[:, 0, 4], J[:, 0, 5] = d[:, 2], -d[:, 1]
+    J[:, 1, 3], J[:, 1, 5] = -d[:, 2], d[:, 0]
+    J[:, 2, 3], J[:, 2, 4] = d[:, 1], -d[:, 0]
+    return J @ C @ np.swapaxes(J, 1, 2)
+
+
+class AnchoredCovariance:
+    """The world covariance of the pose from the anchors of the landmarks it was fixed against.
+
+    Each landmark keeps the position and (δp, δθ) covariance of the pose it was created at; ids
+    not known here (a resumed map, or beyond ``max_landmarks``, where the lowest ids go first) are
+    taken as the map's frame itself: zero covariance, the world being defined by that map.
+    """
+
+    def __init__(self, max_landmarks: int = 200_000, min_support: int = 3) -> None:
+        self.max_landmarks = int(max_landmarks)
+        self.min_support = int(min_support)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every anchor (a new map; after relocalisation the saved map is the world)."""
+        self._ids = np.zeros(0, np.int64)
+        self._p = np.zeros((0, 3))
+        self._C = np.zeros((0, 6, 6))
+        self._n = np.zeros(0)  # observations fused per landmark
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (p, C) of the previous frame
+
+    @property
+    def n_anchored(self) -> int:
+        """Landmarks with an anchor."""
+        return int(self._ids.shape[0])
+
+    def step(
+        self, xyz: np.ndarray, rpy: np.ndarray, cov_fix: np.ndarray, used_ids: np.ndarray, new_ids: np.ndarray
+    ) -> np.ndarray:
+        """The reported (6, 6) covariance over (x, y, z, roll, pitch, yaw) of this frame's pose.
+
+        ``xyz``, ``rpy``: the pose; ``cov_fix``: the filter's (6, 6) covariance of it given its map
+        (FastSLAM: the particles' mixture), already scaled by the consistency monitor;
+        ``used_ids``: the map landmarks this frame's update re-observed; ``new_ids``: the landmarks
+        it created (they anchor here).
+        """
+        p = np.asarray(xyz, dtype=float)
+        C_fix, G = _to_world_error(np.asarray(cov_fix, dtype=float), rpy)
+        used = np.asarray(used_ids, dtype=np.int64)
+        if used.size >= self.min_support or self._last is None:
+            C_map = np.zeros((6, 6))
+            k = np.zeros(0, np.int64)
+            if used.size and self._ids.size:
+                pos = np.minimum(np.searchsorted(self._ids, used), self._ids.size - 1)
+                k = pos[self._ids[pos] == used]  # the others anchor in the map's frame: zero
+                if k.size:
+                    # the convex combination, each landmark weighing 1 / (landmarks used)
+                    Ck = transport(self._C[k], p - self._p[k])
+                    C_map = Ck.sum(axis=0) / float(used.size)
+        else:
+            # too little of the map was seen: the fix is relative to the previous pose
+            p0, C0 = self._last
+            C_map = transport(C0[None], (p - p0)[None])[0]
+            k = np.zeros(0, np.int64)
+        C = C_map + C_fix
+        C = 0.5 * (C + C.T)
+        self._last = (p.copy(), C)
+        if k.size:
+            # the filter moved each re-observed landmark towards where this pose sees it: its error
+            # now shares this pose's, by this observation's share of its information (1/n after n)
+            a = 1.0 / (self._n[k] + 1.0)
+            self._C[k] = (1.0 - a)[:, None, None] * Ck + a[:, None, None] * C
+            self._p[k] = p
+            self._n[k] += 1.0
+        self._anchor(np.unique(np.asarray(new_ids, dtype=np.int64)), p, C)
+        return _from_world_error(C, G)
+
+    def _anchor(self, new: np.ndarray, p: np.ndarray, C: np.ndarray) -> None:
+        if not new.size:
+            return
+        pos = np.searchsorted(self._ids, new)
+        have = np.zeros(new.size, bool)
+        if self._ids.size:
+            have = self._ids[np.minimum(pos, self._ids.size - 1)] == new
+        if np.any(have):  # an id created again: its anchor is this pose
+            self._p[pos[have]] = p
+            self._C[pos[have]] = C
+            self._n[pos[have]] = 1.0
+        add, at = new[~have], pos[~have]
+        self._ids = np.insert(self._ids, at, add)
+        self._p = np.insert(self._p, at, p, axis=0)
+        self._C = np.insert(self._C, at, C, axis=0)
+        self._n = np.insert(self._n, at, 1.0)
+        extra = self._ids.size - self.max_landmarks
+        if extra > 0:
+            self._ids, self._p = self._ids[extra:], self._p[extra:]
+            self._C, self._n = self._C[extra:], self._n[extra:]
+
+
+@dataclass
+class ConsistencyMonitor:
+    """Running robust NIS ratio of the re-observations; the factor the fix's covariance is scaled by.
+
+    ``window``: frames of the exponential average (of the log ratio); ``min_measurements``: fewer
+    re-observations in a frame say nothing; ``overconfident_above``: the ratio from which the
+    health topic says "overconfident" (the scale is applied from 1 up, whatever the state).
+    """
+
+    window: int = 20
+    min_measurements: int = 8
+    overconfident_above: float = 2.0
+    max_scale: float = 1.0e4
+    log_ratio: float = 0.0
+    frames: int = 0
+    last_ratio: float = math.nan
+
+    def observe(self, nis: np.ndarray, dz: int) -> None:
+        """One frame's per-measurement NIS values (any outliers included) of measurements of size dz."""
+        v = np.asarray(nis, dtype=float)
+        v = v[np.isfinite(v)]
+        if v.size < self.min_measurements:
+            return
+        r = float(np.median(v)) / _CHI2_MEDIAN.get(dz, float(chi2.median(dz)))
+        self.last_ratio = r
+        lr = math.log(min(max(r, 1e-6), self.max_scale))
+        self.frames += 1
+        a = max(1.0 / self.window, 1.0 / self.frames)  # the first frames average what there is
+        self.log_ratio += a * (lr - self.log_ratio)
+
+    @property
+    def ratio(self) -> float:
+        """The averaged NIS / E[NIS] (1 when consistent; nan before any frame)."""
+        return math.exp(self.log_ratio) if self.frames else math.nan
+
+    @property
+    def scale(self) -> float:
+        """The factor applied to the filter's covariance of each fix: the ratio, at least 1."""
+        return min(self.max_scale, max(1.0, self.ratio)) if self.frames else 1.0
+
+    @property
+    def state(self) -> str:
+        if not self.frames:
+            return "unknown"
+        return "overconfident" if self.ratio > self.overconfident_above else "ok"
+
+    def health(self) -> dict[str, float | int | str]:
+        return {
+            "state": self.state,
+            "nis_ratio": round(self.ratio, 3) if self.frames else None,  # type: ignore[dict-item]
+            "scale": round(self.scale, 3),
+            "frames": self.frames,
+        }
+
+    def reset(self) -> None:
+        self.log_ratio, self.frames, self.last_ratio = 0.0, 0, math.nan
+
+
+def innovation_nis(
+    h: object,
+    x: np.ndarray,
+    P: np.ndarray,
+    m: np.ndarray,
+    Sigma: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+) -> np.ndarray:
+    """Per-measurement NIS νᵀ S⁻¹ ν, S = H_x P H_xᵀ + H_m Σ H_mᵀ + Q, at the pose prior (x, P).
+
+    ``h``: the filter's measurement function (x (B, dx), m (B, dm)) -> (z, H_x, H_m);
+    ``m``/``Sigma``: (B, dm)/(B, dm, dm) the re-observed landmarks; ``z``/``Q``: (B, dz)/(B, dz, dz).
+    """
+    B = m.shape[0]
+    zhat, Hx, Hm = h(np.broadcast_to(x, (B, x.shape[0])), m)  # type: ignore[operator]
+    S = Hx @ P @ np.swapaxes(Hx, 1, 2) + Hm @ Sigma @ np.swapaxes(Hm, 1, 2) + Q
+    nu = z - zhat
+    try:
+        sol = np.linalg.solve(S, nu[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.full(B, np.nan)
+    return np.einsum("bi,bi->b", nu, sol)
+
+
+class ReportedCovariance:
+    """The covariance robotd reports for each pose (``slam.covariance``): the pipeline's and the
+    simulation studies' one implementation.
+
+    ``mode``: "consistent" (monitor + anchors) or "filter" (the filter's own, unchanged);
+    ``anchored``: use :class:`AnchoredCovariance` (the particle filters; the EKF's joint
+    covariance carries the map already); ``model``/``q_px``: the filter's measurement model and,
+    for the pixel model, its constant pixel covariance.
+    """
+
+    def __init__(self, mode: str, anchored: bool, model: MeasurementModel, q_px: np.ndarray | None) -> None:
+        if mode not in ("consistent", "filter"):
+            raise ValueError(f"covariance mode: expected consistent or filter, got {mode!r}")
+        self.mode = mode
+        self.model = model
+        self.q_px = q_px
+        self.monitor = ConsistencyMonitor()
+        self.anchors = AnchoredCovariance() if anchored else None
+
+    @property
+    def enabled(self) -> bool:
+        return self.mode == "consistent"
+
+    def reset(self) -> None:
+        """A map loaded from disk is the world: its landmarks anchor at zero covariance."""
+        if self.anchors is not None:
+            self.anchors.reset()
+        self.monitor.reset()
+
+    def observe(self, prior: PoseEstimate, obs: Observations, landmarks: LandmarkMap) -> None:
+        """Before the update: the NIS of the frame's re-observations at the predicted pose ``prior``
+        against ``landmarks`` (the map before this frame), for the monitor."""
+        from robotd.slam.common import split_observations
+
+        if not self.enabled:
+            return
+        mon, dim = self.monitor, 3 if self.model.dx == 6 else 2
+        ident = np.flatnonzero(~obs.is_new)
+        if ident.size < mon.min_measurements or not landmarks.n:
+            return
+        order = np.argsort(landmarks.ids, kind="stable")
+        pos = np.minimum(np.searchsorted(landmarks.ids[order], obs.ids[ident]), order.size - 1)
+        found = landmarks.ids[order[pos]] == obs.ids[ident]
+        ident, li = ident[found], order[pos[found]]
+        if ident.size < mon.min_measurements:
+            return
+        z, Q, _, _ = split_observations(obs.subset(ident), dim, self.model, self.q_px)
+        if dim == 3:
+            x, P = np.r_[prior.xyz_W_m, prior.rpy_rad], prior.cov
+            m, Sigma = landmarks.xyz_W_m[li], landmarks.cov_W[li]
+        else:
+            k = [0, 1, 5]
+            x, P = np.r_[prior.xyz_W_m[:2], prior.rpy_rad[2]], prior.cov[np.ix_(k, k)]
+            m, Sigma = landmarks.xyz_W_m[li, :2], landmarks.cov_W[li, :2, :2]
+        if np.all(np.isfinite(P)) and np.all(np.isfinite(x)):
+            mon.observe(innovation_nis(self.model.h, x, P, m, Sigma, z, Q), self.model.dz)
+
+    def report(self, pose: PoseEstimate, obs: Observations) -> PoseEstimate:
+        """After the update: ``pose`` with the reported covariance; ``obs`` the frame's fused
+        observations (identified ones re-observed map landmarks, new ones were created)."""
+        if not self.enabled or not np.all(np.isfinite(pose.cov)):
+            return pose
+        cov = pose.cov * self.monitor.scale
+        if self.anchors is not None:
+            cov = self.anchors.step(pose.xyz_W_m, pose.rpy_rad, cov, obs.ids[~obs.is_new], obs.ids[obs.is_new])
+        return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, cov, pose.neff, pose.n_particles)
+
+    def health(self) -> dict[str, object]:
+        """The health topic's ``consistency`` section."""
+        h: dict[str, object] = {"mode": self.mode, **self.monitor.health()}
+        if self.anchors is not None:
+            h["anchored_landmarks"] = self.anchors.n_anchored
+        return h

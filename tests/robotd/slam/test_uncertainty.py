@@ -1,0 +1,155 @@
+"""The reported covariance (robotd.slam.uncertainty): Jacobians against central differences, the
+anchors' transport and growth, the consistency monitor on χ² samples, and the pipeline end to end."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from robotd.geometry import euler_to_R, so3_exp, so3_log
+from robotd.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.slam.models import CARTESIAN_3D
+from robotd.slam.uncertainty import (
+    AnchoredCovariance,
+    ConsistencyMonitor,
+    ReportedCovariance,
+    euler_error_jacobian,
+    innovation_nis,
+    transport,
+)
+
+
+@pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (0.3, -0.4, 2.5), (-1.0, 0.7, -2.9)])
+def test_euler_error_jacobian_matches_central_differences(rpy):
+    rpy = np.array(rpy)
+    R = euler_to_R(rpy)
+    h = 1e-6
+    num = np.zeros((3, 3))
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = h
+        num[:, i] = (so3_log(euler_to_R(rpy + d) @ R.T) - so3_log(euler_to_R(rpy - d) @ R.T)) / (2 * h)
+    np.testing.assert_allclose(euler_error_jacobian(rpy), num, atol=1e-8)
+
+
+def test_transport_is_the_rigid_motion_of_the_anchor_error():
+    rng = np.random.default_rng(3)
+    pa, p = rng.normal(size=3), rng.normal(size=3) * 5
+    d = p - pa
+    # an anchor error (δp, δθ) moves the map rigidly about the anchor; the pose at p moves with it
+    for _ in range(5):
+        e = rng.normal(size=6) * 1e-6
+        moved = pa + e[:3] + so3_exp(e[3:]) @ (p - pa)
+        J = transport(np.eye(6)[None], d[None])[0]  # J Jᵀ for identity C; recover J from a column basis
+        # the linear map: transport(C) = J C Jᵀ, so J e is the pose error
+        Jm = np.eye(6)
+        Jm[:3, 3:] = -np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])
+        np.testing.assert_allclose(Jm @ Jm.T, J, atol=1e-12)
+        np.testing.assert_allclose((Jm @ e)[:3], moved - p, atol=1e-10)
+
+
+def test_a_heading_error_at_the_anchor_becomes_a_lateral_error_growing_with_distance():
+    anc = AnchoredCovariance()
+    C0 = np.diag([0, 0, 0, 0, 0, math.radians(1.0) ** 2])
+    anc.step(np.zeros(3), np.zeros(3), C0, np.zeros(0, np.int64), np.arange(10))
+    for dist in (5.0, 20.0):
+        C = anc.step(np.array([dist, 0, 0]), np.zeros(3), np.zeros((6, 6)), np.arange(10), np.zeros(0, np.int64))
+        assert C[1, 1] == pytest.approx(math.radians(1.0) ** 2 * dist**2, rel=1e-9)  # y: lateral
+        assert C[0, 0] == pytest.approx(0.0, abs=1e-15)  # no forward error from a heading error
+        assert C[5, 5] == pytest.approx(math.radians(1.0) ** 2, rel=1e-9)
+
+
+def test_exploring_grows_the_covariance_and_returning_to_old_landmarks_shrinks_it():
+    anc = AnchoredCovariance()
+    fix = np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+    sig = []
+    prev = np.arange(0, 20)
+    anc.step(np.zeros(3), np.zeros(3), fix, np.zeros(0, np.int64), prev)
+    for k in range(1, 30):
+        new = np.arange(20 * k, 20 * k + 20)
+        C = anc.step(np.array([k * 1.0, 0, 0]), np.zeros(3), fix, prev, new)  # sees only last frame's landmarks
+        sig.append(math.sqrt(C[0, 0] + C[1, 1]))
+        prev = new
+    assert all(b > a for a, b in itertools.pairwise(sig))  # a random walk while exploring
+    back = anc.step(np.array([1.0, 0, 0]), np.zeros(3), fix, np.arange(0, 20), np.zeros(0, np.int64))
+    assert math.sqrt(back[0, 0] + back[1, 1]) < 0.3 * sig[-1]  # the first landmarks' anchor again
+
+
+def test_landmarks_of_a_loaded_map_anchor_at_zero_and_only_the_fix_remains():
+    anc = AnchoredCovariance()
+    fix = np.diag([4e-4, 1e-4, 1e-4, 1e-6, 1e-6, 2e-6])
+    C = anc.step(np.array([3.0, 1.0, 0]), np.array([0, 0, 0.5]), fix, np.arange(100, 150), np.zeros(0, np.int64))
+    np.testing.assert_allclose(C, fix, atol=1e-15)
+
+
+def test_the_monitor_reads_one_on_chi2_samples_and_the_true_factor_when_overconfident():
+    rng = np.random.default_rng(0)
+    ok, over = ConsistencyMonitor(), ConsistencyMonitor()
+    for _ in range(60):
+        v = rng.chisquare(3, size=80)
+        ok.observe(v, 3)
+        over.observe(4.0 * v, 3)
+    assert 0.85 < ok.ratio < 1.15 and ok.scale == pytest.approx(max(1.0, ok.ratio)) and ok.state == "ok"
+    assert 3.4 < over.ratio < 4.6 and over.scale == pytest.approx(over.ratio) and over.state == "overconfident"
+
+
+def test_the_monitor_is_not_moved_by_a_few_gross_outliers_or_by_too_few_measurements():
+    rng = np.random.default_rng(1)
+    mon = ConsistencyMonitor()
+    for _ in range(40):
+        v = rng.chisquare(3, size=60)
+        v[:6] = 1e6  # 10 % outliers the screens let through
+        mon.observe(v, 3)
+    assert mon.ratio < 1.4
+    few = ConsistencyMonitor()
+    few.observe(np.full(3, 1e6), 3)
+    assert few.frames == 0 and few.scale == 1.0 and few.state == "unknown"
+
+
+def test_innovation_nis_by_hand_for_the_cartesian_model():
+    x = np.zeros(6)
+    m = np.array([[2.0, 0.5, -0.3], [4.0, -1.0, 0.2]])
+    z = m + np.array([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0]])
+    Q = np.broadcast_to(np.eye(3) * 0.01, (2, 3, 3))
+    nis = innovation_nis(CARTESIAN_3D.h, x, np.zeros((6, 6)), m, np.zeros((2, 3, 3)), z, Q)
+    np.testing.assert_allclose(nis, [1.0, 4.0], rtol=1e-9)
+    # a pose covariance widens S: a 0.1 m σ in x makes the first measurement's NIS 0.01 / (0.01 + 0.01)
+    P = np.diag([0.01, 0, 0, 0, 0, 0])
+    nis = innovation_nis(CARTESIAN_3D.h, x, P, m[:1], np.zeros((1, 3, 3)), z[:1], Q[:1])
+    np.testing.assert_allclose(nis, [0.5], rtol=1e-9)
+
+
+def _pose(xyz, cov):
+    return PoseEstimate(1, np.asarray(xyz, float), np.zeros(3), np.asarray(cov, float))
+
+
+def test_reported_covariance_filter_mode_changes_nothing_and_consistent_mode_scales_and_anchors():
+    obs = Observations(1, np.ones((3, 3)), np.broadcast_to(np.eye(3), (3, 3, 3)).copy(), np.arange(3), np.ones(3, bool))
+    fix = np.eye(6) * 1e-4
+    f = ReportedCovariance("filter", True, CARTESIAN_3D, None)
+    p = _pose([0, 0, 0], fix)
+    assert f.report(p, obs) is p
+    c = ReportedCovariance("consistent", True, CARTESIAN_3D, None)
+    c.monitor.log_ratio, c.monitor.frames = math.log(2.0), 10
+    out = c.report(_pose([0, 0, 0], fix), obs)
+    np.testing.assert_allclose(out.cov, 2.0 * fix, rtol=1e-9)  # the first frame: the scaled fix
+    assert c.health()["state"] == "ok" and c.health()["anchored_landmarks"] == 3
+    with pytest.raises(ValueError, match="consistent or filter"):
+        ReportedCovariance("inflate", True, CARTESIAN_3D, None)
+
+
+def test_observe_feeds_the_monitor_with_the_map_landmarks_it_finds():
+    rc = ReportedCovariance("consistent", False, CARTESIAN_3D, None)
+    rng = np.random.default_rng(2)
+    n = 40
+    m = rng.uniform([2, -3, -1], [10, 3, 1], size=(n, 3))
+    lm = LandmarkMap(np.arange(100, 100 + n), m, np.broadcast_to(np.eye(3) * 1e-4, (n, 3, 3)).copy())
+    for _ in range(30):
+        z = m + rng.normal(size=(n, 3)) * 0.1  # measured with 10× the stated noise (σ 0.1 vs 0.01 m)
+        obs = Observations(1, z, np.broadcast_to(np.eye(3) * 1e-4, (n, 3, 3)).copy(), lm.ids.copy(), np.zeros(n, bool))
+        rc.observe(_pose([0, 0, 0], np.eye(6) * 1e-12), obs, lm)
+    # S = Σ + Q = 2e-4 per axis against 1e-2 of real variance: about 50× over-confident
+    assert 35 < rc.monitor.ratio < 70 and rc.monitor.state == "overconfident"
