@@ -34,8 +34,9 @@ def unpack_array(d: Any, name: str = "array") -> np.ndarray:
             raise ValueError("object arrays are not allowed")
         a = np.frombuffer(data, dtype=dt)
         return a.reshape(shape).copy()
-    except (KeyError, TypeError, ValueError) as exc:
-        raise PersistenceError(f"{name}: not a packed array ({exc})") from exc
+    except (KeyError, TypeError, ValueError, AttributeError, SyntaxError, OverflowError, MemoryError) as exc:
+        # numpy raises any of these for a forged dtype string or shape
+        raise PersistenceError(f"{name}: not a packed array ({type(exc).__name__}: {exc})") from None
 
 
 def pack_tree(obj: Any) -> Any:

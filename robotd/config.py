@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from robotd.choices import DETECTORS, FILTERS, MEASUREMENTS, OUTLIER_METHODS
-from robotd.errors import ConfigError
+from robotd.config_bounds import Sizing, check_bounds
+from robotd.errors import ConfigError, show_value
 
 
 def _f(default: Any, doc: str = "", **meta: Any) -> Any:
@@ -120,7 +121,7 @@ class SlamConfig:
         " (FastSLAM: the particles' spread, over-confident on long runs)",
         choices=("consistent", "filter"),
     )
-    n_particles: int = _f(100, "FastSLAM particles", min=1, max=100000)
+    n_particles: int = _f(100, "FastSLAM particles (bounded by memory and deadline: docs/reliability.md)", min=1)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(
         "sequential",
@@ -256,38 +257,42 @@ def _convert(path: str, tp: Any, value: Any, meta: typing.Mapping[str, Any]) -> 
     if origin in (list, tuple):
         (item_tp,) = typing.get_args(tp)[:1]
         if not isinstance(value, list):
-            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a list, got {type(value).__name__} {show_value(value)}")
         return [_convert(f"{path}[{i}]", item_tp, v, {}) for i, v in enumerate(value)]
     if origin in (typing.Union, types.UnionType):
         raise ConfigError(f"{path}: union types are not supported in config")  # pragma: no cover
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path}: expected a boolean (true/false), got {type(value).__name__} {value!r}")
+            got = f"{type(value).__name__} {show_value(value)}"
+            raise ConfigError(f"{path}: expected a boolean (true/false), got {got}")
         out: Any = value
     elif tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__} {show_value(value)}")
         out = value
     elif tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {value!r}")
-        out = float(value)
+            raise ConfigError(f"{path}: expected a number, got {type(value).__name__} {show_value(value)}")
+        try:
+            out = float(value)
+        except OverflowError:  # an integer beyond 1.8e308
+            raise ConfigError(f"{path}: expected a finite number, got {show_value(value)}") from None
         if not math.isfinite(out):
-            raise ConfigError(f"{path}: expected a finite number, got {out!r}")
+            raise ConfigError(f"{path}: expected a finite number, got {show_value(out)}")
     elif tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {value!r}")
+            raise ConfigError(f"{path}: expected a string, got {type(value).__name__} {show_value(value)}")
         out = value
     else:  # pragma: no cover - every field type is one of the above
         raise ConfigError(f"{path}: unsupported field type {tp}")
     if "pattern" in meta and not re.fullmatch(meta["pattern"], out):
-        raise ConfigError(f"{path}: expected a name matching {meta['pattern']}, got {out!r}")
+        raise ConfigError(f"{path}: expected a name matching {meta['pattern']}, got {show_value(out)}")
     if "choices" in meta and out not in meta["choices"]:
-        raise ConfigError(f"{path}: expected one of {list(meta['choices'])}, got {out!r}")
+        raise ConfigError(f"{path}: expected one of {list(meta['choices'])}, got {show_value(out)}")
     if "min" in meta and out < meta["min"]:
-        raise ConfigError(f"{path}: expected {_type_name(tp)} >= {meta['min']}, got {out!r}")
+        raise ConfigError(f"{path}: expected {_type_name(tp)} >= {meta['min']}, got {show_value(out)}")
     if "max" in meta and out > meta["max"]:
-        raise ConfigError(f"{path}: expected {_type_name(tp)} <= {meta['max']}, got {out!r}")
+        raise ConfigError(f"{path}: expected {_type_name(tp)} <= {meta['max']}, got {show_value(out)}")
     return out
 
 
@@ -297,7 +302,8 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         where = prefix[:-1] if prefix else "top level"
-        raise ConfigError(f"{prefix}{unknown[0]}: unknown key in {where}; known keys: {', '.join(sorted(fields))}")
+        shown = unknown[0] if unknown[0].isprintable() and unknown[0] else repr(unknown[0])  # one line, always
+        raise ConfigError(f"{prefix}{shown}: unknown key in {where}; known keys: {', '.join(sorted(fields))}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         f = fields[name]
@@ -305,7 +311,7 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
         path = f"{prefix}{name}"
         if dataclasses.is_dataclass(tp):
             if not isinstance(value, dict):
-                raise ConfigError(f"{path}: expected a table [{path}], got {type(value).__name__} {value!r}")
+                raise ConfigError(f"{path}: expected a table [{path}], got {type(value).__name__} {show_value(value)}")
             kwargs[name] = _build(tp, value, path + ".")  # type: ignore[arg-type]
         else:
             kwargs[name] = _convert(path, tp, value, f.metadata)
@@ -313,8 +319,22 @@ def _build(cls: type, data: dict[str, Any], prefix: str) -> Any:
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build a Config from nested dicts (what tomllib returns); validates every key."""
-    return _build(Config, data, "")  # type: ignore[no-any-return]
+    """Build a Config from nested dicts (what tomllib returns); validates every key, then the
+    values that size memory or time against this machine (robotd.config_bounds)."""
+    cfg: Config = _build(Config, data, "")
+    s = cfg.slam
+    check_bounds(
+        Sizing(
+            filter=s.filter,
+            dim=s.dim,
+            n_particles=s.n_particles,
+            max_updates_per_frame=s.max_updates_per_frame,
+            max_new_per_frame=s.max_new_per_frame,
+            max_features=cfg.frontend.max_features,
+            deadline_ms=cfg.budget.deadline_ms,
+        )
+    )
+    return cfg
 
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
@@ -332,6 +352,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+        except ValueError as exc:  # an integer literal of more than 4300 digits
+            raise ConfigError(f"{p}: not valid TOML: {exc}") from None
         except RecursionError:  # tomllib recurses once per nesting level
             raise ConfigError(f"{p}: not valid TOML: arrays or tables nested too deep") from None
     if overrides:

@@ -5,6 +5,9 @@ Messages carry the numbers and the URL, path or key that failed, so a log line i
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 
 class RobotdError(Exception):
     """Root of every error robotd raises on purpose."""
@@ -40,3 +43,17 @@ class PersistenceError(RobotdError):
 
 class DatasetError(RobotdError):
     """A dataset folder or file does not have the expected layout."""
+
+
+class MapMismatchError(PersistenceError):
+    """A saved map that is valid but made for another configuration (filter, dimension, detector):
+    it is kept, not moved aside as corrupt."""
+
+
+def show_value(v: Any) -> str:
+    """A value for an error message: its repr, shortened; a huge integer by its size (an error
+    stays one readable line, and Python refuses to print integers of more than 4300 digits)."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) >= 10**30:
+        return f"an integer of {int(abs(v).bit_length() * math.log10(2)) + 1} digits"
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."

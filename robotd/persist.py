@@ -48,8 +48,19 @@ class MapStore:
         self.path = self.dir / MAP_FILENAME
         self.saves = 0
         self.failures = 0
+        # a map that failed to resume and could not be moved aside: never written over
+        self.protected: str | None = None
+
+    def _refuse_if_protected(self) -> None:
+        if self.protected is not None:
+            self.failures += 1
+            raise PersistenceError(
+                f"{self.path}: the map there failed to resume ({self.protected}) and could not be moved aside, "
+                "so it is not written over"
+            )
 
     def save(self, state: dict[str, Any], t_ns: int) -> Path:
+        self._refuse_if_protected()
         payload = cbor2.dumps(
             {
                 "schema": STATE_SCHEMA,
@@ -117,6 +128,7 @@ class MapStore:
         ``map.<time>.robotd`` (the time it was last written) and delete the oldest such maps beyond
         ``keep``, saying so in the log. Returns where the previous map went (None: there was none,
         or ``keep`` is 0 and it will be overwritten, which is logged too)."""
+        self._refuse_if_protected()
         if not self.path.exists():
             return None
         if keep <= 0:
@@ -156,8 +168,7 @@ class MapStore:
         try:
             return self._parse(blob)
         except PersistenceError as exc:
-            aside = self.move_aside()
-            raise PersistenceError(f"{exc}; moved aside to {aside.name}, starting a new map") from None
+            raise PersistenceError(self.set_aside(str(exc))) from None
 
     def _parse(self, blob: bytes) -> dict[str, Any]:
         if blob[: len(MAGIC)] != MAGIC:
@@ -181,12 +192,31 @@ class MapStore:
             raise PersistenceError(f"{self.path}: schema {got!r}, expected {STATE_SCHEMA!r}")
         if msg.get("robot") != self.robot_id:
             raise PersistenceError(f"{self.path}: map of robot {msg.get('robot')!r}, this is {self.robot_id!r}")
-        state = unpack_tree(msg["state"])
+        if "state" not in msg:
+            raise PersistenceError(f"{self.path}: no state in the map")
+        state = unpack_tree(msg["state"])  # cbor2 refuses nesting deeper than 400 levels
         if not isinstance(state, dict):
             raise PersistenceError(f"{self.path}: state is not a table")
         return {"t_ns": msg.get("t_ns", 0), "saved_unix_s": msg.get("saved_unix_s"), "state": state}
 
+    def set_aside(self, reason: str) -> str:
+        """A map that cannot be resumed (``reason``, one line): moved aside to
+        ``map.robotd.bad-<time>``, never overwritten; when it cannot be moved (a read-only state
+        directory), left in place and ignored, and this store then refuses to save over it.
+        Returns the line to log: the reason and where the map went."""
+        reason = " ".join(reason.split())  # one line, whatever a library put in its message
+        try:
+            aside = self.move_aside()
+        except OSError as exc:
+            self.protected = reason
+            return (
+                f"{reason}; could not move it aside ({exc.strerror or exc}): left in place and ignored, "
+                "starting a new map that will not be saved over it"
+            )
+        return f"{reason}; moved aside to {aside.name}, starting a new map"
+
     def move_aside(self) -> Path:
+        """Rename the map to ``map.robotd.bad-<time>[-k]`` (OSError when it cannot)."""
         stamp = time.strftime("%Y%m%dT%H%M%S")
         aside = self.path.with_name(f"{MAP_FILENAME}.bad-{stamp}")
         k = 1
@@ -194,7 +224,6 @@ class MapStore:
             aside = self.path.with_name(f"{MAP_FILENAME}.bad-{stamp}-{k}")
             k += 1
         os.replace(self.path, aside)
-        logger.error("moved the unreadable map %s aside to %s", self.path, aside)
         return aside
 
 

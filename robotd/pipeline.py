@@ -23,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from robotd.choices import FILTERS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
-from robotd.errors import PersistenceError, RobotdError
+from robotd.errors import MapMismatchError, PersistenceError, RobotdError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening
@@ -39,6 +40,7 @@ from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
+from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
 
@@ -381,15 +383,50 @@ class Pipeline:
             "database": descriptors.state_dict() if descriptors is not None else {},
         }
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state.get("estimator_name") != self.estimator.name or state.get("dim") != self.estimator.dim:
-            raise PersistenceError(
-                f"saved map is from {state.get('estimator_name')!r} in {state.get('dim')}D, "
-                f"this run uses {self.estimator.name!r} in {self.estimator.dim}D"
+    def check_state_dict(self, state: Any) -> tuple[dict[str, Any], LandmarkDescriptors | None]:
+        """Check a saved state (:meth:`state_dict`) whole, every key, type, shape and range, and
+        that the filter and the descriptor store hold the same landmarks, without touching this
+        pipeline. Raises MapMismatchError when the map is valid but made for another filter,
+        dimension or detector, PersistenceError (naming the key) when it is invalid. Returns the
+        filter's checked values (``Estimator.restore``) and the saved descriptor store (None when
+        the map has none)."""
+        st = StateTable(state, "state")
+        name = st.choice("estimator_name", FILTERS)
+        dim = st.choice("dim", (2, 3))
+        if name != self.estimator.name or dim != self.estimator.dim:
+            raise MapMismatchError(
+                f"saved map is from {name!r} in {dim}D, this run uses {self.estimator.name!r} in {self.estimator.dim}D"
             )
-        self.estimator.load_state_dict(state["estimator"])
-        if state.get("database"):
-            self.frontend.descriptors = LandmarkDescriptors.from_state_dict(state["database"])
+        checked = self.estimator.check_state_dict(st.table("estimator").data)
+        filter_ids = checked["ids"]
+        saved_db = st.table("database")
+        if not saved_db.data:  # no frame was detected before the save
+            if filter_ids.size:
+                raise PersistenceError(f"state.database: empty, but the filter holds {filter_ids.size} landmarks")
+            return checked, None
+        descriptors = LandmarkDescriptors.from_state_dict(saved_db.data)
+        probe = self.frontend.detector.detect(np.zeros((8, 8), np.uint8), 0)  # an empty set of this kind
+        dim_here = int(probe.desc.shape[1])
+        if descriptors.binary != self.frontend.detector.binary or descriptors.dim != dim_here:
+            kind = {True: "binary", False: "float"}
+            raise MapMismatchError(
+                f"saved map has {kind[descriptors.binary]} descriptors of {descriptors.dim}, this run's detector "
+                f"{self.cfg.frontend.detector!r} makes {kind[self.frontend.detector.binary]} descriptors of {dim_here}"
+            )
+        if not np.array_equal(np.sort(filter_ids), descriptors.ids):
+            raise PersistenceError(
+                f"state.database.ids: {descriptors.n} landmarks with descriptors, the filter holds {filter_ids.size} "
+                "and the two sets differ"
+            )
+        return checked, descriptors
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Resume from a saved state, checked whole first (:meth:`check_state_dict`): when it
+        fails, nothing of this pipeline has changed."""
+        checked, descriptors = self.check_state_dict(state)
+        self.estimator.restore(checked)
+        if descriptors is not None:
+            self.frontend.descriptors = descriptors
         self.frontend.reset()
         # the saved pose may be stale (the rover moved while robotd was down): find it in the map
         self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)

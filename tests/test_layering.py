@@ -1,6 +1,6 @@
 """The layers of design.md §1, enforced by walking the imports (docs/architecture.md).
 
-- core (geometry, stereo, msgs, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
+- core (geometry, stereo, msgs, statecheck, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
 - pipeline (pipeline, relocalise, config_params): the core and the config, no I/O;
 - the daemon never imports the research package, not even indirectly;
 - no import cycles among the modules of robotd, drivers and calib;
@@ -22,6 +22,7 @@ CORE = [
     "robotd/geometry.py",
     "robotd/stereo.py",
     "robotd/msgs.py",
+    "robotd/statecheck.py",
     "robotd/timing.py",
     "robotd/jit.py",
     "robotd/outliers.py",

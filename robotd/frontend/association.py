@@ -23,6 +23,8 @@ import numpy as np
 
 from robotd.errors import ConfigError, InputError, PersistenceError
 from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check
+from robotd.statecheck import ID_LIMIT, INT64_MAX, StateTable
+from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
 
@@ -139,6 +141,8 @@ class LandmarkDescriptors:
         if desc.ndim != 2 or desc.shape[1] != self.dim:
             raise InputError(f"LandmarkDescriptors.add: expected descriptors (K, {self.dim}), got {desc.shape}")
         k = desc.shape[0]
+        if self.next_id + k > INT64_MAX:  # int64 ids never wrap (a saved map starts at most at ID_LIMIT)
+            raise InputError(f"LandmarkDescriptors.add: ids exhausted (next id {self.next_id}, limit {INT64_MAX})")
         new_ids = np.arange(self.next_id, self.next_id + k, dtype=np.int64)
         self.next_id += k
         self.ids = np.r_[self.ids, new_ids]
@@ -236,20 +240,27 @@ class LandmarkDescriptors:
         }
 
     @classmethod
-    def from_state_dict(cls, st: dict[str, Any]) -> LandmarkDescriptors:
-        """Restore from :meth:`state_dict` (maps saved before the filter became the one owner of
-        landmark existence also carry an ``existence`` array: it is ignored)."""
-        try:
-            store = cls(int(st["dim"]), bool(st["binary"]), first_id=int(st["next_id"]))
-            store.ids = np.asarray(st["ids"], np.int64)
-            store.desc = np.asarray(st["desc"], store.desc.dtype)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise PersistenceError(f"saved landmark descriptors are incomplete: {exc}") from exc
-        if store.ids.ndim != 1 or store.desc.shape != (store.ids.shape[0], store.dim):
+    def from_state_dict(cls, state: Any) -> LandmarkDescriptors:
+        """Restore from :meth:`state_dict`, checked whole: ``dim`` and ``binary`` of a known
+        descriptor kind, ids (M,) int64 strictly increasing in [0, next_id), descriptors (M, dim)
+        uint8 (binary) or finite float32, ``next_id`` at most ID_LIMIT (room for 2**40 more ids).
+        PersistenceError naming the key otherwise. Maps saved before the filter became the one
+        owner of landmark existence also carry an ``existence`` array: it is ignored."""
+        st = StateTable(state, "database")
+        dim = st.integer("dim", 1, 4096)
+        binary = st.boolean("binary")
+        next_id = st.integer("next_id", 0, ID_LIMIT)
+        ids = st.array("ids", "<i8", (None,))
+        desc = st.array("desc", "|u1" if binary else "<f4", (ids.shape[0], dim))
+        if ids.size and (int(ids[0]) < 0 or int(ids[-1]) >= next_id or np.any(np.diff(ids) <= 0)):
             raise PersistenceError(
-                f"saved landmark descriptors: expected ids (M,) and descriptors (M, {store.dim}), "
-                f"got {store.ids.shape} and {store.desc.shape}"
+                f"{st.name('ids')}: expected strictly increasing ids in [0, next_id = {next_id}), "
+                f"got {int(ids.min())}..{int(ids.max())}"
             )
+        if not binary:
+            check_saved_finite(st.name("desc"), desc)
+        store = cls(dim, binary, first_id=next_id)
+        store.ids, store.desc = ids.copy(), desc.copy()
         return store
 
     def identify(

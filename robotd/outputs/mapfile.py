@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from robotd.config import PersistenceConfig
-from robotd.errors import PersistenceError
+from robotd.errors import MapMismatchError, PersistenceError
 from robotd.outputs.base import Output, StepReport
 from robotd.persist import MapStore, default_state_dir
 from robotd.pipeline import Pipeline
@@ -52,13 +52,22 @@ class MapFileOutput(Output):
         return self.store.path
 
     def resume(self, pipeline: Pipeline) -> bool:
-        """Load the saved map into ``pipeline``; False (and a log line) when there is none or it is bad."""
+        """Load the saved map into ``pipeline``; False (and one log line) when there is none or it
+        cannot be used. The map is checked whole before the pipeline is touched: a corrupt or
+        invalid map is moved aside (``map.robotd.bad-<time>``; left in place and never saved over
+        when it cannot be moved), a valid map of another filter, dimension or detector stays and is
+        kept under a new name at the first save (``persistence.keep_maps``)."""
         if not self.store.exists():
             logger.info("resume: no saved map in %s, starting a new map", self.store.dir)
             return False
         try:
             saved = self.store.load()
-            pipeline.load_state_dict(saved["state"])
+            try:
+                pipeline.load_state_dict(saved["state"])
+            except MapMismatchError:
+                raise
+            except PersistenceError as exc:
+                raise PersistenceError(self.store.set_aside(f"{self.store.path}: {exc}")) from None
         except PersistenceError as exc:
             logger.error("resume failed: %s", exc)
             return False
@@ -96,6 +105,8 @@ class MapFileOutput(Output):
         return True
 
     def stats(self) -> dict[str, Any]:
+        """Saves and failed saves (the last error and how long ago); ``not_saving``: why this run
+        saves no map (a map that failed to resume could not be moved aside), else None."""
         ago = None if self.last_failure_ns is None else round((time.monotonic_ns() - self.last_failure_ns) / 1e9, 1)
         return {
             "saves": self.store.saves,
@@ -103,6 +114,7 @@ class MapFileOutput(Output):
             "last_failed": self.last_failed,
             "last_error": self.last_error,
             "since_failure_s": ago,
+            "not_saving": self.store.protected,
         }
 
     def close(self) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from robotd.errors import InputError, PersistenceError
+from robotd.statecheck import COUNTER_LIMIT, ID_LIMIT, StateTable
 
 
 class LandmarkBook:
@@ -117,21 +118,29 @@ class LandmarkBook:
             "book_counter": self.counter[: self.n_slots].copy(),
         }
 
-    def load_state_dict(self, state: dict) -> None:
-        try:
-            slot_id = np.asarray(state["book_slot_id"], np.int64)
-            counter = np.asarray(state["book_counter"], np.int64)
-        except KeyError as e:
-            raise PersistenceError(f"landmark book: missing key {e}") from None
-        if slot_id.shape != counter.shape or slot_id.ndim != 1:
-            raise PersistenceError(f"landmark book: expected matching 1-D arrays, got {slot_id.shape}, {counter.shape}")
-        cap = max(64, slot_id.size)
-        self.slot_id = np.full(cap, -1, np.int64)
-        self.counter = np.zeros(cap, np.int64)
-        self.slot_id[: slot_id.size] = slot_id
-        self.counter[: slot_id.size] = counter
-        self.n_slots = int(slot_id.size)
-        self.id_to_slot = {int(i): k for k, i in enumerate(slot_id.tolist()) if i >= 0}
-        if len(self.id_to_slot) != int(np.sum(slot_id >= 0)):
-            raise PersistenceError("landmark book: duplicate landmark ids in saved state")
-        self.free = [k for k in range(self.n_slots) if slot_id[k] < 0]
+    @classmethod
+    def from_state(cls, st: StateTable, compact: bool) -> LandmarkBook:
+        """The book of a saved filter state (keys ``book_slot_id``, ``book_counter``), checked:
+        int64 arrays of one length, ids in [0, ID_LIMIT) and unique, -1 for a free slot (none in a
+        ``compact`` book: the EKF's), counters of plausible size. PersistenceError otherwise."""
+        slot_id = st.array("book_slot_id", "<i8", (None,))
+        counter = st.array("book_counter", "<i8", slot_id.shape)
+        if slot_id.size and (int(slot_id.min()) < -1 or int(slot_id.max()) >= ID_LIMIT):
+            raise PersistenceError(
+                f"{st.name('book_slot_id')}: expected ids in [0, {ID_LIMIT}) or -1 (free), "
+                f"got {int(slot_id.min())}..{int(slot_id.max())}"
+            )
+        active = slot_id >= 0
+        if compact and not np.all(active):
+            raise PersistenceError(f"{st.name('book_slot_id')}: {int(np.sum(~active))} free slots in a compact book")
+        if np.unique(slot_id[active]).size != int(np.sum(active)):
+            raise PersistenceError(f"{st.name('book_slot_id')}: duplicate landmark ids")
+        if counter.size and int(np.max(np.abs(counter))) > COUNTER_LIMIT:
+            raise PersistenceError(f"{st.name('book_counter')}: a counter beyond ±{COUNTER_LIMIT}")
+        book = cls(max(64, slot_id.size))
+        book.slot_id[: slot_id.size] = slot_id
+        book.counter[: slot_id.size] = counter
+        book.n_slots = int(slot_id.size)
+        book.id_to_slot = {int(i): k for k, i in enumerate(slot_id.tolist()) if i >= 0}
+        book.free = [k for k in range(book.n_slots) if slot_id[k] < 0]
+        return book

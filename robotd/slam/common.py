@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import InputError, PersistenceError
+from robotd.errors import InputError, MapMismatchError, PersistenceError
 from robotd.msgs import MotionIncrement, Observations, UpdateReport
 from robotd.slam._book import LandmarkBook
 from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
+    COS_PITCH_MIN,
     RANGE_BEARING_2D,
     MeasurementModel,
     motion3d_noise,
@@ -23,6 +24,8 @@ from robotd.slam.models import (
     stereo_pixel_model,
 )
 from robotd.slam.params import SlamParams
+from robotd.statecheck import ANGLE_LIMIT_RAD, POSITION_LIMIT_M, T_NS_LIMIT, StateTable
+from robotd.statecheck import check_finite as check_saved_finite
 from robotd.stereo import project
 
 NO_IDS = np.zeros(0, np.int64)  # an empty id list (read-only: shared)
@@ -225,14 +228,25 @@ class UpdateEntryPoints(ABC):
         return rep
 
 
-def check_header(state: dict[str, Any], name: str, dim: int) -> None:
-    try:
-        code, d = int(state["filter_code"]), int(state["dim"])
-        int(state["t_ns"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise PersistenceError(f"{name} state: missing or malformed header ({e})") from None
+def check_header(st: StateTable, name: str, dim: int) -> int:
+    """The saved filter state's ``filter_code`` and ``dim`` against this filter (MapMismatchError
+    when they differ: the map is valid, only not this filter's); returns its ``t_ns``."""
+    code = st.integer("filter_code", 0, max(FILTER_CODE.values()))
+    d = st.integer("dim", 2, 3)
     if code != FILTER_CODE[name] or d != dim:
-        raise PersistenceError(f"{name} state: expected filter_code={FILTER_CODE[name]}, dim={dim}; got {code}, {d}")
+        raise MapMismatchError(f"{st.where}: expected filter_code={FILTER_CODE[name]}, dim={dim}; got {code}, {d}")
+    return st.integer("t_ns", 0, T_NS_LIMIT)
+
+
+def check_saved_poses(name: str, x: np.ndarray, dim: int) -> None:
+    """Saved poses (..., dx): finite, positions within POSITION_LIMIT_M, angles within
+    ANGLE_LIMIT_RAD and, in 3D, pitch away from the ZYX singularity (motion3d refuses it)."""
+    check_saved_finite(name, x)
+    npos = 2 if dim == 2 else 3
+    check_saved_finite(f"{name} (position)", x[..., :npos], POSITION_LIMIT_M)
+    check_saved_finite(f"{name} (angles)", x[..., npos:], ANGLE_LIMIT_RAD)
+    if dim == 3 and x.size and np.any(np.abs(np.cos(x[..., 4])) < COS_PITCH_MIN):
+        raise PersistenceError(f"{name}: a pitch at the ZYX singularity (±90 deg)")
 
 
 def range_bearing_inputs(

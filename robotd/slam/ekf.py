@@ -19,7 +19,7 @@ import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
 
-from robotd.errors import EstimatorError, InputError, PersistenceError
+from robotd.errors import EstimatorError, InputError
 from robotd.geometry import wrap_angle
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
@@ -31,6 +31,7 @@ from robotd.slam.common import (
     check_finite,
     check_header,
     check_reset_pose,
+    check_saved_poses,
     control_from_increment,
     lm_to_3d,
     measurement_model,
@@ -49,6 +50,8 @@ from robotd.slam.models import (
     velocity2d_noise,
 )
 from robotd.slam.params import SlamParams, VisibleFn
+from robotd.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
+from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
 
@@ -262,15 +265,27 @@ class EkfSlam(UpdateEntryPoints):
         d.update(self.book.state_dict())
         return d
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_header(state, "ekf", self.dim)
-        mu = np.asarray(state["mu"], float)
-        Sig = np.asarray(state["Sigma"], float)
-        book = LandmarkBook()
-        book.load_state_dict(state)
+    def check_state_dict(self, state: Any) -> dict[str, Any]:
+        """Every key, type, shape and range of a saved state (:meth:`state_dict`), without
+        touching the filter: PersistenceError naming the key (MapMismatchError for another filter
+        or dimension). Returns the checked values for :meth:`load_state_dict`, ``ids`` (M,) the
+        landmark ids it holds."""
+        st = StateTable(state, "ekf state")
+        t_ns = check_header(st, "ekf", self.dim)
+        book = LandmarkBook.from_state(st, compact=True)
         n = self.dx + self.dm * book.n_slots
-        if mu.shape != (n,) or Sig.shape != (n, n) or book.n != book.n_slots:
-            raise PersistenceError(f"EKF state: expected mu ({n},), Sigma ({n}, {n}), got {mu.shape}, {Sig.shape}")
-        if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(Sig))):
-            raise PersistenceError("EKF state: non-finite values")
-        self.mu, self.Sigma, self.book, self.t_ns = mu.copy(), Sig.copy(), book, int(state["t_ns"])
+        mu = st.array("mu", "<f8", (n,))
+        Sig = st.array("Sigma", "<f8", (n, n))
+        check_saved_poses(st.name("mu"), mu[: self.dx], self.dim)
+        check_saved_finite(st.name("mu"), mu[self.dx :], POSITION_LIMIT_M)
+        check_covariances(st.name("Sigma"), Sig)
+        return {"t_ns": t_ns, "book": book, "mu": mu, "Sigma": Sig, "ids": book.slot_id[: book.n_slots].copy()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
+        and the filter is left as it was when it fails."""
+        self.restore(self.check_state_dict(state))
+
+    def restore(self, c: dict[str, Any]) -> None:
+        """Take the values :meth:`check_state_dict` returned."""
+        self.mu, self.Sigma, self.book, self.t_ns = c["mu"].copy(), c["Sigma"].copy(), c["book"], c["t_ns"]

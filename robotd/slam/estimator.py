@@ -55,8 +55,17 @@ class Estimator(Protocol):
         """Everything needed to resume: numpy arrays and scalars only."""
         ...
 
+    def check_state_dict(self, state: Any) -> dict[str, Any]:
+        """Check a saved state whole without touching the filter (PersistenceError naming the key;
+        MapMismatchError for another filter or dimension); ``["ids"]``: its landmark ids (M,)."""
+        ...
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from ``state_dict()``; raises PersistenceError on a foreign or corrupt state."""
+        ...
+
+    def restore(self, checked: dict[str, Any]) -> None:
+        """Restore from what ``check_state_dict`` returned (cannot fail)."""
         ...
 
 

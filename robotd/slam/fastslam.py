@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from robotd.choices import MAX_PARTICLES
 from robotd.errors import EstimatorError, InputError, PersistenceError
 from robotd.geometry import euler_to_R, rot2
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
@@ -36,6 +37,7 @@ from robotd.slam.common import (
     check_finite,
     check_header,
     check_reset_pose,
+    check_saved_poses,
     control_from_increment,
     lm_to_3d,
     measurement_model,
@@ -60,6 +62,8 @@ from robotd.slam.resampling import (
     normalize_log_weights,
     weighted_pose_mean,
 )
+from robotd.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
+from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
 
@@ -665,41 +669,49 @@ class FastSlam(UpdateEntryPoints):
         d.update(self.book.state_dict())
         return d
 
+    def check_state_dict(self, state: Any) -> dict[str, Any]:
+        """Every key, type, shape and range of a saved state (:meth:`state_dict`), without
+        touching the filter: PersistenceError naming the key (MapMismatchError for another filter
+        or dimension). Returns the checked values for :meth:`load_state_dict`, ``ids`` (M,) the
+        landmark ids it holds."""
+        st = StateTable(state, f"{self.name} state")
+        t_ns = check_header(st, self.name, self.dim)
+        book = LandmarkBook.from_state(st, compact=False)
+        n, dx, dm = book.n_slots, self.dx, self.dm
+        pose = st.array("pose", "<f8", (None, dx))
+        P = pose.shape[0]
+        if not 1 <= P <= MAX_PARTICLES:
+            raise PersistenceError(f"{st.name('pose')}: expected 1 to {MAX_PARTICLES} particles, got {P}")
+        mean = st.array("lm_mean", "<f8", (P, n, dm))
+        cov = st.array("lm_cov", "<f8", (P, n, dm, dm))
+        log_w = st.array("log_w", "<f8", (P,))
+        pend = st.array("pending_S", "<f8", (None, dx, dx))
+        if pend.shape[0] not in (0, P):
+            raise PersistenceError(f"{st.name('pending_S')}: expected 0 or {P} matrices, got {pend.shape[0]}")
+        best = st.integer("best", 0, P - 1)
+        neff = st.number("neff", 0.0, P * (1 + 1e-6))
+        check_saved_poses(st.name("pose"), pose, self.dim)
+        check_saved_finite(st.name("lm_mean"), mean, POSITION_LIMIT_M)
+        check_covariances(st.name("lm_cov"), cov)
+        check_covariances(st.name("pending_S"), pend)
+        if np.any(np.isnan(log_w)) or np.any(log_w == np.inf) or not np.isfinite(log_w.max()):
+            raise PersistenceError(f"{st.name('log_w')}: expected finite log weights (-inf allowed), got NaN or inf")
+        ids = book.slot_id[book.active_slots()].copy()
+        return {"t_ns": t_ns, "book": book, "pose": pose, "mean": mean, "cov": cov, "log_w": log_w,
+                "pending_S": pend, "best": best, "neff": neff, "ids": ids}
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        check_header(state, self.name, self.dim)
+        """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
+        and the filter is left as it was when it fails."""
+        self.restore(self.check_state_dict(state))
+
+    def restore(self, c: dict[str, Any]) -> None:
+        """Take the values :meth:`check_state_dict` returned."""
         self._post = None
-        try:
-            pose = np.asarray(state["pose"], float)
-            mean = np.asarray(state["lm_mean"], float)
-            cov = np.asarray(state["lm_cov"], float)
-            log_w = np.asarray(state["log_w"], float)
-            pend = np.asarray(state["pending_S"], float)
-            best, neff = int(state["best"]), float(state["neff"])
-        except (KeyError, TypeError, ValueError) as e:
-            raise PersistenceError(f"{self.name} state: missing or malformed key ({e})") from None
-        book = LandmarkBook()
-        book.load_state_dict(state)
-        P, n, dx, dm = pose.shape[0], book.n_slots, self.dx, self.dm
-        shapes_ok = (
-            pose.shape == (P, dx)
-            and mean.shape == (P, n, dm)
-            and cov.shape == (P, n, dm, dm)
-            and log_w.shape == (P,)
-            and pend.shape in ((0, dx, dx), (P, dx, dx))
-            and 0 <= best < max(P, 1)
-        )
-        if not shapes_ok or P < 1:
-            raise PersistenceError(
-                f"{self.name} state: inconsistent shapes pose {pose.shape}, lm_mean {mean.shape}, lm_cov {cov.shape}, "
-                f"log_w {log_w.shape}, pending_S {pend.shape} for {n} landmark slots"
-            )
-        for k, a in (("pose", pose), ("lm_mean", mean), ("lm_cov", cov)):
-            if not np.all(np.isfinite(a)):
-                raise PersistenceError(f"{self.name} state: non-finite values in {k}")
-        self.store = LandmarkStore.from_dense(mean, cov, self.params.landmark_block_size)
-        self.pose, self.log_w, self.book = pose.copy(), log_w.copy(), book
-        self.pending_S = pend.copy() if pend.shape[0] else None
-        self.best, self.neff, self.t_ns = best, neff, int(state["t_ns"])
+        self.store = LandmarkStore.from_dense(c["mean"], c["cov"], self.params.landmark_block_size)
+        self.pose, self.log_w, self.book = c["pose"].copy(), c["log_w"].copy(), c["book"]
+        self.pending_S = c["pending_S"].copy() if c["pending_S"].shape[0] else None
+        self.best, self.neff, self.t_ns = c["best"], c["neff"], c["t_ns"]
 
 
 def _load_predict3() -> Any:

@@ -151,3 +151,21 @@ def test_a_config_nested_too_deep_fails_in_one_line(tmp_path: Path) -> None:
     p.write_text("x = " + "[" * 100_000 + "]" * 100_000 + "\n")
     with pytest.raises(ConfigError, match="nested too deep|not valid TOML"):
         load_config(p)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[vehicle]\nmax_gap_s = 1" + "0" * 400 + "\n", "max_gap_s: expected a finite number, got an integer of 401"),
+        ("[slam]\nn_particles = 1" + "0" * 5000 + "\n", "not valid TOML: Exceeds the limit"),
+        ('["\\u000A"]\nx = 1\n', r"'\\n': unknown key in top level"),
+        ("[slam]\nn_particles = 1" + "0" * 40 + "\n", "slam.n_particles = an integer of 41 digits: at most"),
+    ],
+)
+def test_odd_documents_fail_in_one_line(tmp_path: Path, text: str, message: str) -> None:
+    # found by tests/fuzz/test_fuzz_config.py: OverflowError, ValueError, a message over two lines
+    p = tmp_path / "odd.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=message) as err:
+        load_config(p)
+    assert "\n" not in str(err.value) and len(str(err.value)) < 400

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import errno
 import os
+import struct
+import zlib
 from pathlib import Path
 
+import cbor2
 import numpy as np
 import pytest
 
@@ -13,7 +16,7 @@ from robotd.codec import decode_map, encode_map
 from robotd.daemon.sdnotify import Notifier
 from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap
-from robotd.persist import MapStore
+from robotd.persist import MAGIC, STATE_SCHEMA, MapStore
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
@@ -120,3 +123,30 @@ def test_sd_notify_datagrams(tmp_path: Path) -> None:
     srv.close()
     off = Notifier({})
     assert not off.enabled and off.ready() is False
+
+
+def _sealed(payload: dict) -> bytes:
+    """A map file around any payload, with a valid checksum (the layout of robotd.persist)."""
+    body = cbor2.dumps(payload)
+    return MAGIC + struct.pack("<Q", len(body)) + body + struct.pack("<I", zlib.crc32(body))
+
+
+GOOD = {"schema": STATE_SCHEMA, "robot": "r1", "saved_unix_s": 0.0, "t_ns": 1}
+
+
+@pytest.mark.parametrize(
+    ("payload", "message"),
+    [
+        (GOOD, "no state in the map"),
+        ({**GOOD, "state": None}, "state is not a table"),
+        ({**GOOD, "state": {"x": {"__nd__": {"dtype": "f8,(2", "shape": [1], "data": b""}}}}, "state.x: not a packed"),
+        ({**GOOD, "state": {"x": {"__nd__": {"dtype": "<f8", "shape": [2**40] * 2, "data": b""}}}}, "not a packed"),
+    ],
+)
+def test_a_payload_with_a_valid_checksum_and_bad_content_is_moved_aside(tmp_path: Path, payload, message) -> None:
+    blob = _sealed(payload)
+    (tmp_path / "map.robotd").write_bytes(blob)
+    with pytest.raises(PersistenceError, match=message) as err:
+        MapStore(tmp_path, "r1").load()
+    assert "moved aside to map.robotd.bad-" in str(err.value)
+    assert [p.read_bytes() for p in tmp_path.glob("map.robotd.bad-*")] == [blob]

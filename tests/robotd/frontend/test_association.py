@@ -99,9 +99,9 @@ def test_state_of_old_maps_with_an_existence_array_still_loads(rng):
     old = {"dim": 64, "binary": False, "ids": np.arange(3), "desc": desc, "existence": np.ones(3), "next_id": 3}
     db = LandmarkDescriptors.from_state_dict(old)
     assert db.ids.tolist() == [0, 1, 2] and db.next_id == 3
-    with pytest.raises(PersistenceError, match="descriptors"):
+    with pytest.raises(PersistenceError, match=r"database.desc: expected shape \(3, 64\), got \(2, 64\)"):
         LandmarkDescriptors.from_state_dict({**old, "desc": desc[:2]})
-    with pytest.raises(PersistenceError, match="incomplete"):
+    with pytest.raises(PersistenceError, match="database.binary: missing"):
         LandmarkDescriptors.from_state_dict({"dim": 64})
 
 
