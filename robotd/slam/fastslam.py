@@ -697,8 +697,18 @@ class FastSlam(UpdateEntryPoints):
         if np.any(np.isnan(log_w)) or np.any(log_w == np.inf) or not np.isfinite(log_w.max()):
             raise PersistenceError(f"{st.name('log_w')}: expected finite log weights (-inf allowed), got NaN or inf")
         ids = book.slot_id[book.active_slots()].copy()
-        return {"t_ns": t_ns, "book": book, "pose": pose, "mean": mean, "cov": cov, "log_w": log_w,
-                "pending_S": pend, "best": best, "neff": neff, "ids": ids}
+        return {
+            "t_ns": t_ns,
+            "book": book,
+            "pose": pose,
+            "mean": mean,
+            "cov": cov,
+            "log_w": log_w,
+            "pending_S": pend,
+            "best": best,
+            "neff": neff,
+            "ids": ids,
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
