@@ -162,8 +162,10 @@ class MavlinkOptions:
     origin: tuple[float, float, float] | None = None  # (lat_deg, lon_deg, alt_m)
     signing_key: str | None = None  # path of a 32-byte key file, mode 0600
     allow_unsigned: bool = False
-    floor_pos_m2: float = 1e-4
-    floor_ang_rad2: float = 1e-4
+    # smallest variances in pose_covariance: only keep zeros out (ArduPilot PR 8730); 1 mm and
+    # 0.06°, far below the autopilots' own floors (VISO_*_M_NSE, EKF2_EV*_NOISE: docs/mavlink.md §8)
+    floor_pos_m2: float = 1e-6
+    floor_ang_rad2: float = 1e-6
     queue_size: int = 512
 
 
@@ -240,6 +242,10 @@ def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
         raise DriverError(f"{url!r}: yaw_rate_source={opts.yaw_rate_source!r}, expected 'attitude' or 'wheels'")
     if not 0 <= opts.sysid <= 255 or not 1 <= opts.compid <= 255:
         raise DriverError(f"{url!r}: sysid {opts.sysid} / compid {opts.compid} out of range")
+    for name in ("floor_pos_m2", "floor_ang_rad2"):
+        v = getattr(opts, name)
+        if not (math.isfinite(v) and v > 0):
+            raise DriverError(f"{url!r}: {name}={v:g}: expected a finite variance > 0")
     if not (math.isfinite(opts.timesync_reply_hz) and opts.timesync_reply_hz >= 0):
         raise DriverError(f"{url!r}: timesync_reply_hz={opts.timesync_reply_hz}: expected a number >= 0")
     if opts.bind:

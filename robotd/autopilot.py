@@ -7,9 +7,12 @@ is BODY_FRD (algorithms.md §1.2), so position and attitude pass through without
 
 Also here, as pure functions or thin state over them:
 
-- the 21-element upper-triangle covariance (row-major; diagonal at 0, 6, 11, 15, 18, 20) with
-  floors so it is never zero (ArduPilot PR 8730), NaN-first for "unknown";
-- ``quality`` from the RANSAC inlier count and, for FastSLAM, N_eff/N (−1 when tracking is lost);
+- the 21-element upper-triangle covariance (row-major; diagonal at 0, 6, 11, 15, 18, 20) of the
+  reported pose covariance (robotd.slam.uncertainty), through the same (identity) frame transform
+  as the pose, with floors on the diagonal only so it is never zero (ArduPilot PR 8730),
+  NaN-first for "unknown";
+- ``quality`` from the RANSAC inlier count, N_eff/N for FastSLAM, the reported position sigma and
+  the consistency monitor's state (−1 when tracking is lost);
 - the ``reset_counter`` policy (b) of interfaces.md §1.5: bump on relocalisation, map load,
   filter restart, and whenever the pose moves more than the motion explains (0.1 m beyond the
   prediction by default, as in the reference T265 bridge);
@@ -37,6 +40,23 @@ MAV_ESTIMATOR_TYPE_VIO = 3
 TRIU_ROWS, TRIU_COLS = np.triu_indices(6)
 DIAG_INDEX = (0, 6, 11, 15, 18, 20)
 NAN21: tuple[float, ...] = (math.nan,) + (0.0,) * 20
+
+
+def pose_covariance_local_frd(cov: np.ndarray) -> np.ndarray:
+    """The (6, 6) pose covariance over (x, y, z, roll, pitch, yaw) in robotd's frames -> MAVLink's.
+
+    ODOMETRY's ``pose_covariance`` is over (x, y, z) in ``frame_id`` (LOCAL_FRD) and the
+    roll, pitch, yaw of ``q`` (body FRD -> LOCAL_FRD, ZYX). :func:`odometry_fields` sends the pose
+    with the identity transform (world = LOCAL_FRD, robot = BODY_FRD, R = Rz Ry Rx on both sides),
+    so its Jacobian is the identity and the covariance passes through unchanged: no rotation into
+    the body frame (the pose block is not in the child frame) and no change of angle order. This
+    is the one place that would change if the pose's frames ever did (tests/drivers check it
+    against pymavlink's own quaternion -> Euler over loopback UDP).
+    """
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (6, 6):
+        raise ValueError(f"covariance: expected shape (6, 6), got {c.shape}")
+    return c.copy()
 
 
 def cov6_to_upper21(cov: np.ndarray, floor_diag: np.ndarray | None = None) -> list[float]:
@@ -67,14 +87,16 @@ def upper21_to_cov6(v: list[float] | np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, slots=True)
 class CovarianceFloors:
-    """Smallest variances sent: position [m²] and attitude [rad²] (1 cm and ~0.6° by default).
+    """Smallest variances sent: position [m²] and attitude [rad²] (1 mm and 0.06° by default).
 
-    ArduPilot clamps the derived errors to VISO_POS_M_NSE / VISO_YAW_M_NSE anyway (interfaces.md
-    §1.4); the floor only keeps zeros out of the message.
+    They only keep zeros out of the message (an old EKF3 fault came from posErr = 0, ArduPilot PR
+    8730): the reported covariance is sent as it is wherever it is above them. The autopilots
+    floor the errors they derive at their own parameters (VISO_POS_M_NSE / VISO_YAW_M_NSE,
+    EKF2_EVP_NOISE / EKF2_EVA_NOISE; docs/mavlink.md §8), far above these.
     """
 
-    pos_m2: float = 1e-4
-    ang_rad2: float = 1e-4
+    pos_m2: float = 1e-6
+    ang_rad2: float = 1e-6
 
     def diag(self) -> np.ndarray:
         return np.array([self.pos_m2] * 3 + [self.ang_rad2] * 3)
@@ -157,7 +179,7 @@ def odometry_fields(
         rollspeed=math.nan,
         pitchspeed=math.nan,
         yawspeed=math.nan,
-        pose_covariance=cov6_to_upper21(pose.cov, floors.diag()),
+        pose_covariance=cov6_to_upper21(pose_covariance_local_frd(pose.cov), floors.diag()),
         velocity_covariance=list(NAN21),
         reset_counter=int(reset_counter) & 0xFF,
         estimator_type=MAV_ESTIMATOR_TYPE_VIO,
@@ -206,7 +228,7 @@ def vision_position_fields(
         roll=float(r[0]),
         pitch=float(r[1]),
         yaw=float(wrap_angle(r[2])),
-        covariance=cov6_to_upper21(pose.cov, floors.diag()),
+        covariance=cov6_to_upper21(pose_covariance_local_frd(pose.cov), floors.diag()),
         reset_counter=int(reset_counter) & 0xFF,
     )
 
@@ -220,6 +242,13 @@ def clamp_quality(q: int) -> int:
     return -1 if q < 0 else min(100, int(q))
 
 
+def position_sigma_m(cov: np.ndarray) -> float:
+    """√(trace) of the position block of a (6, 6) pose covariance [m] (health's ``pose_sigma_m``);
+    inf when it is not finite or negative."""
+    tr = float(np.trace(np.asarray(cov, dtype=float)[:3, :3]))
+    return math.sqrt(tr) if math.isfinite(tr) and tr >= 0 else math.inf
+
+
 def quality_from(
     tracking: bool,
     n_inliers: int,
@@ -227,12 +256,26 @@ def quality_from(
     n_particles: int = 0,
     min_inliers: int = 6,
     good_inliers: int = 60,
+    *,
+    pos_sigma_m: float | None = None,
+    good_sigma_m: float = 0.2,
+    consistency_state: str = "unknown",
+    nis_ratio: float = math.nan,
 ) -> int:
-    """Quality 1–100 from the RANSAC inlier count and N_eff/N; −1 when tracking is lost.
+    """Quality 1–100 of a tracked pose, −1 when tracking is lost (docs/mavlink.md §5).
 
-    The inlier term rises linearly from ``min_inliers`` (→ 0) to ``good_inliers`` (→ 1); the
-    particle term is N_eff/N (1 for the EKF, where ``neff`` is NaN). quality = 1 + 99·product, so
-    a tracked-but-poor pose is 1 (worst), never 0 (which means "unknown").
+    quality = 1 + 99 · q_in · q_pf · q_σ · q_nis, each term in [0, 1]:
+
+    - q_in: the RANSAC inliers, rising linearly from ``min_inliers`` (→ 0) to ``good_inliers`` (→ 1);
+    - q_pf: N_eff/N (1 for the EKF, where ``neff`` is NaN);
+    - q_σ: how the reported position sigma ``pos_sigma_m`` (√trace of the position block, see
+      :func:`position_sigma_m`) compares with ``good_sigma_m``: min(1, good / σ), so 1 up to the
+      good sigma and 0.1 at ten times it; 0 for a non-finite sigma; 1 when not given;
+    - q_nis: 1 unless the consistency monitor says ``overconfident`` (its NIS ratio above 2); then
+      1 / ratio: the covariance was already scaled up by the ratio, but a noise model that far off
+      makes the covariance itself less trustworthy.
+
+    A tracked-but-poor pose is 1 (worst), never 0 (which means "unknown").
     """
     if not tracking:
         return -1
@@ -241,7 +284,15 @@ def quality_from(
     q_pf = 1.0
     if n_particles > 0 and math.isfinite(neff):
         q_pf = min(1.0, max(0.0, neff / n_particles))
-    return round(1 + 99 * q_in * q_pf)
+    q_sigma = 1.0
+    if pos_sigma_m is not None:
+        s = float(pos_sigma_m)
+        q_sigma = min(1.0, good_sigma_m / s) if math.isfinite(s) and s > 0 else (1.0 if s == 0 else 0.0)
+    q_nis = 1.0
+    if consistency_state == "overconfident":
+        r = float(nis_ratio)
+        q_nis = 1.0 / r if math.isfinite(r) and r > 1.0 else 0.5
+    return round(1 + 99 * q_in * q_pf * q_sigma * q_nis)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -211,6 +211,9 @@ class MavlinkConfig:
     origin_lon_deg: float = _f(0.0, "EKF origin longitude", min=-180.0, max=180.0)
     origin_alt_m: float = _f(0.0, "EKF origin altitude")
     signing_key_file: str = _f("", "32-byte MAVLink2 signing key (mode 0600); empty: unsigned")
+    quality_good_sigma_m: float = _f(
+        0.2, "reported position sigma [m] up to which quality is not lowered (it falls as good/sigma above)", min=0.001
+    )
 
 
 @dataclass(frozen=True)

@@ -254,7 +254,7 @@ class Daemon:
                 result=res,
                 seq=seq,
                 frame_seq=item.frame.seq,
-                quality=pose_quality(res, self.cfg.frontend.min_inliers),
+                quality=pose_quality(res, self.cfg.frontend.min_inliers, self.cfg.mavlink.quality_good_sigma_m),
                 reset_counter=self.reset_policy.update(res.pose, event),
                 latency_ms=(time.monotonic_ns() - res.t_ns) / 1e6,
                 health=self._health_state(res),

@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
-from robotd.autopilot import quality_from
+from robotd.autopilot import position_sigma_m, quality_from
 from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
 
 HEALTH_STATES = ("tracking", "degraded", "failed")
@@ -52,12 +52,23 @@ class StepReport:
     state: Mapping[str, Any] | None = None
 
 
-def pose_quality(result: StepResult, min_inliers: int) -> int:
+def pose_quality(result: StepResult, min_inliers: int, good_sigma_m: float = 0.2) -> int:
     """The pose's quality in MAVLink's convention (robotd.autopilot.quality_from): −1 lost, else
-    1..100 from the accepted correspondences and N_eff/N."""
+    1..100 from the accepted correspondences, N_eff/N, the reported position sigma against
+    ``good_sigma_m`` (``mavlink.quality_good_sigma_m``) and the consistency monitor's state."""
     pose = result.pose
+    cons = result.consistency or {}
+    ratio = cons.get("nis_ratio")
     return quality_from(
-        result.tracking, result.counts.get("identified", 0), pose.neff, pose.n_particles, min_inliers=min_inliers
+        result.tracking,
+        result.counts.get("identified", 0),
+        pose.neff,
+        pose.n_particles,
+        min_inliers=min_inliers,
+        pos_sigma_m=position_sigma_m(pose.cov),
+        good_sigma_m=good_sigma_m,
+        consistency_state=str(cons.get("state", "unknown")),
+        nis_ratio=float(ratio) if isinstance(ratio, int | float) else math.nan,
     )
 
 

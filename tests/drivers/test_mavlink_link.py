@@ -21,7 +21,7 @@ from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
 from robotd.errors import DriverError
 from robotd.msgs import PoseEstimate
-from tests.support.tolerances import FLOAT32_ROUNDING_TOL
+from tests.support.tolerances import CENTRAL_DIFF_ATOL, FLOAT32_ROUNDING_TOL
 
 m = mavlink_module()
 
@@ -122,6 +122,53 @@ def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
     assert np.allclose(w, 0.2)
     assert np.all(np.diff([o.t_ns for o in odo_in]) > 0)
     assert controls is not None and controls.throttle == pytest.approx(0.5) and controls.steering == pytest.approx(0.2)
+
+
+def test_odometry_pose_covariance_is_the_estimates_in_the_mavlink_frames() -> None:
+    """The received ODOMETRY.pose_covariance is the estimate's 6×6 covariance carried into
+    (LOCAL_FRD x, y, z; roll, pitch, yaw of q) by the transform the pose itself takes, upper
+    triangle row-major (docs/mavlink.md §2), the floor raising only diagonal entries below it."""
+    from pymavlink.quaternion import Quaternion
+
+    from robotd.geometry import numerical_jacobian
+
+    rng = np.random.default_rng(14)
+    xyz, rpy = np.array([12.5, -3.25, 0.75]), np.array([0.12, -0.31, 2.6])  # yawed far from identity
+    A = rng.normal(size=(6, 6)) * np.array([0.3, 0.2, 0.1, 0.02, 0.03, 0.05])[:, None]
+    cov = A @ A.T + np.diag([0.02, 0.03, 0.01, 4e-4, 3e-4, 9e-4])  # full, every entry distinct
+    cov[3, :] *= 1e-2  # roll variance 1e-2 below the others ...
+    cov[:, 3] *= 1e-2
+    floors = autopilot.CovarianceFloors()
+    assert cov[3, 3] < floors.ang_rad2 < cov[4, 4]  # ... and below the floor: the one entry raised
+
+    # what MAVLink means by the pose: x, y, z as sent and the ZYX Euler angles of q as pymavlink
+    # reads them; the Jacobian of robotd's (xyz, rpy) -> that, through the real field builder
+    def as_mavlink(v: np.ndarray) -> np.ndarray:
+        f = autopilot.odometry_fields(PoseEstimate(1, v[:3], v[3:], np.eye(6)), 80, 0)
+        return np.r_[f.x, f.y, f.z, Quaternion(list(f.q)).euler]
+
+    J = numerical_jacobian(as_mavlink, np.r_[xyz, rpy], wrap=np.array([False] * 3 + [True] * 3))
+    expected = J @ cov @ J.T
+    np.fill_diagonal(expected, np.maximum(np.diag(expected), floors.diag()))
+
+    with MockAutopilot(sysid=3) as ap:
+        with open_vehicle(ap.url) as link:
+            assert wait_for(lambda: link.link_up, 3.0)
+            link.autopilot.send_pose(PoseEstimate(time.monotonic_ns(), xyz, rpy, cov), 80, 0)
+            assert wait_for(lambda: len(ap.messages("ODOMETRY")) == 1, 3.0)
+    o = ap.messages("ODOMETRY")[0].msg
+    assert (o.frame_id, o.child_frame_id) == (m.MAV_FRAME_LOCAL_FRD, m.MAV_FRAME_BODY_FRD)
+    assert as_mavlink(np.r_[xyz, rpy]) == pytest.approx(np.r_[o.x, o.y, o.z, Quaternion(list(o.q)).euler], abs=1e-5)
+    received = np.array(o.pose_covariance)
+    assert received.shape == (21,)
+    iu = np.triu_indices(6)  # row-major upper triangle: (0,0) (0,1) … (0,5) (1,1) … (5,5)
+    np.testing.assert_allclose(
+        received, expected[iu], rtol=FLOAT32_ROUNDING_TOL, atol=CENTRAL_DIFF_ATOL * np.abs(cov).max()
+    )
+    # the diagonal where ArduPilot and PX4 read it, the floor only where the estimate is below it
+    assert [received[i] for i in DIAG_INDEX] == pytest.approx(
+        [cov[0, 0], cov[1, 1], cov[2, 2], floors.ang_rad2, cov[4, 4], cov[5, 5]], rel=FLOAT32_ROUNDING_TOL
+    )
 
 
 def test_timesync_answered_and_offset_estimated() -> None:
@@ -300,6 +347,13 @@ def test_url_errors() -> None:
         open_vehicle("mavlink+udp://127.0.0.1")
     with pytest.raises(DriverError, match="unknown message 'NOPE'"):
         open_vehicle("mavlink+udp://127.0.0.1:14550", rates_hz={"NOPE": 1})
+    # a covariance floor must be a variance: a NaN floor made every pose_covariance NaN ("unknown"),
+    # a negative or zero one let zeros through (ArduPilot PR 8730)
+    for bad in ("nan", "inf", "-0.0001", "0"):
+        with pytest.raises(DriverError, match=f"floor_pos_m2={bad}: expected a finite variance > 0"):
+            parse_mavlink_url(f"mavlink+udp://127.0.0.1:14550?floor_pos_m2={bad}")
+        with pytest.raises(DriverError, match=f"floor_ang_rad2={bad}: expected a finite variance > 0"):
+            parse_mavlink_url(f"mavlink+udp://127.0.0.1:14550?floor_ang_rad2={bad}")
 
 
 def test_odometry_iterator_ends_on_close() -> None:

@@ -16,12 +16,14 @@ from robotd.autopilot import (
     VelocityFromPoses,
     cov6_to_upper21,
     odometry_fields,
+    position_sigma_m,
     quality_from,
     upper21_to_cov6,
     vision_position_fields,
 )
 from robotd.geometry import euler_to_R, quat_to_R
-from robotd.msgs import PoseEstimate
+from robotd.msgs import PoseEstimate, StepResult, UpdateReport
+from robotd.outputs import pose_quality
 from tests.support.tolerances import ROUNDOFF_ATOL
 
 
@@ -94,6 +96,38 @@ def test_quality() -> None:
     assert q == sorted(q) and min(q) >= 1 and max(q) <= 100
     assert odometry_fields(pose(), 250, 0).quality == 100
     assert odometry_fields(pose(), -1, 0).quality == -1
+
+
+def test_quality_reflects_the_reported_covariance_and_the_monitor() -> None:
+    # docs/mavlink.md §5: q_σ = min(1, good / σ) with σ = √trace of the position block
+    full = dict(neff=50.0, n_particles=50)
+    assert quality_from(True, 60, **full, pos_sigma_m=0.1, good_sigma_m=0.2) == 100  # better than good: no loss
+    assert quality_from(True, 60, **full, pos_sigma_m=0.2, good_sigma_m=0.2) == 100
+    assert quality_from(True, 60, **full, pos_sigma_m=0.8, good_sigma_m=0.2) == round(1 + 99 * 0.25)
+    assert quality_from(True, 60, **full, pos_sigma_m=math.inf) == 1  # a covariance that says nothing
+    sig = [quality_from(True, 60, **full, pos_sigma_m=s) for s in (0.05, 0.3, 1.0, 3.0, 30.0)]
+    assert sig == sorted(sig, reverse=True) and sig[0] == 100 and sig[-1] == 2  # 1 + 99 · 0.2/30
+    # the monitor: "ok" changes nothing, "overconfident" multiplies by 1 / NIS ratio
+    assert quality_from(True, 60, consistency_state="ok", nis_ratio=1.9) == 100
+    assert quality_from(True, 60, consistency_state="overconfident", nis_ratio=4.0) == round(1 + 99 / 4)
+    assert quality_from(True, 60, consistency_state="overconfident") == round(1 + 99 / 2)  # ratio unknown
+    # lost stays lost, whatever the covariance
+    assert quality_from(False, 60, pos_sigma_m=0.01) == -1
+
+
+def test_pose_quality_takes_the_step_results_covariance_and_monitor() -> None:
+    cov = np.diag([0.09, 0.04, 0.03, 1e-4, 1e-4, 4e-4])  # σ = √0.16 = 0.4 m
+    p = PoseEstimate(1_000, np.zeros(3), np.zeros(3), cov, neff=40.0, n_particles=50)
+    assert position_sigma_m(cov) == pytest.approx(0.4)
+    res = StepResult(1_000, p, UpdateReport(), counts={"identified": 60}, consistency={"state": "ok", "nis_ratio": 0.6})
+    assert pose_quality(res, 6, good_sigma_m=0.2) == round(1 + 99 * 0.8 * 0.5)
+    assert pose_quality(res, 6, good_sigma_m=0.4) == round(1 + 99 * 0.8)
+    over = StepResult(
+        1_000, p, UpdateReport(), counts={"identified": 60}, consistency={"state": "overconfident", "nis_ratio": 5.0}
+    )
+    assert pose_quality(over, 6, good_sigma_m=0.4) == round(1 + 99 * 0.8 / 5.0)
+    lost = StepResult(1_000, p, UpdateReport(), counts={"identified": 60}, tracking=False)
+    assert pose_quality(lost, 6) == -1
 
 
 def test_reset_counter_policy() -> None:
