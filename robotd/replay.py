@@ -26,6 +26,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -124,8 +125,13 @@ def replay(
     max_frames: int = 0,
     progress: bool = True,
     gt_odometry: bool = False,
+    on_step: Callable[[StepResult], None] | None = None,
 ) -> dict[str, Any]:
-    """Run ``source`` through the pipeline; returns a summary (and writes the TUM trajectory)."""
+    """Run ``source`` through the pipeline; returns a summary (and writes the TUM trajectory).
+
+    ``on_step`` (for tools such as bench/mavlink_covariance.py) receives each step's result, as
+    kept for the summary (without its observations), in order.
+    """
     url = _source_url(source, realtime)
     rng = np.random.default_rng(cfg.robot.seed)
     results: list[StepResult] = []
@@ -180,6 +186,8 @@ def replay(
                 continue
             last_t = frame.t_ns
             results.append(dataclasses.replace(res, observations=None))  # the run's poses, not its features
+            if on_step is not None:
+                on_step(results[-1])
             if frame.truth_T_world_robot is not None:
                 truths.append((frame.t_ns, frame.truth_T_world_robot))
             prog.set_postfix_str(f"lm {res.counts.get('landmarks', 0)}", refresh=False)
