@@ -94,9 +94,7 @@ class World:
     ekf: bool = True
 
 
-def worlds(
-    dims: list[int], lengths: list[float], noises: list[str], noises3d: list[str], long3d: float
-) -> list[World]:
+def worlds(dims: list[int], lengths: list[float], noises: list[str], noises3d: list[str], long3d: float) -> list[World]:
     """The study's worlds in table order: 2D (every noise × length), 3D (``noises3d`` × length), the
     long 3D loop (``long3d`` m, 0 for none; FastSLAM only)."""
     out = []

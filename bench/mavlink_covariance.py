@@ -206,7 +206,8 @@ def markdown(r: dict[str, Any], args: argparse.Namespace) -> str:
         f"| frame_id, child_frame_id | {o['frame_id']}, {o['child_frame_id']} |",
         "| x, y, z | " + ", ".join(f"{v:.4f}" for v in o["xyz"]) + " |",
         "| q (w, x, y, z) | " + ", ".join(f"{v:.5f}" for v in o["q"]) + " |",
-        "| pose_covariance[0, 6, 11] (x, y, z) | " + ", ".join(f"{o['pose_covariance'][i]:.4g}" for i in (0, 6, 11))
+        "| pose_covariance[0, 6, 11] (x, y, z) | "
+        + ", ".join(f"{o['pose_covariance'][i]:.4g}" for i in (0, 6, 11))
         + " |",
         "| pose_covariance[15, 18, 20] (roll, pitch, yaw) | "
         + ", ".join(f"{o['pose_covariance'][i]:.4g}" for i in (15, 18, 20))
