@@ -26,6 +26,12 @@ def test_shipped_config_file_is_exactly_the_defaults() -> None:
     assert load_config(REPO / "config" / "robotd.toml") == Config()
 
 
+def test_shipped_config_file_lists_every_key() -> None:
+    # the file is the reference a user reads: a key missing there is a setting nobody finds
+    shipped = tomllib.loads((REPO / "config" / "robotd.toml").read_text())
+    assert shipped == tomllib.loads(to_toml(Config()))
+
+
 def test_every_example_config_loads() -> None:
     for path in sorted((REPO / "config").glob("*.toml")):
         load_config(path)
