@@ -80,6 +80,12 @@ class FrontendConfig:
         choices=("predicted", "measured"),
     )
     debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
+    debias_limits: bool = _f(
+        False,
+        "correct disparities near the accepted limits for the gate's selection (a point near the far limit is"
+        " kept only when its noise made it look nearer); needs the true disparity noise, sigma_x_px·√2 (off: it"
+        " helps the landmark simulator, not yet real or rendered images, docs/frontend.md)",
+    )
     outliers: str = _f("similarity_mahalanobis", "outlier detector", choices=OUTLIER_METHODS)
     consensus_confidence: float = _f(
         0.99, "χ² level of the Mahalanobis consensus (0.99: 11.345 in 3D)", min=0.5, max=0.99999

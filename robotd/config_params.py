@@ -41,6 +41,7 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         sigma_y_px=f.sigma_y_px,
         cov_inflation=f.cov_inflation,
         debias_depth=f.debias_depth,
+        debias_limits=f.debias_limits,
     )
     outl = OutlierParams(
         method=f.outliers,

@@ -26,6 +26,7 @@ from typing import Literal
 
 import cv2
 import numpy as np
+from scipy import special
 
 from robotd.errors import CalibrationError, InputError
 
@@ -600,6 +601,30 @@ class Rectifier:
         if side == "right":
             return undistort_points(uv, self.calib.K_right, self.calib.D_right, r.R2, r.P2)
         raise InputError(f"rectify_points: side must be 'left' or 'right', got {side!r}")
+
+
+def gate_selection_shift(disparity_px: np.ndarray, d_min_px: float, d_max_px: float, sigma_d_px: float) -> np.ndarray:
+    """How much nearer (in disparity [px]) a point looks because a gate on its *measured* disparity kept it.
+
+    A front end keeps a match only when its measured disparity lies in [d_min, d_max]. A point
+    whose true disparity d is near d_min (the far limit) is therefore kept only on the frames its
+    noise made it look nearer, and the first time a landmark coming into range is seen is such a
+    frame: the kept measurements are biased by the mean of a normal truncated to the gate,
+    E[d̂ | d_min ≤ d̂ ≤ d_max] − d = σ_d (φ(α) − φ(β)) / (Φ(β) − Φ(α)), α = (d_min − d)/σ_d,
+    β = (d_max − d)/σ_d. This returns that shift evaluated at the measured disparity (the
+    plug-in estimate: the true one is unknown), so ``d̂ − shift`` is the corrected disparity. It
+    is about 0.8 σ_d at the far limit, 0.29 σ_d one σ_d inside it and nothing from a few σ_d on;
+    the near limit gets the mirror correction. (N,) measured disparities -> (N,) shifts [px].
+    """
+    d = np.asarray(disparity_px, dtype=float)
+    s = float(sigma_d_px)
+    if s <= 0 or d.size == 0:
+        return np.zeros_like(d)
+    a = (float(d_min_px) - d) / s
+    b = (float(d_max_px) - d) / s
+    num = np.exp(-0.5 * a * a) - np.exp(-0.5 * b * b)
+    den = np.sqrt(2.0 * np.pi) * np.maximum(special.ndtr(b) - special.ndtr(a), 1e-12)
+    return s * num / den
 
 
 def debias_points(xyz_R: np.ndarray, disparity_px: np.ndarray, sigma_x_px: float = 0.5) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 from robotd.errors import ConfigError, InputError
 from robotd.frontend import _stereo_kernels as _k
 from robotd.frontend.features import Features
-from robotd.stereo import RectifiedStereo, debias_points, triangulate, triangulation_covariance
+from robotd.stereo import RectifiedStereo, debias_points, gate_selection_shift, triangulate, triangulation_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -157,6 +157,9 @@ class StereoMatchParams:
     sigma_x_px, sigma_y_px, cov_inflation: pixel noise of §3.1 and the §3.3 inflation.
     debias_depth: remove the second-order triangulation bias (robotd.stereo.debias_points); on
       kitti-seq1 it takes the distance overestimate from 0.9 % to 0.7 % and the drift below 1 %.
+    debias_limits: correct the disparities of matches near the gate's limits for the selection the
+      gate makes (robotd.stereo.gate_selection_shift): a point near the far limit is kept only when
+      its noise made it look nearer, so it comes out too near (docs/frontend.md).
     """
 
     row_tol_px: float = 2.0
@@ -177,6 +180,7 @@ class StereoMatchParams:
     sigma_y_px: float = 0.5 / np.sqrt(2.0)
     cov_inflation: float = 1.0
     debias_depth: bool = True
+    debias_limits: bool = False
 
     def __post_init__(self) -> None:
         if self.row_tol_px < 0 or self.d_min_px <= 0 or self.depth_min_m <= 0:
@@ -426,6 +430,11 @@ def match_stereo(
     stats["refine_edge"] = n_edge
     stats["matches"] = int(i.size)
     f, px, py, b = rig.f_px, rig.px, rig.py, rig.baseline_m
+    if params.debias_limits and i.size:
+        d_lo, d_hi = rig.disparity_bounds(params.depth_min_m, params.d_min_px)
+        shift = gate_selection_shift(xl - xr, d_lo, d_hi, np.sqrt(2.0) * params.sigma_x_px)
+        # both columns move by half, so the point stays on its ray through the baseline's centre
+        xl, xr = xl - 0.5 * shift, xr + 0.5 * shift
     xyz = triangulate(xl, xr, y, f, px, py, b)
     if params.debias_depth:
         xyz = debias_points(xyz, xl - xr, params.sigma_x_px)

@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from robotd.errors import ConfigError
 from robotd.geometry import euler_rate_matrix, euler_to_R, pose2_compose, pose2_inverse, wrap_angle
 from robotd.msgs import MotionIncrement, Observations
-from robotd.stereo import project, triangulate, triangulation_covariance
+from robotd.stereo import gate_selection_shift, project, triangulate, triangulation_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -80,6 +80,10 @@ class SimConfig:
     height: int = 400
     sigma_px: float = 0.5  # per pixel coordinate; the mean row has sigma_px/√2
     d_min_px: float = 5.0
+    # correct the kept disparities for the gate's selection, as the front end can
+    # (frontend.debias_limits, off by default like there; robotd.stereo.gate_selection_shift);
+    # stereo noise only
+    debias_limits: bool = False
     # "stereo": pixel noise then triangulation (§12, the default); "gaussian" / "isotropic": a 3D
     # Gaussian matching the filters' model exactly (consistency studies; see the module docstring)
     noise_model: str = "stereo"
@@ -388,6 +392,9 @@ def measure_frame(
     ok = (d >= config.d_min_px) & (d <= d_max) & (nxl >= 0) & (nxl <= config.width - 1)
     ok &= (nxr >= 0) & (nxr <= config.width - 1) & (ny >= 0) & (ny <= config.height - 1)
     ids, nxl, nxr, ny = ids[ok], nxl[ok], nxr[ok], ny[ok]
+    if config.debias_limits:
+        shift = gate_selection_shift(nxl - nxr, config.d_min_px, d_max, s * np.sqrt(2.0))
+        nxl, nxr = nxl - 0.5 * shift, nxr + 0.5 * shift
     xyz = triangulate(nxl, nxr, ny, f, px, py, b)
     Q = triangulation_covariance(nxl, nxr, ny, f, px, py, b, sigma_x_px=s, sigma_y_px=s / np.sqrt(2.0))
     return ids.astype(np.int64), xyz.reshape(-1, 3), Q.reshape(-1, 3, 3)

@@ -19,7 +19,7 @@ from robotd.frontend.stereo_match import (
     ratio_and_cross_check,
     refine_disparity,
 )
-from robotd.stereo import RectifiedStereo
+from robotd.stereo import RectifiedStereo, gate_selection_shift
 from tests.support.images import smooth_texture
 from tests.support.tolerances import FLOAT32_ARITH_TOL
 
@@ -193,3 +193,24 @@ def test_stereo_bad_and_empty_inputs():
         match_stereo(_features(np.zeros((3, 2))), Features.empty(32, binary=True), rig)
     with pytest.raises(ConfigError, match="refine"):
         StereoMatchParams(refine="magic")
+
+
+def test_debias_limits_moves_only_matches_near_the_gate(shared_data):
+    left, right, _, rig = _middlebury(shared_data)
+    det = make_detector(DetectorParams(name="sift", max_features=1500))
+    fl, fr = det.detect(left), det.detect(right)
+    # Middlebury is near: put the far limit where a tenth of its matches are
+    d_all = match_stereo(fl, fr, rig, StereoMatchParams(), left, right)
+    gate = float(np.quantile(d_all.xl - d_all.xr, 0.1))
+    off = match_stereo(fl, fr, rig, StereoMatchParams(d_min_px=gate), left, right)
+    on = match_stereo(fl, fr, rig, StereoMatchParams(d_min_px=gate, debias_limits=True), left, right)
+    assert np.array_equal(off.left_idx, on.left_idx) and np.array_equal(off.right_idx, on.right_idx)
+    d_off, d_on = off.xl - off.xr, on.xl - on.xr
+    sigma_d = np.sqrt(2.0) * StereoMatchParams().sigma_x_px
+    expected = gate_selection_shift(d_off, gate, rig.fb / 0.3, sigma_d)
+    np.testing.assert_allclose(d_off - d_on, expected, atol=1e-9)
+    np.testing.assert_allclose(0.5 * (on.xl + on.xr), 0.5 * (off.xl + off.xr), atol=1e-9)  # on its ray
+    assert np.sum(expected > 0.1) >= 5  # the matches near the far limit moved
+    inside = (d_off > gate + 6 * sigma_d) & (d_off < rig.fb / 0.3 - 6 * sigma_d)  # far from both limits
+    assert inside.sum() > 100
+    np.testing.assert_allclose(on.xyz_R[inside], off.xyz_R[inside], rtol=1e-6)

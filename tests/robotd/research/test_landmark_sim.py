@@ -8,6 +8,7 @@ import pytest
 from robotd.errors import ConfigError
 from robotd.geometry import euler_to_R
 from robotd.research.landmark_sim import SimConfig, apply_increment, dead_reckoning, inject_mismatches, simulate
+from robotd.stereo import gate_selection_shift
 from tests.support.tolerances import CONDITIONED_ATOL
 
 SHORT2 = SimConfig(dim=2, path_length_m=40.0, landmark_density_per_m2=1.2)
@@ -72,8 +73,12 @@ def test_visible_counts_and_depth_limits():
     assert 20 <= n.mean() <= 50
     X = np.concatenate([s.observations.xyz_R_m[:, 0] for s in run.steps])
     fb = cfg.f_px * cfg.baseline_m
+    # the gate is on the measured disparity; the kept ones near the far limit are then corrected
+    # for its selection (at most by the shift at the limit itself)
+    d_max = fb / cfg.depth_min_m
+    s_far = gate_selection_shift(np.array([cfg.d_min_px]), cfg.d_min_px, d_max, cfg.sigma_px * np.sqrt(2.0))[0]
     assert X.min() >= cfg.depth_min_m - CONDITIONED_ATOL
-    assert X.max() <= fb / cfg.d_min_px + CONDITIONED_ATOL
+    assert X.max() <= fb / (cfg.d_min_px - s_far) + CONDITIONED_ATOL
 
 
 def test_is_new_marks_first_sighting_only():
