@@ -930,13 +930,17 @@ def _mavlink_timesync(suite: Suite, res: Result) -> None:
     assert ap is not None
     sent = 2000 - ap.timesync_flood
     window_s = T_POST_S + 1.0
-    res.figures.update({"timesync_requests": sent, "timesync_replies": ap.flood_replies})
+    vehicle = [d.get("vehicle") or {} for _, d in run.health]
+    limited = max((v.get("timesync_replies_limited", 0) for v in vehicle), default=None)
+    res.figures.update({"timesync_requests": sent, "timesync_replies": ap.flood_replies, "replies_limited": limited})
     limit = 20 * (window_s + 1.0)
     res.survived &= res.check(
         f"{ap.flood_replies} replies to {sent} requests <= {limit:.0f} (20/s)", ap.flood_replies <= limit, "survived"
     )
     res.shown = res.check("some replies still go out (PX4 needs them)", ap.flood_replies > 0, "shown")
-    res.error_shown = f"{ap.flood_replies} replies to {sent} requests"
+    res.error_shown = (
+        f"{ap.flood_replies} replies to {sent} requests; health vehicle.timesync_replies_limited {limited}"
+    )
 
 
 @fault(
@@ -1174,7 +1178,8 @@ def _map_orphans(suite: Suite, res: Result) -> None:
     res.survived &= res.check(f"the orphans are gone (left: {left})", not left, "survived")
     removed = run.count(r"removed .*an unfinished save")
     res.shown = res.check(f"each removal logged ({removed} of 2)", removed == 2, "shown")
-    res.error_shown = _strip_log(run.find(r"removed .*an unfinished save") or "")
+    rx = re.compile(r"removed .*an unfinished save")
+    res.error_shown = " / ".join(_strip_log(ln.text) for ln in run.lines if rx.search(ln.text))
 
 
 # -- configuration ------------------------------------------------------------------------------
@@ -1229,6 +1234,17 @@ def _config_particles(suite: Suite, res: Result) -> None:
 )
 def _config_utf8(suite: Suite, res: Result) -> None:
     _refused_config(suite, res, "config_not_utf8", raw=b'[robot]\nid = "r\xff1"\n', names=r"not UTF-8")
+
+
+@fault(
+    "config_deep_nesting",
+    "configuration",
+    "a config file with an array nested 100,000 deep",
+    "exits 2 with one line: nested too deep",
+)
+def _config_deep(suite: Suite, res: Result) -> None:
+    raw = b"[robot]\nid = " + b"[" * 100_000 + b"]" * 100_000 + b"\n"
+    _refused_config(suite, res, "config_deep_nesting", raw=raw, names=r"nested too deep")
 
 
 # -- runtime ------------------------------------------------------------------------------------
