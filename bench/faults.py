@@ -421,17 +421,21 @@ class Run:
         return out
 
     def problems(self, after: float = 0.0) -> list[str]:
-        """The health problems the status lines showed (DEGRADED/FAILED: ...), in order, once each."""
-        seen: list[str] = []
+        """The health problems shown (the status lines' DEGRADED/FAILED: ..., and the health
+        documents' ``problems``), in the order they first appeared, each kind once."""
+        shown: list[tuple[float, str]] = []
         for ln in list(self.lines):
-            if ln.t < after:
-                continue
             m = re.search(r"\| (DEGRADED|FAILED): (.*)$", ln.text)
-            if m:
-                for p in m.group(2).split(", "):
-                    key = re.sub(r"[\d.]+", "N", p)
-                    if key not in [re.sub(r"[\d.]+", "N", s) for s in seen]:
-                        seen.append(p)
+            if ln.t >= after and m:
+                shown += [(ln.t, p) for p in m.group(2).split(", ")]
+        shown += [(t, p) for t, doc in list(self.health) if t >= after for p in doc.get("problems", [])]
+        seen: list[str] = []
+        kinds: set[str] = set()
+        for _, p in sorted(shown, key=lambda tp: tp[0]):
+            kind = re.sub(r"[\d.e+-]+", "N", p)
+            if kind not in kinds:
+                kinds.add(kind)
+                seen.append(p)
         return seen
 
     def steps_after(self, after: float) -> int:
@@ -808,7 +812,7 @@ def _serial_nan(suite: Suite, res: Result) -> None:
 @fault(
     "serial_bad_crc",
     "serial",
-    "3 s in which every frame from the MCU has a CRC error",
+    "4 s in which every frame from the MCU has a CRC error",
     KEEPS_RUNNING + "; health shows the vehicle link degraded, then lost; SLAM goes on visually",
 )
 def _serial_bad_crc(suite: Suite, res: Result) -> None:
@@ -821,14 +825,14 @@ def _serial_bad_crc(suite: Suite, res: Result) -> None:
         run.mcu.corrupt_all = False
 
     running_fault(
-        suite, res, "serial_bad_crc", "serial", inject, fault_s=3.0, end=end, shown=None, problem=r"vehicle link lost"
+        suite, res, "serial_bad_crc", "serial", inject, fault_s=4.0, end=end, shown=None, problem=r"vehicle link lost"
     )
 
 
 @fault(
     "serial_silent",
     "serial",
-    "3 s in which the MCU sends nothing",
+    "4 s in which the MCU sends nothing",
     KEEPS_RUNNING + "; health shows the vehicle link lost; SLAM goes on visually",
 )
 def _serial_silent(suite: Suite, res: Result) -> None:
@@ -841,7 +845,7 @@ def _serial_silent(suite: Suite, res: Result) -> None:
         run.mcu.silent = False
 
     running_fault(
-        suite, res, "serial_silent", "serial", inject, fault_s=3.0, end=end, shown=None, problem=r"vehicle link lost"
+        suite, res, "serial_silent", "serial", inject, fault_s=4.0, end=end, shown=None, problem=r"vehicle link lost"
     )
 
 
