@@ -648,7 +648,6 @@ def judge_running(
     *,
     shown: str | None,
     problem: str | None = None,
-    vehicle: str | None = None,
 ) -> None:
     """The common verdict of a fault the daemon must run through: it was alive until SIGTERM,
     stepped after the fault, stopped with 0 and no traceback; its error against truth after the
@@ -661,7 +660,7 @@ def judge_running(
     if run.zenoh_enabled:
         ok &= res.check(f"kept stepping after the fault ({steps} steps)", steps > 0, "survived")
     res.survived = ok
-    base = suite.baseline(vehicle or run.vehicle_kind)
+    base = suite.baseline(run.vehicle_kind)
     errs = run.errors_vs_truth(after=t_fault)
     err_max = max(errs) if errs else math.nan
     bound = base.err_max_m + ERR_MARGIN_M
