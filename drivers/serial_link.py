@@ -73,6 +73,9 @@ class SerialOptions:
     backoff_max_s: float = 2.0
     clock_window_s: float = 5.0
     max_tick_interval_s: float = 1.0  # a longer gap between wheel frames restarts the tick differencing
+    # a shorter one is merged into the next interval: one tick over 0.1 ms reads as 3 m/s (10 rad/s
+    # between the wheels), so a late MCU's catch-up frame made spikes the plausibility gate refused
+    min_tick_interval_s: float = 0.005
     stale_after_s: float = 0.5  # no good frame this long: state "degraded"
     lost_after_s: float = 2.0  # no good frame this long: state "lost"
 
@@ -89,6 +92,7 @@ _OPTION_TYPES: dict[str, type] = {
     "backoff_max_s": float,
     "clock_window_s": float,
     "max_tick_interval_s": float,
+    "min_tick_interval_s": float,
     "stale_after_s": float,
     "lost_after_s": float,
 }
@@ -147,6 +151,7 @@ class SerialVehicle(QueuedVehicleLink):
                 "tx_errors",
                 "version_mismatch",
                 "tick_intervals_rejected",
+                "tick_intervals_merged",
                 "bad_values",
             ),
             0,
@@ -325,6 +330,10 @@ class SerialVehicle(QueuedVehicleLink):
         if use_ticks:
             now_us = self._clock.peek_unwrap(t_mcu_us)
             prev = self._prev_ticks
+            if prev is not None and 0 < now_us - prev[0] < self.opts.min_tick_interval_s * 1e6:
+                # too short to difference: the ticks are cumulative, the next interval covers it
+                self._counters["tick_intervals_merged"] += 1
+                return
             self._prev_ticks = (now_us, msg.ticks_l, msg.ticks_r)
             if prev is None:
                 return

@@ -41,6 +41,8 @@ gyro_bias  0.002    gyro bias σ [rad/s], drawn once per seed and held constant
 odom_hz    50       odometry rate [Hz] (1..1000)
 img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
 odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
+unplug     0        fault injection: the camera raises DriverError at this simulated time [s], as a
+                    USB camera that is pulled out does; 0 = never (bench/faults.py)
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -106,6 +108,7 @@ class SimParams:
     odom_hz: float = 50.0
     img_noise: float = 2.0
     odometry: int = 1
+    unplug: float = 0.0  # fault injection: the camera fails at this simulated time [s]; 0 = never
 
     @property
     def f_px(self) -> float:
@@ -136,6 +139,7 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "odom_hz": (float, 1.0, 1000.0),
     "img_noise": (float, 0.0, 50.0),
     "odometry": (int, 0, 1),
+    "unplug": (float, 0.0, 1e9),
 }
 
 
@@ -443,6 +447,9 @@ class SimCamera(Driver):
                     k = k_now
             if p.duration > 0 and k / p.fps >= p.duration:
                 return
+            if p.unplug > 0 and k / p.fps >= p.unplug:
+                # what a USB camera's driver does when the device is pulled out: the stream fails
+                raise DriverError(f"{self.url!r}: camera disconnected at t = {k / p.fps:.2f} s (simulated unplug)")
             t_ns = self.frame_t_ns(k)
             if p.realtime and len(self._render_ms) >= 3:
                 # Render just in time, like a camera whose imaging happens before the capture is

@@ -325,3 +325,33 @@ def test_protocol_mismatch_is_degraded_while_frames_flow() -> None:
             sim.send(Version(9, 1, 0, 0))
             assert wait_for(lambda: link.stats()["version_mismatch"] == 1, 2.0)
             assert link.stats()["state"] == "degraded" and "version" in link.stats()["fault"]
+
+
+def test_wheel_frames_close_together_do_not_make_quantisation_spikes() -> None:
+    # A late MCU loop catches up with a frame 0.1 ms after the last one (drivers.mcu_sim does, and
+    # bench/faults.py saw it: 'odometry sample refused (rate): 10.8 rad/s' after a stall of its
+    # thread). One tick over 0.1 ms is 3 m/s, one tick between the wheels 10 rad/s: such an
+    # interval is merged into the next, and the distance is kept.
+    from drivers.serial_protocol import WHEEL_TICKS_VALID, WheelOdometry
+
+    frames = [(0, 0, 0), (10_000, 32, 32), (20_000, 65, 65), (20_100, 66, 65), (30_000, 97, 97), (40_000, 130, 130)]
+    master, slave, path = open_pty()
+    try:
+        with SerialVehicle(f"serial://{path}?{QUERY}") as link:
+            for seq, (t_us, tl, tr) in enumerate(frames):
+                msg = WheelOdometry(WHEEL_TICKS_VALID, tl, tr, 0.0, 0.0)
+                os.write(master, encode_frame(msg, seq, 1_000_000 + t_us))
+            assert wait_for(lambda: link.stats()["odometry"] >= 4)
+            time.sleep(0.1)
+            samples = link.drain()
+    finally:
+        os.close(master)
+        os.close(slave)
+    v = np.array([s.vel_R_mps[0] for s in samples])
+    w = np.array([s.rate_R_radps[2] for s in samples])
+    m = GEOM.m_per_tick
+    assert np.all(np.abs(v - 32.5 * m / 0.01) <= 1.0 * m / 0.01), v  # within one tick over 10 ms
+    assert np.all(np.abs(w) <= m / GEOM.track_width_m / 0.01), w
+    # the ticks' distance, 130 ticks, is all there: each sample covers the interval before it
+    t_mid = np.array([s.t_ns for s in samples]) * 1e-9
+    assert len(samples) == 4 and float(np.sum(v * 0.01)) == pytest.approx(130 * m, rel=1e-6), t_mid

@@ -185,6 +185,15 @@ def test_duration_ends_the_stream_on_schedule():
         assert len(list(veh.odometry())) == 10
 
 
+def test_unplug_fails_the_stream_with_a_driver_error_at_its_time():
+    with open_camera(f"sim://?{SMALL}&fps=10&unplug=0.5&realtime=0&seed=4") as cam:
+        seen = []
+        with pytest.raises(DriverError, match=r"camera disconnected at t = 0\.50 s \(simulated unplug\)"):
+            for frame in cam.frames():
+                seen.append(frame.seq)
+    assert seen == [0, 1, 2, 3, 4]
+
+
 @pytest.mark.parametrize("kind", ["camera", "vehicle", "none"])
 def test_close_from_another_thread_stops_iteration_promptly(kind: str):
     if kind == "camera":
