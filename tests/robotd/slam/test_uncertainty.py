@@ -155,6 +155,7 @@ def test_observe_feeds_the_monitor_with_the_map_landmarks_it_finds():
     assert 35 < rc.monitor.ratio < 70 and rc.monitor.state == "overconfident"
 
 
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # NaN is fed on purpose
 def test_a_non_finite_value_never_lives_on_in_the_anchors():
     obs = Observations(1, np.ones((3, 3)), np.broadcast_to(np.eye(3), (3, 3, 3)).copy(), np.arange(3), np.ones(3, bool))
     rc = ReportedCovariance("consistent", True, CARTESIAN_3D, None)
