@@ -47,7 +47,10 @@ class DetectorParams:
       more of the quota on the fine levels: kitti-seq1 drift 0.84 → 0.56 %, ATE 0.105 → 0.052 m,
       640×400 frame-to-frame median error 0.021 → 0.018; sim:// 300 frames ATE 22 → 9 mm.
     sift_*: cv2.SIFT knobs (contrast and edge thresholds, layers per octave).
-    surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default).
+    surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default,
+      OpenCV's 100). 20: low enough that the feature cap binds on every KITTI image, so the cap and
+      the bucketing choose the strongest *spread* features as they do for ORB and SIFT (at 100
+      only 680-900 of 1000 come out on KITTI; docs/frontend.md "SURF").
     """
 
     name: str = "orb"
@@ -64,7 +67,7 @@ class DetectorParams:
     sift_contrast_threshold: float = 0.02
     sift_edge_threshold: float = 10.0
     sift_n_octave_layers: int = 3
-    surf_hessian_threshold: float | None = None
+    surf_hessian_threshold: float | None = 20.0
 
     def __post_init__(self) -> None:
         if self.name not in DETECTORS:
