@@ -255,14 +255,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         next_t = t0
         while time.monotonic() - t0 < duration and proc.poll() is None:
-            if not health.connect():
+            if not health.connect() or health.count == 0:  # start-up (numba kernels) is not sampled
                 time.sleep(0.5)
                 continue
             now = time.monotonic()
             if now >= next_t:
                 _add(samples, _sample(proc.pid, t0, health))
                 print(_row(samples[-1]), file=sys.stderr, flush=True)
-                next_t = max(next_t + a.every, now)
+                next_t = next_t + a.every if next_t + a.every > now else now + a.every
             time.sleep(min(0.5, max(0.0, next_t - time.monotonic())))
         if proc.poll() is None:
             _add(samples, _sample(proc.pid, t0, health))

@@ -41,6 +41,12 @@ gyro_bias  0.002    gyro bias σ [rad/s], drawn once per seed and held constant
 odom_hz    50       odometry rate [Hz] (1..1000)
 img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
 odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
+stop_at    0        when the rover stops [s] (with stop_s > 0): it brakes, stands still, drives on
+stop_s     0        how long it stands still [s]; 0 = it never stops
+stall_at   0        when the camera stalls [s] (with stall_s > 0): no frame is captured ...
+stall_s    0        ... for this long [s]; 0 = no stall (the hard case "stall", docs/sim.md)
+stall_odometry 0    0: the vehicle's samples in the stall are lost too (the host stopped);
+                    1: only the camera stalled, odometry flows
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -106,15 +112,24 @@ class SimParams:
     odom_hz: float = 50.0
     img_noise: float = 2.0
     odometry: int = 1
+    stop_at: float = 0.0
+    stop_s: float = 0.0
+    stall_at: float = 0.0
+    stall_s: float = 0.0
+    stall_odometry: int = 0
+
+    def stalled(self, t_s: float) -> bool:
+        """Simulated time ``t_s`` falls in the stall (nothing captured)."""
+        return self.stall_s > 0.0 and self.stall_at <= t_s < self.stall_at + self.stall_s
 
     @property
     def f_px(self) -> float:
         return self.f if self.f > 0 else 430.0 * self.width / 640.0
 
     @property
-    def session_key(self) -> tuple[int, str, float, float]:
+    def session_key(self) -> tuple[int, str, float, float, float, float]:
         """What camera and vehicle must agree on to share a world and a clock."""
-        return (self.seed, self.world, self.speed, self.tilt)
+        return (self.seed, self.world, self.speed, self.tilt, self.stop_at, self.stop_s)
 
 
 # key -> (parser, lower bound, upper bound); bounds inclusive, None = open
@@ -136,6 +151,11 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "odom_hz": (float, 1.0, 1000.0),
     "img_noise": (float, 0.0, 50.0),
     "odometry": (int, 0, 1),
+    "stop_at": (float, 0.0, 1e9),
+    "stop_s": (float, 0.0, 1e9),
+    "stall_at": (float, 0.0, 1e9),
+    "stall_s": (float, 0.0, 1e9),
+    "stall_odometry": (int, 0, 1),
 }
 
 
@@ -195,7 +215,9 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
 
 class _Session:
     def __init__(self, params: SimParams, t0_ns: int | None) -> None:
-        self.world: World = build_world(params.seed, params.world, params.speed, params.tilt)
+        self.world: World = build_world(
+            params.seed, params.world, params.speed, params.tilt, (params.stop_at, params.stop_s)
+        )
         # the clock starts once the world is built, so the first frames are not already late
         self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
         self.refs = 0
@@ -206,7 +228,7 @@ class _Session:
         return sigma * self._gyro_bias_unit
 
 
-_SESSIONS: dict[tuple[int, str, float, float], _Session] = {}
+_SESSIONS: dict[tuple[int, str, float, float, float, float], _Session] = {}
 _SESSIONS_LOCK = threading.Lock()
 
 
@@ -443,6 +465,14 @@ class SimCamera(Driver):
                     k = k_now
             if p.duration > 0 and k / p.fps >= p.duration:
                 return
+            if p.stalled(k / p.fps):
+                # the camera stalls: these frames are never captured (their sequence numbers are
+                # skipped, as a device's are); in real time it is silent until the stall ends
+                k_end = math.ceil((p.stall_at + p.stall_s) * p.fps - 1e-9)
+                if p.realtime and self._closed.wait(max(0.0, (self.frame_t_ns(k_end) - time.monotonic_ns()) / 1e9)):
+                    return
+                k = max(k + 1, k_end)
+                continue
             t_ns = self.frame_t_ns(k)
             if p.realtime and len(self._render_ms) >= 3:
                 # Render just in time, like a camera whose imaging happens before the capture is
@@ -586,9 +616,11 @@ class SimVehicle(Driver):
                 wait_s = (t_ns - now) / 1e9
                 if wait_s > 0 and self._closed.wait(wait_s):
                     return
-            msg = self.sample(j)
             j += 1
             self._next_j = j
+            if not p.stall_odometry and p.stalled((j - 1) / p.odom_hz):
+                continue  # the host stalled: the link's samples of that time are lost
+            msg = self.sample(j - 1)
             self._sent += 1
             yield msg
 
