@@ -40,7 +40,7 @@ from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
-from robotd.stall import GapDetector, Reach, plausible, reach, still_prior
+from robotd.stall import GapDetector, Reach, constant_velocity, plausible, reach, still_prior
 from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
@@ -243,8 +243,10 @@ class Pipeline:
                 logger.info("gap of %.1f s bridged by the map: moved %.2f m", dt, float(np.linalg.norm(T[:3, 3])))
                 return inc
         self.counters.gaps_guessed += 1
-        cv = self._motion_prior(t_ns)
-        R, t = (cv.R, cv.t) if cv is not None else (np.eye(3), np.zeros(3))
+        R, t = np.eye(3), np.zeros(3)
+        if self._velocity is not None:
+            R_v, t_v, dt_v, _, _ = self._velocity
+            R, t = constant_velocity(R_v, t_v, dt_v, dt)
         self.covariance.add_uncertainty(r.guess_cov())
         logger.warning(
             "gap of %.1f s: nothing in the images or the map fixes the motion across it; constant velocity "

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robotd.frontend.pnp import MotionPrior, PnpParams
+from robotd.geometry import so3_exp, so3_log
 
 GAP_MIN_S = 0.5  # a gap is at least this long ...
 GAP_FRAMES = 5  # ... and this many recent median frame intervals
@@ -85,6 +86,26 @@ def reach(
         dev_t_m=min(half_a, (max_speed_mps + v0) * dt_s),
         dev_rot_rad=min(half_al, (max_rate_radps + w0) * dt_s, math.pi),
     )
+
+
+def constant_velocity(
+    R_last: np.ndarray, t_last: np.ndarray, dt_last_s: float, dt_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The motion (R (3, 3), t (3,)) over ``dt_s`` at the constant body velocity and rate of the
+    last interval's motion (R_last, t_last over ``dt_last_s``): the twist integrated, so a rover in
+    a curve goes on along the arc. (Scaling t linearly, as the short intervals between normal
+    frames may, sends it straight ahead: 3 m off after 4 s in a 1.8 m radius curve.)"""
+    w = so3_log(R_last) / dt_last_s
+    # the last interval's translation is its chord: the body velocity turned by half its rotation
+    v = so3_exp(-w * dt_last_s / 2.0) @ np.asarray(t_last, float) / dt_last_s
+    n = max(1, math.ceil(dt_s / 0.01))  # 10 ms steps, the midpoint rotation for each
+    h = dt_s / n
+    R_h, R_half = so3_exp(w * h), so3_exp(w * h / 2.0)
+    R, t = np.eye(3), np.zeros(3)
+    for _ in range(n):
+        t = t + R @ R_half @ (v * h)
+        R = R @ R_h
+    return R, t
 
 
 def still_prior(r: Reach) -> MotionPrior:

@@ -15,9 +15,10 @@ import drivers
 from robotd.config import load_config
 from robotd.config_params import frontend_params_from_config, odometry_limits_from_config
 from robotd.errors import RobotdError
+from robotd.geometry import so3_exp, so3_log
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
-from robotd.stall import GAP_MIN_S, GapDetector, plausible, reach
+from robotd.stall import GAP_MIN_S, GapDetector, constant_velocity, plausible, reach
 
 BASE = "sim://?width=320&height=200&fps=10&realtime=0&duration=16"
 STALL = "&stall_at=6&stall_s=4"  # frames 60–99 never captured; the vehicle's samples of that time lost too
@@ -106,3 +107,13 @@ def test_the_reach_bounds_and_the_gap_detector() -> None:
     g = GapDetector()
     assert [g.gap(0.5) for _ in range(5)] == [False] * 5  # at 2 Hz a gap is 5 frames: 2.5 s
     assert not g.gap(2.4) and g.gap(2.6)
+
+
+def test_the_constant_velocity_guess_follows_the_arc() -> None:
+    # 1 m/s forward turning right at 0.5 rad/s (radius 2 m), the last interval 0.1 s long
+    w, v, dt = 0.5, 1.0, 0.1
+    R_last = so3_exp(np.array([0.0, 0.0, w * dt]))
+    t_last = np.array([2.0 * math.sin(w * dt), 2.0 * (1.0 - math.cos(w * dt)), 0.0])  # the arc's chord
+    R, t = constant_velocity(R_last, t_last * v, dt, 4.0)
+    np.testing.assert_allclose(t, [2.0 * math.sin(2.0), 2.0 * (1.0 - math.cos(2.0)), 0.0], atol=0.01)
+    np.testing.assert_allclose(so3_log(R), [0.0, 0.0, 2.0], atol=1e-9)
