@@ -29,7 +29,7 @@ from robotd.config_params import frontend_params_from_config, slam_params_from_c
 from robotd.errors import MapMismatchError, PersistenceError, RobotdError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
-from robotd.frontend.frontend import Frontend, Identification, Screening
+from robotd.frontend.frontend import Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior, motion_prior
 from robotd.frontend.stereo_match import StereoMatches
 from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
@@ -164,7 +164,7 @@ class Pipeline:
         visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None or pnp, prior)
         inc: MotionIncrement | None
         if gap is not None:
-            inc = clock.run("gap", self._across_gap, gap, meas, visual.increment, landmarks, frame.t_ns)
+            inc = clock.run("gap", self._across_gap, gap, meas, visual, landmarks, frame.t_ns)
         else:
             inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
         # identify against the map (guided by the predicted pose), then screen out the outliers
@@ -217,7 +217,7 @@ class Pipeline:
         return reach(dt, v0, w0, *self._vehicle_limits, self.frontend.params.pnp)
 
     def _across_gap(
-        self, r: Reach, meas: StereoMatches, vis: MotionIncrement | None, landmarks: LandmarkMap, t_ns: int
+        self, r: Reach, meas: StereoMatches, visual: VisualMotion, landmarks: LandmarkMap, t_ns: int
     ) -> MotionIncrement:
         """The motion across a gap nothing measured (robotd.stall): the images' own motion across
         it, else the pose found in the whole map, else the constant-velocity guess (the filter
@@ -227,7 +227,11 @@ class Pipeline:
         self._measured = None
         self.counters.gaps += 1
         dt = (t_ns - t0) * 1e-9
-        if vis is not None and vis.t0_ns == t0 and plausible(r, vis.dp_R_m, so3_exp(vis.drot_R_rad)):
+        vis = visual.increment
+        # across a gap the views are far apart: twice the inliers a normal frame needs (as PnP
+        # asks of a jump outside its prior's bounds), so a few chance matches cannot decide it
+        enough = visual.counts.get("motion_inliers", 0) >= 2 * self.frontend.params.pnp.min_inliers
+        if vis is not None and vis.t0_ns == t0 and enough and plausible(r, vis.dp_R_m, so3_exp(vis.drot_R_rad)):
             self.counters.gaps_by_images += 1
             self._measured = vis
             logger.info("gap of %.1f s bridged by the images: moved %.2f m", dt, float(np.linalg.norm(vis.dp_R_m)))

@@ -13,7 +13,8 @@ So the first frame after a gap that nothing measured gets its motion from eviden
 1. **The images across the gap**: stereo PnP of this frame against the last one before the gap
    (robotd.frontend.pnp), with the whole physical reach as the prior's bounds. The prior's own
    hypothesis is *standing still*, which PnP scores first: the usual stall (a camera hiccup while
-   the rover waits) is a motion of zero that the images confirm with hundreds of inliers.
+   the rover waits) is a motion of zero that the images confirm with hundreds of inliers. It must
+   rest on twice the inliers a normal frame needs.
 2. **The map, searched whole**: the frame's features matched by descriptor to every landmark
    of the map (no pose prior: the wide prior), the outlier stage's similarity giving the pose, as
    :mod:`robotd.relocalise` does after a resume, when it rests on ``relocalise.MIN_INLIERS``
