@@ -389,6 +389,7 @@ class Pipeline:
             descriptors.forget(obs.ids[obs.is_new])  # the filter did not take them
             raise
         descriptors.forget(report.pruned_ids)  # the filter owns existence; the descriptors follow
+        self.covariance.forget(report.pruned_ids)  # and the reported covariance's anchors
         return report
 
     def _choose_increment(
