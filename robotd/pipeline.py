@@ -40,7 +40,7 @@ from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
-from robotd.stall import GapDetector, Reach, constant_velocity, plausible, reach, still_prior
+from robotd.stall import GapDetector, Reach, blind_motion, plausible, reach, still_prior
 from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
@@ -250,10 +250,10 @@ class Pipeline:
         R, t = np.eye(3), np.zeros(3)
         if self._velocity is not None:
             R_v, t_v, dt_v, _, _ = self._velocity
-            R, t = constant_velocity(R_v, t_v, dt_v, dt)
+            R, t = blind_motion(R_v, t_v, dt_v, dt)
         self.covariance.add_uncertainty(r.guess_cov())
         logger.warning(
-            "gap of %.1f s: nothing in the images or the map fixes the motion across it; constant velocity "
+            "gap of %.1f s: nothing in the images or the map fixes the motion across it; the last speed "
             "assumed (%.2f m), uncertain by up to %.1f m and %.0f deg",
             dt,
             float(np.linalg.norm(t)),

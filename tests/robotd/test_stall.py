@@ -18,7 +18,7 @@ from robotd.errors import RobotdError
 from robotd.geometry import so3_exp, so3_log
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
-from robotd.stall import GAP_MIN_S, GapDetector, constant_velocity, plausible, reach
+from robotd.stall import GAP_MIN_S, GapDetector, blind_motion, plausible, reach
 
 BASE = "sim://?width=320&height=200&fps=10&realtime=0&duration=16"
 STALL = "&stall_at=6&stall_s=4"  # frames 60–99 never captured; the vehicle's samples of that time lost too
@@ -110,11 +110,18 @@ def test_the_reach_bounds_and_the_gap_detector() -> None:
     assert not g.gap(2.4) and g.gap(2.6)
 
 
-def test_the_constant_velocity_guess_follows_the_arc() -> None:
-    # 1 m/s forward turning right at 0.5 rad/s (radius 2 m), the last interval 0.1 s long
-    w, v, dt = 0.5, 1.0, 0.1
-    R_last = so3_exp(np.array([0.0, 0.0, w * dt]))
-    t_last = np.array([2.0 * math.sin(w * dt), 2.0 * (1.0 - math.cos(w * dt)), 0.0])  # the arc's chord
-    R, t = constant_velocity(R_last, t_last * v, dt, 4.0)
-    np.testing.assert_allclose(t, [2.0 * math.sin(2.0), 2.0 * (1.0 - math.cos(2.0)), 0.0], atol=0.01)
-    np.testing.assert_allclose(so3_log(R), [0.0, 0.0, 2.0], atol=1e-9)
+def test_the_blind_guess_holds_the_speed_and_lets_the_turn_die_out() -> None:
+    # 1 m/s forward turning right at 0.5 rad/s, the last interval 0.1 s long (its chord)
+    w0, dt = 0.5, 0.1
+    R_last = so3_exp(np.array([0.0, 0.0, w0 * dt]))
+    t_last = np.array([2.0 * math.sin(w0 * dt), 2.0 * (1.0 - math.cos(w0 * dt)), 0.0])
+    R, t = blind_motion(R_last, t_last, dt, 4.0, turn_tau_s=1.0)
+    # heading: ∫ w0 e^(−s/τ) ds; path: 1 m/s along it (a fine Euler sum as the reference)
+    np.testing.assert_allclose(so3_log(R), [0.0, 0.0, w0 * (1.0 - math.exp(-4.0))], atol=1e-3)
+    yaw = w0 * (1.0 - np.exp(-(np.arange(40000) + 0.5) * 1e-4))
+    ref = np.array([np.sum(np.cos(yaw)) * 1e-4, np.sum(np.sin(yaw)) * 1e-4, 0.0])
+    np.testing.assert_allclose(t, ref, atol=2e-3)
+    # roll and pitch rates do not go on: no rotation, straight ahead at the last speed
+    R2, t2 = blind_motion(so3_exp(np.array([0.01, -0.02, 0.0])), np.array([0.12, 0.0, 0.0]), 0.1, 4.0)
+    np.testing.assert_allclose(R2, np.eye(3), atol=1e-12)
+    assert float(np.linalg.norm(t2)) == pytest.approx(4.8, abs=1e-3)
