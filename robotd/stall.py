@@ -57,7 +57,7 @@ from robotd.geometry import so3_exp, so3_log
 GAP_MIN_S = 0.5  # a gap is at least this long ...
 GAP_FRAMES = 5  # ... and this many recent median frame intervals
 INTERVALS = 15  # recent intervals the median frame interval is taken over
-TURN_TAU_S = 1.0  # correlation time of the turn rate across a blind gap (blind_motion)
+TURN_TAU_S = 3.0  # correlation time of the turn rate across a blind gap (blind_motion; docs/reliability.md)
 
 
 @dataclass(frozen=True, slots=True)

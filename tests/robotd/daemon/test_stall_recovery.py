@@ -49,9 +49,10 @@ def test_a_4s_stall_while_driving_leaves_the_daemon_on_track(tmp_path: Path, mon
     assert d.run() == 0
     assert d.stats.stalls == 1 and d.stats.stalls_without_odometry == 1
     assert d.stats.step_errors == 0
-    after = [h["error_vs_truth_m"] for h in out.docs if h["stalls"] >= 1 and h["error_vs_truth_m"] is not None]
+    after = [h for h in out.docs if h["stalls"] >= 1 and h["error_vs_truth_m"] is not None]
     assert len(after) >= 10
-    # 4 m driven blind: the guess across it may be off by a third of it (before: tens of metres)
-    assert max(after) < 1.5, after
-    # and health says the pose is uncertain rather than claiming it is fine
-    assert any(h["pose_sigma_m"] is not None and h["pose_sigma_m"] > 1.0 for h in out.docs if h["stalls"] >= 1)
+    # 4 m driven blind on a winding loop: the guess's heading may be tens of degrees off, so the
+    # error grows after it, but stays metres, not tens of metres (before: 20 m and failing steps)
+    assert max(h["error_vs_truth_m"] for h in after) < 5.0, [h["error_vs_truth_m"] for h in after]
+    # and health says how uncertain the pose is: its sigma covers the error
+    assert all(h["pose_sigma_m"] is not None and h["pose_sigma_m"] > h["error_vs_truth_m"] for h in after)
