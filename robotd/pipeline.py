@@ -152,7 +152,8 @@ class Pipeline:
         # (with odometry too: its outliers are points that moved, on a vehicle, and are not mapped)
         pnp = self.cfg.frontend.motion == "pnp"
         # a gap no odometry covers (a stall): the motion across it from evidence (robotd.stall)
-        gap = None if relocalising or increment is not None else self._gap_reach(frame.t_ns)
+        gap = None if relocalising else self._gap_reach(frame.t_ns)
+        gap = gap if increment is None else None
         if gap is not None:
             prior: MotionPrior | None = still_prior(gap) if pnp else None
         else:
@@ -203,7 +204,8 @@ class Pipeline:
 
     def _gap_reach(self, t_ns: int) -> Reach | None:
         """The vehicle's physical reach when the interval since the last frame is a gap (None
-        otherwise, and before the first frame or with an empty map: nothing to bridge to)."""
+        otherwise, and before the first frame). Every interval goes through the detector, so it
+        knows the frame rate whether or not odometry covers the frames."""
         if self._last_t_ns is None or t_ns <= self._last_t_ns:
             return None
         dt = (t_ns - self._last_t_ns) * 1e-9
