@@ -181,9 +181,16 @@ class Pipeline:
         moving = visual.moving if (visual.increment is not None or increment is not None) else None
         obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
         # predict with the motion prior, then fuse the frame's observations
-        clock.run("predict", self._predict, inc)
-        if self.covariance.enabled:
-            clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
+        try:
+            clock.run("predict", self._predict, inc)
+            if self.covariance.enabled:
+                clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
+        except RobotdError:
+            # the filter did not take this frame's new landmarks: their descriptors go (the store
+            # follows the filter exactly, or the saved map fails its own check)
+            assert fe.descriptors is not None
+            fe.descriptors.forget(obs.ids[obs.is_new])
+            raise
         report = clock.run("update", self._update, obs, landmarks)
         pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
