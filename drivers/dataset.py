@@ -10,6 +10,8 @@ Options (keyword arguments, or the URL query, e.g. ``kitti:///data/seq?stride=2&
 
 - ``start`` (0), ``stop`` (None = to the end): frame index range ``[start, stop)`` before striding;
 - ``stride`` (1): keep every n-th frame;
+- ``drop`` (none): ``A-B`` leaves out frames A … B−1 (indices as for start/stop): a camera stall
+  or a hole in the recording, for testing what the pipeline does across one;
 - ``realtime`` (False): sleep so frames come out at the dataset rate (× ``speed``, default 1.0);
   otherwise as fast as the consumer pulls.
 
@@ -99,6 +101,20 @@ def _as_int(key: str, v: Any, minimum: int | None = None) -> int:
     return i
 
 
+def _as_range(key: str, v: Any) -> tuple[int, int]:
+    """``A-B`` (integers, 0 <= A < B) -> (A, B); None or empty -> (0, 0)."""
+    if v in (None, ""):
+        return (0, 0)
+    a, sep, b = str(v).partition("-")
+    try:
+        lo, hi = int(a), int(b)
+    except ValueError:
+        lo, hi = -1, -1
+    if not sep or not 0 <= lo < hi:
+        raise DriverError(f"option {key}: expected A-B with integers 0 <= A < B (frames A … B-1), got {v!r}")
+    return (lo, hi)
+
+
 def _as_float(key: str, v: Any, minimum: float | None = None) -> float:
     try:
         x = float(v)
@@ -118,6 +134,7 @@ class ReplayOptions:
     stride: int = 1
     realtime: bool = False
     speed: float = 1.0
+    drop: tuple[int, int] = (0, 0)  # frames [A, B) left out (a stall); (0, 0): none
 
     @staticmethod
     def pop_from(options: dict[str, Any]) -> ReplayOptions:
@@ -129,17 +146,24 @@ class ReplayOptions:
             stride=_as_int("stride", options.pop("stride", 1), 1),
             realtime=_as_bool("realtime", options.pop("realtime", False)),
             speed=_as_float("speed", options.pop("speed", 1.0), 1e-3),
+            drop=_as_range("drop", options.pop("drop", None)),
         )
 
-    def select(self, n: int) -> range:
+    def select(self, n: int) -> list[int]:
         stop = n if self.stop is None else min(self.stop, n)
-        return range(self.start, stop, self.stride)
+        return [k for k in range(self.start, stop, self.stride) if not self.dropped(k)]
+
+    def dropped(self, k: int) -> bool:
+        """Frame index ``k`` is inside the ``drop`` range."""
+        return self.drop[0] <= k < self.drop[1]
 
 
 def _reject_unknown(url: str, options: dict[str, Any], known: Sequence[str] = ()) -> None:
     extra = sorted(set(options) - set(known))
     if extra:
-        raise DriverError(f"{url!r}: unknown option(s) {extra}; known: {sorted(known)} and start/stop/stride/realtime")
+        raise DriverError(
+            f"{url!r}: unknown option(s) {extra}; known: {sorted(known)} and start/stop/stride/drop/realtime"
+        )
 
 
 class _Pacer:
@@ -775,7 +799,7 @@ class McapCamera(Driver):
 
     def _selected(self, k: int) -> bool:
         r = self.replay
-        return k >= r.start and (r.stop is None or k < r.stop) and (k - r.start) % r.stride == 0
+        return k >= r.start and (r.stop is None or k < r.stop) and (k - r.start) % r.stride == 0 and not r.dropped(k)
 
     def events(self) -> Iterator[StereoFrame | Odometry]:
         """Frames (selected) and all odometry, interleaved in recorded order, paced if realtime."""

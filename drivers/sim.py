@@ -43,6 +43,12 @@ img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
 odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
 unplug     0        fault injection: the camera raises DriverError at this simulated time [s], as a
                     USB camera that is pulled out does; 0 = never (bench/faults.py)
+stop_at    0        when the rover stops [s] (with stop_s > 0): it brakes, stands still, drives on
+stop_s     0        how long it stands still [s]; 0 = it never stops
+stall_at   0        when the camera stalls [s] (with stall_s > 0): no frame is captured ...
+stall_s    0        ... for this long [s]; 0 = no stall (the hard case "stall", docs/sim.md)
+stall_odometry 0    0: the vehicle's samples in the stall are lost too (the host stopped);
+                    1: only the camera stalled, odometry flows
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -109,15 +115,24 @@ class SimParams:
     img_noise: float = 2.0
     odometry: int = 1
     unplug: float = 0.0  # fault injection: the camera fails at this simulated time [s]; 0 = never
+    stop_at: float = 0.0
+    stop_s: float = 0.0
+    stall_at: float = 0.0
+    stall_s: float = 0.0
+    stall_odometry: int = 0
+
+    def stalled(self, t_s: float) -> bool:
+        """Simulated time ``t_s`` falls in the stall (nothing captured)."""
+        return self.stall_s > 0.0 and self.stall_at <= t_s < self.stall_at + self.stall_s
 
     @property
     def f_px(self) -> float:
         return self.f if self.f > 0 else 430.0 * self.width / 640.0
 
     @property
-    def session_key(self) -> tuple[int, str, float, float]:
+    def session_key(self) -> tuple[int, str, float, float, float, float]:
         """What camera and vehicle must agree on to share a world and a clock."""
-        return (self.seed, self.world, self.speed, self.tilt)
+        return (self.seed, self.world, self.speed, self.tilt, self.stop_at, self.stop_s)
 
 
 # key -> (parser, lower bound, upper bound); bounds inclusive, None = open
@@ -140,6 +155,11 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "img_noise": (float, 0.0, 50.0),
     "odometry": (int, 0, 1),
     "unplug": (float, 0.0, 1e9),
+    "stop_at": (float, 0.0, 1e9),
+    "stop_s": (float, 0.0, 1e9),
+    "stall_at": (float, 0.0, 1e9),
+    "stall_s": (float, 0.0, 1e9),
+    "stall_odometry": (int, 0, 1),
 }
 
 
@@ -199,7 +219,9 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
 
 class _Session:
     def __init__(self, params: SimParams, t0_ns: int | None) -> None:
-        self.world: World = build_world(params.seed, params.world, params.speed, params.tilt)
+        self.world: World = build_world(
+            params.seed, params.world, params.speed, params.tilt, (params.stop_at, params.stop_s)
+        )
         # the clock starts once the world is built, so the first frames are not already late
         self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
         self.refs = 0
@@ -210,7 +232,7 @@ class _Session:
         return sigma * self._gyro_bias_unit
 
 
-_SESSIONS: dict[tuple[int, str, float, float], _Session] = {}
+_SESSIONS: dict[tuple[int, str, float, float, float, float], _Session] = {}
 _SESSIONS_LOCK = threading.Lock()
 
 
@@ -450,6 +472,14 @@ class SimCamera(Driver):
             if p.unplug > 0 and k / p.fps >= p.unplug:
                 # what a USB camera's driver does when the device is pulled out: the stream fails
                 raise DriverError(f"{self.url!r}: camera disconnected at t = {k / p.fps:.2f} s (simulated unplug)")
+            if p.stalled(k / p.fps):
+                # the camera stalls: these frames are never captured (their sequence numbers are
+                # skipped, as a device's are); in real time it is silent until the stall ends
+                k_end = math.ceil((p.stall_at + p.stall_s) * p.fps - 1e-9)
+                if p.realtime and self._closed.wait(max(0.0, (self.frame_t_ns(k_end) - time.monotonic_ns()) / 1e9)):
+                    return
+                k = max(k + 1, k_end)
+                continue
             t_ns = self.frame_t_ns(k)
             if p.realtime and len(self._render_ms) >= 3:
                 # Render just in time, like a camera whose imaging happens before the capture is
@@ -593,9 +623,11 @@ class SimVehicle(Driver):
                 wait_s = (t_ns - now) / 1e9
                 if wait_s > 0 and self._closed.wait(wait_s):
                     return
-            msg = self.sample(j)
             j += 1
             self._next_j = j
+            if not p.stall_odometry and p.stalled((j - 1) / p.odom_hz):
+                continue  # the host stalled: the link's samples of that time are lost
+            msg = self.sample(j - 1)
             self._sent += 1
             yield msg
 

@@ -389,6 +389,36 @@ def _ramp(u: float, T: float, Tr: float) -> tuple[float, float]:
     return 1.0, 0.5 * Tr + (u - Tr)
 
 
+class StoppingTrajectory:
+    """Another trajectory with a stop: the rover brakes (sin² ramp of ``ramp_s``) to stand still
+    from ``at_s`` for ``stop_s`` seconds, then drives on where it stopped. Time is warped,
+    τ(t) = t − ∫ r, r the stop's smooth unit pulse, so the pose is the base trajectory's at τ and
+    every velocity and rate is the base's times dτ/dt = 1 − r: one path, with a pause in it."""
+
+    def __init__(self, base: Trajectory, at_s: float, stop_s: float, ramp_s: float = 0.5) -> None:
+        self.base = base
+        self.at_s = float(at_s)
+        self.stop_s = float(stop_s)
+        self.ramp_s = float(ramp_s)
+        self.T_world_yard = base.T_world_yard
+
+    def warp(self, t_s: float) -> tuple[float, float]:
+        """(τ, dτ/dt) at ``t_s``."""
+        T = self.stop_s + 2.0 * self.ramp_s
+        r, R = _ramp(t_s - self.at_s, T, self.ramp_s)
+        if t_s <= self.at_s:
+            return t_s, 1.0
+        return t_s - R, 1.0 - r
+
+    def state(self, t_s: float) -> TruthState:
+        tau, k = self.warp(t_s)
+        st = self.base.state(tau)
+        return TruthState(st.T_world_robot, st.vel_R_mps * k, st.rate_R_radps * k)
+
+    def path_points_yard(self, n: int = 720) -> np.ndarray:
+        return self.base.path_points_yard(n)
+
+
 @dataclass(frozen=True, slots=True)
 class _Leg:
     """One leg of a :class:`TurnInPlaceTrajectory`, in the unit time of speed 1."""
@@ -672,8 +702,16 @@ def _box_spot_y(path: np.ndarray) -> float:
     return float(np.abs(path[near, 1]).max()) + _BOX_CLEAR_M + 0.5 * _BOX_SIZE[1]
 
 
-def build_world(seed: int, world: str = "yard", speed_mps: float = 1.0, tilt_deg: float = 0.0) -> World:
+def build_world(
+    seed: int,
+    world: str = "yard",
+    speed_mps: float = 1.0,
+    tilt_deg: float = 0.0,
+    stop: tuple[float, float] = (0.0, 0.0),
+) -> World:
     """The textured yard ``world`` for ``seed`` with the rover driving at ``speed_mps`` (tilt in degrees).
+    ``stop``: (at [s], for [s]): the rover stands still for a while (:class:`StoppingTrajectory`;
+    (0, 0) or a duration of 0: no stop).
 
     The surfaces and textures (about 12 Mpx, 1–2 s to generate) are built once per (seed, world)
     and cached; speed and tilt only change the trajectory (and the moving box's schedule), whose
@@ -681,7 +719,7 @@ def build_world(seed: int, world: str = "yard", speed_mps: float = 1.0, tilt_deg
     """
     if world not in WORLDS:
         raise DriverError(f"sim world {world!r}: unknown; known: {', '.join(WORLDS)}")
-    traj = _trajectory(world, speed_mps, tilt_deg)
+    traj: Trajectory = _trajectory(world, speed_mps, tilt_deg)
     surfaces, h, size = _yard_surfaces(seed, world)
     T = traj.T_world_yard
     movers: tuple[Mover, ...] = ()
@@ -689,6 +727,8 @@ def build_world(seed: int, world: str = "yard", speed_mps: float = 1.0, tilt_deg
         assert isinstance(traj, LoopTrajectory)
         crossing = LaneCrossing(traj, _LANE_X, _box_spot_y(traj.path_points_yard()))
         movers = (Mover("van", _van_surfaces(seed, h), crossing),)
+    if stop[1] > 0.0:
+        traj = StoppingTrajectory(traj, stop[0], stop[1])
     return World(
         world, seed, tuple(transformed(s, T) for s in surfaces), traj, h, size, movers, _LAYOUTS[world].plain_from_x
     )

@@ -29,17 +29,18 @@ from robotd.config_params import frontend_params_from_config, slam_params_from_c
 from robotd.errors import MapMismatchError, PersistenceError, RobotdError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
-from robotd.frontend.frontend import Frontend, Identification, Screening
+from robotd.frontend.frontend import Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior, motion_prior
 from robotd.frontend.stereo_match import StereoMatches
-from robotd.geometry import se3, so3_exp, so3_log
+from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
-from robotd.relocalise import Relocaliser
+from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
 from robotd.slam.common import measurement_model, pixel_noise
 from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
+from robotd.stall import GapDetector, Reach, blind_motion, plausible, reach, still_prior
 from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
@@ -49,6 +50,9 @@ logger = logging.getLogger(__name__)
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
+# the filter's noise for a motion it is given as a guess (a gap nothing measured): the nominal
+# 1 cm and 0.5° of one interval, so the particles move together (robotd.stall)
+RIGID_COV = np.diag([1e-4 / 3] * 3 + [math.radians(0.5) ** 2 / 3] * 3)
 
 
 @dataclass
@@ -61,6 +65,11 @@ class PipelineCounters:
     lost_events: int = 0
     relocalisations: int = 0
     relocalisation_failures: int = 0
+    # gaps between frames that no odometry covered (robotd.stall), and what bridged each
+    gaps: int = 0
+    gaps_by_images: int = 0
+    gaps_by_map: int = 0
+    gaps_guessed: int = 0
 
 
 class TrackingMonitor:
@@ -114,6 +123,8 @@ class Pipeline:
         self.relocaliser = Relocaliser()
         self.max_features = cfg.frontend.max_features
         self._last_t_ns: int | None = None
+        self.gaps = GapDetector()
+        self._vehicle_limits = (cfg.vehicle.max_speed_mps, cfg.vehicle.max_rate_radps)
         # the constant-velocity model: the filter's last pose (t_ns, T_world_robot) and its motion
         # over the last measured interval (R, t, dt_s); whether this frame's prior was measured
         self._last_pose: tuple[int, np.ndarray] | None = None
@@ -140,11 +151,23 @@ class Pipeline:
         # the motion prior: odometry, else the visual motion from the previous frame, else constant velocity
         # (with odometry too: its outliers are points that moved, on a vehicle, and are not mapped)
         pnp = self.cfg.frontend.motion == "pnp"
-        prior = (
-            (self._motion_prior(frame.t_ns) if increment is None else self._odometry_prior(increment)) if pnp else None
-        )
+        # a gap no odometry covers (a stall): the motion across it from evidence (robotd.stall)
+        gap = None if relocalising else self._gap_reach(frame.t_ns)
+        gap = gap if increment is None else None
+        if gap is not None:
+            prior: MotionPrior | None = still_prior(gap) if pnp else None
+        else:
+            prior = (
+                (self._motion_prior(frame.t_ns) if increment is None else self._odometry_prior(increment))
+                if pnp
+                else None
+            )
         visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None or pnp, prior)
-        inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
+        inc: MotionIncrement | None
+        if gap is not None:
+            inc = clock.run("gap", self._across_gap, gap, meas, visual, landmarks, frame.t_ns)
+        else:
+            inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else self._view_prior(landmarks, inc)
         ident = clock.run("identify", fe.identify, meas, landmarks, view)
@@ -158,9 +181,16 @@ class Pipeline:
         moving = visual.moving if (visual.increment is not None or increment is not None) else None
         obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
         # predict with the motion prior, then fuse the frame's observations
-        clock.run("predict", self._predict, inc)
-        if self.covariance.enabled:
-            clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
+        try:
+            clock.run("predict", self._predict, inc)
+            if self.covariance.enabled:
+                clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
+        except RobotdError:
+            # the filter did not take this frame's new landmarks: their descriptors go (the store
+            # follows the filter exactly, or the saved map fails its own check)
+            assert fe.descriptors is not None
+            fe.descriptors.forget(obs.ids[obs.is_new])
+            raise
         report = clock.run("update", self._update, obs, landmarks)
         pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
@@ -178,6 +208,82 @@ class Pipeline:
             return None
         R, t, dt_s, sd_t, sd_r = self._velocity
         return motion_prior(R, t, dt_s, (t_ns - self._last_pose[0]) * 1e-9, self.frontend.params.pnp, sd_t, sd_r)
+
+    def _gap_reach(self, t_ns: int) -> Reach | None:
+        """The vehicle's physical reach when the interval since the last frame is a gap (None
+        otherwise, and before the first frame). Every interval goes through the detector, so it
+        knows the frame rate whether or not odometry covers the frames."""
+        if self._last_t_ns is None or t_ns <= self._last_t_ns:
+            return None
+        dt = (t_ns - self._last_t_ns) * 1e-9
+        if not self.gaps.gap(dt):
+            return None
+        v0 = w0 = 0.0
+        if self._velocity is not None:
+            R, t, dt_v, _, _ = self._velocity
+            v0 = float(np.linalg.norm(t)) / dt_v
+            w0 = float(np.linalg.norm(so3_log(R))) / dt_v
+        return reach(dt, v0, w0, *self._vehicle_limits, self.frontend.params.pnp)
+
+    def _across_gap(
+        self, r: Reach, meas: StereoMatches, visual: VisualMotion, landmarks: LandmarkMap, t_ns: int
+    ) -> MotionIncrement:
+        """The motion across a gap nothing measured (robotd.stall): the images' own motion across
+        it, else the pose found in the whole map, else the constant-velocity guess (the filter
+        moved rigidly, the guess's bound handed to the reported covariance)."""
+        assert self._last_t_ns is not None
+        t0 = self._last_t_ns
+        self._measured = None
+        self.counters.gaps += 1
+        dt = (t_ns - t0) * 1e-9
+        vis = visual.increment
+        # across a gap the views are far apart: twice the inliers a normal frame needs (as PnP
+        # asks of a jump outside its prior's bounds), so a few chance matches cannot decide it
+        enough = visual.counts.get("motion_inliers", 0) >= 2 * self.frontend.params.pnp.min_inliers
+        if vis is not None and vis.t0_ns == t0 and enough and plausible(r, vis.dp_R_m, so3_exp(vis.drot_R_rad)):
+            self.counters.gaps_by_images += 1
+            self._measured = vis
+            logger.info("gap of %.1f s bridged by the images: moved %.2f m", dt, float(np.linalg.norm(vis.dp_R_m)))
+            return vis
+        T_last = self.estimator.estimate().T_world_robot
+        T_fix = self._find_in_map(meas, landmarks) if landmarks.n else None
+        if T_fix is not None:
+            T = se3_inverse(T_last) @ T_fix
+            if plausible(r, T[:3, 3], T[:3, :3]):
+                self.counters.gaps_by_map += 1
+                inc = MotionIncrement(t0, t_ns, T[:3, 3].copy(), so3_log(T[:3, :3]), RESET_COV.copy())
+                self._measured = inc
+                logger.info("gap of %.1f s bridged by the map: moved %.2f m", dt, float(np.linalg.norm(T[:3, 3])))
+                return inc
+        self.counters.gaps_guessed += 1
+        R, t = np.eye(3), np.zeros(3)
+        if self._velocity is not None:
+            R_v, t_v, dt_v, _, _ = self._velocity
+            R, t = blind_motion(R_v, t_v, dt_v, dt)
+        self.covariance.add_uncertainty(r.guess_cov())
+        logger.warning(
+            "gap of %.1f s: nothing in the images or the map fixes the motion across it; the last speed "
+            "assumed (%.2f m), uncertain by up to %.1f m and %.0f deg",
+            dt,
+            float(np.linalg.norm(t)),
+            r.dev_t_m,
+            math.degrees(r.dev_rot_rad),
+        )
+        return MotionIncrement(t0, t_ns, t, so3_log(R), RIGID_COV.copy())
+
+    def _find_in_map(self, meas: StereoMatches, landmarks: LandmarkMap) -> np.ndarray | None:
+        """This frame's pose T_world_robot (4, 4) from its features matched against the whole map
+        by descriptor (no pose prior) and the outlier stage's similarity, or None with fewer than
+        ``relocalise.MIN_INLIERS`` inliers."""
+        ident = self.frontend.identify(meas, landmarks, None)
+        screen = self.frontend.screen(meas, ident)
+        res = screen.result
+        if res is None or screen.similarity is None or int(res.n_inliers) < MIN_INLIERS:
+            return None
+        x = pose_from_similarity(res)
+        if x is None:
+            return None
+        return se3(euler_to_R(x[3:6]), x[:3])
 
     def _odometry_prior(self, odo: MotionIncrement) -> MotionPrior:
         """The odometry's increment as the motion the images are checked against: within 3σ of
@@ -292,6 +398,7 @@ class Pipeline:
             descriptors.forget(obs.ids[obs.is_new])  # the filter did not take them
             raise
         descriptors.forget(report.pruned_ids)  # the filter owns existence; the descriptors follow
+        self.covariance.forget(report.pruned_ids)  # and the reported covariance's anchors
         return report
 
     def _choose_increment(
@@ -431,6 +538,7 @@ class Pipeline:
         # the saved pose may be stale (the rover moved while robotd was down): find it in the map
         self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)
         self._last_t_ns = None
+        self.gaps.reset()
         self._last_pose, self._velocity, self._rates = None, None, []
         # the saved map is the world now: its landmarks anchor at zero covariance
         self.covariance.reset()

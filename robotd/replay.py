@@ -70,7 +70,7 @@ def _mcap_frame_total(reader: Any, sel: Any) -> int | None:
     if n is None:
         return None
     stop = n if sel.stop is None else min(sel.stop, n)
-    return len(range(sel.start, stop, sel.stride))
+    return len(sel.select(stop))
 
 
 def _is_recording(source: str) -> bool:

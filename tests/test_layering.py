@@ -30,7 +30,13 @@ CORE = [
     "robotd/frontend",
     "robotd/slam",
 ]
-PIPELINE = ["robotd/pipeline.py", "robotd/relocalise.py", "robotd/config_params.py", "robotd/odometry.py"]
+PIPELINE = [
+    "robotd/pipeline.py",
+    "robotd/relocalise.py",
+    "robotd/stall.py",
+    "robotd/config_params.py",
+    "robotd/odometry.py",
+]
 ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
 STDLIB_OK = {
     "__future__",

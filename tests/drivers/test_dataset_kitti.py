@@ -122,3 +122,13 @@ def test_kitti_real_sequence(shared_data) -> None:
     assert T_end is not None
     # README: 59.9 m almost straight ahead; in FRD that is +x with small y, z
     assert 58.0 < T_end[0, 3] < 61.0 and abs(T_end[1, 3]) < 2.0 and abs(T_end[2, 3]) < 2.0
+
+
+def test_kitti_drop_leaves_out_a_range_of_frames_as_a_stall_would(tmp_path: Path) -> None:
+    root = make_kitti(tmp_path / "seq", n=9)
+    with open_camera(f"kitti://{root}?drop=2-6") as cam:
+        assert [f.seq for f in cam.frames()] == [0, 1, 6, 7, 8]
+        assert cam.stats()["selected"] == 5
+    for bad in ("6-2", "3", "a-b", "-1-4"):
+        with pytest.raises(DriverError, match="drop"):
+            open_camera(f"kitti://{root}?drop={bad}")

@@ -263,3 +263,47 @@ def test_render_benchmark_prints_exactly_one_json_object(capsys: pytest.CaptureF
     out = capsys.readouterr().out.strip()
     res = json.loads(out)
     assert res["pairs"] == 3 and res["ms_per_pair_p50"] > 0 and res["pairs_per_s"] > 0
+
+
+# --------------------------------------------------------------------------------------------
+# The stall hard case: the rover stops, the camera stalls
+
+
+def test_a_stop_holds_the_rover_still_and_it_drives_on_where_it_stopped():
+    url = "sim://?realtime=0&noise=0&gyro_noise=0&gyro_bias=0&stop_at=2&stop_s=3"
+    with open_sim_vehicle(url, t0_ns=0) as veh, open_sim_vehicle("sim://?realtime=0", t0_ns=0) as moving:
+        T = [veh.truth_T_world_robot(int(t * 1e9)) for t in (2.6, 4.0, 5.4)]
+        assert np.allclose(T[0], T[1]) and np.allclose(T[1], T[2])  # still from at + ramp to at + stop + ramp
+        still = veh.sample(200)  # t = 4 s
+        assert np.linalg.norm(still.vel_R_mps) == 0.0 and np.linalg.norm(still.rate_R_radps) == 0.0
+        # the same path: where it stands is where the moving rover passes
+        p = T[0][:3, 3]
+        d = min(np.linalg.norm(moving.truth_T_world_robot(int(t * 1e9))[:3, 3] - p) for t in np.arange(2.0, 3.0, 0.01))
+        assert d < 0.01
+        # braking is gentle: no sample's speed changes faster than the default plausibility gate allows
+        v = np.array([np.linalg.norm(veh.sample(j).vel_R_mps) for j in range(50, 400)])
+        assert np.max(np.abs(np.diff(v))) * 50 < 10.0
+
+
+@pytest.mark.parametrize("stall_odometry", [0, 1])
+def test_a_stall_captures_no_frame_and_loses_the_odometry_unless_told(stall_odometry: int):
+    url = f"sim://?{SMALL}&realtime=0&fps=10&duration=3&stall_at=1&stall_s=1.2&stall_odometry={stall_odometry}"
+    with open_sim_camera(url, t0_ns=0) as cam, open_sim_vehicle(url, t0_ns=0) as veh:
+        seqs = [f.seq for f in cam.frames()]
+        odo_t = np.array([o.t_ns for o in veh.odometry()]) * 1e-9
+    assert seqs == [*range(0, 10), *range(22, 30)]  # frames at 1.0 … 2.1 s are never captured
+    in_stall = np.count_nonzero((odo_t >= 1.0) & (odo_t < 2.2))
+    assert in_stall == (60 if stall_odometry else 0)
+    assert odo_t.size == (150 if stall_odometry else 90)
+
+
+def test_a_stall_in_real_time_is_silent_for_its_length():
+    url = f"sim://?{SMALL}&fps=20&duration=1.2&stall_at=0.3&stall_s=0.6"
+    with open_sim_camera(url) as cam:
+        t_arrive = []
+        seqs = []
+        for f in cam.frames():
+            t_arrive.append(time.monotonic())
+            seqs.append(f.seq)
+    k = seqs.index(18)
+    assert seqs[k - 1] == 5 and t_arrive[k] - t_arrive[k - 1] > 0.55
