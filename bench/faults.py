@@ -69,6 +69,11 @@ T_PRE_S = 3.0  # normal running after READY=1 before the fault
 T_POST_S = 4.0  # running after the fault before SIGTERM
 READY_TIMEOUT_S = 120.0  # the first start on a machine compiles the numba kernels (~20-60 s)
 ERR_MARGIN_M = 0.5  # the error against truth may exceed the fault-free run's by this much
+# a fault that leaves the rover unmeasured (a frozen host: no frame and no odometry) may add a
+# third of the distance driven blind: no sensor saw that motion, and no guess knows a 4 s turn
+# (docs/reliability.md, "Across a stall"); the same bound as tests/robotd/test_stall.py
+BLIND_FRACTION = 1.0 / 3.0
+SIM_SPEED_MPS = 1.0  # sim://'s default speed (drivers/sim.py SimParams.speed)
 LANDMARK_FACTOR = 3.0  # the saved map may hold this many times the fault-free run's landmarks
 MAVLINK_TRACK_M = 0.4  # the mock autopilot's track width (its WHEEL_DISTANCE geometry)
 ROBOT = "r1"
@@ -648,6 +653,7 @@ def judge_running(
     *,
     shown: str | None,
     problem: str | None = None,
+    blind_m: float = 0.0,
 ) -> None:
     """The common verdict of a fault the daemon must run through: it was alive until SIGTERM,
     stepped after the fault, stopped with 0 and no traceback; its error against truth after the
@@ -663,7 +669,7 @@ def judge_running(
     base = suite.baseline(run.vehicle_kind)
     errs = run.errors_vs_truth(after=t_fault)
     err_max = max(errs) if errs else math.nan
-    bound = base.err_max_m + ERR_MARGIN_M
+    bound = base.err_max_m + max(ERR_MARGIN_M, BLIND_FRACTION * blind_m)
     path = run.state_dir / MAP_FILENAME
     info = map_info(path) if path.exists() else {"loads": False, "landmarks": None}
     lm_bound = LANDMARK_FACTOR * base.landmarks
@@ -723,8 +729,10 @@ def running_fault(
     shown: str | None,
     problem: str | None = None,
     config: dict[str, dict[str, Any]] | None = None,
+    blind_m: float = 0.0,
 ) -> Run:
-    """Start, run T_PRE_S, ``inject``, wait ``fault_s``, ``end`` it, run T_POST_S, SIGTERM, judge."""
+    """Start, run T_PRE_S, ``inject``, wait ``fault_s``, ``end`` it, run T_POST_S, SIGTERM, judge.
+    ``blind_m``: the distance the rover drives while nothing measures it (see BLIND_FRACTION)."""
     suite.baseline(vehicle)  # first, so that nothing else runs beside the daemon under test
     run = Run(suite, name, vehicle=vehicle, config=config)
     try:
@@ -741,7 +749,7 @@ def running_fault(
         sleep_until(t_fault + fault_s + T_POST_S)
         alive = res.check("alive until SIGTERM", run.alive(), "survived")
         code = run.stop()
-        judge_running(suite, res, run, t_fault, code, shown=shown, problem=problem)
+        judge_running(suite, res, run, t_fault, code, shown=shown, problem=problem, blind_m=blind_m)
         res.survived &= alive
     finally:
         run.close()
@@ -1298,7 +1306,7 @@ def _camera_unplug(suite: Suite, res: Result) -> None:
     "runtime",
     "the daemon frozen 4 s (SIGSTOP, SIGCONT): no frames processed, then a 4 s backlog",
     KEEPS_RUNNING
-    + "; the stall is shown; the estimate after it should stay bounded (the SLAM-core fix is separate work)",
+    + "; the stall is shown; the error after it within the fault-free run's plus a third of the 4 m driven blind",
 )
 def _frame_stall(suite: Suite, res: Result) -> None:
     def inject(run: Run) -> None:
@@ -1309,9 +1317,18 @@ def _frame_stall(suite: Suite, res: Result) -> None:
         assert run.proc is not None
         run.proc.send_signal(signal.SIGCONT)
 
-    running_fault(suite, res, "frame_stall_4s", "sim", inject, fault_s=4.0, end=end, shown=r"stall: ", problem=r"stall")
-    if res.data_lost:
-        res.note = "known: the SLAM core after a long unmeasured gap (docs/reliability.md, Stalls); fixed separately"
+    running_fault(
+        suite,
+        res,
+        "frame_stall_4s",
+        "sim",
+        inject,
+        fault_s=4.0,
+        end=end,
+        shown=r"stall: ",
+        problem=r"stall",
+        blind_m=4.0 * SIM_SPEED_MPS,
+    )
 
 
 def _zenoh_session(mode: str, *, listen: list[str] | None = None, connect: list[str] | None = None) -> Any:
