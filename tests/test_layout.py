@@ -14,6 +14,7 @@ from pathlib import Path
 from tests.support.paths import REPO
 
 PACKAGES = ("robotd", "drivers", "calib", "systemd")
+MIRRORED = (*PACKAGES, "bench")  # bench/ holds scripts, not a package: tests/bench/ tests them
 TESTS = REPO / "tests"
 # repository-wide tests that belong to no one module
 TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py", "test_dev.py"}  # the last mirrors dev.py at the root
@@ -34,7 +35,7 @@ def test_every_test_directory_mirrors_a_source_directory() -> None:
         rel = d.relative_to(TESTS)
         if rel.parts[0] in NOT_MIRRORS or "__pycache__" in rel.parts:
             continue
-        if rel.parts[0] not in PACKAGES or not (REPO / rel).is_dir():
+        if rel.parts[0] not in MIRRORED or not (REPO / rel).is_dir():
             bad.append(f"tests/{rel.as_posix()}/ mirrors no source directory {rel.as_posix()}/")
         if not (d / "__init__.py").is_file():
             bad.append(f"tests/{rel.as_posix()}/ has no __init__.py (its modules would not be tests.*)")
