@@ -309,37 +309,41 @@ def run_target(factory: Callable[[], Any], name: str, n: int, seed: int, finding
     while start < n:
         w = _Incarnation(ctx, factory, res, seed, start, pending, findings, hang_s, quiet, log)
         res.workers += 1
-        t_spawn = last_log = time.monotonic()
-        lost: int | None = None
-        while not w.done and lost is None:
-            w.receive(0.1)
-            t = time.monotonic()
-            if w.ready and ready_at is None:
-                ready_at = t
-            if time_limit_s is not None and ready_at is not None and t - ready_at > time_limit_s:
-                w.stop_flag.value = 1
-                res.stopped_by_time_limit = True
-            running = w.running()
-            if not w.ready and t - t_spawn > SETUP_TIMEOUT_S:
+        try:
+            t_spawn = last_log = time.monotonic()
+            lost: int | None = None
+            while not w.done and lost is None:
+                w.receive(0.1)
+                t = time.monotonic()
+                if w.ready and ready_at is None:
+                    ready_at = t
+                if time_limit_s is not None and ready_at is not None and t - ready_at > time_limit_s:
+                    w.stop_flag.value = 1
+                    res.stopped_by_time_limit = True
+                running = w.running()
+                if not w.ready and t - t_spawn > SETUP_TIMEOUT_S:
+                    w.proc.kill()
+                    raise RuntimeError(f"{name}: the worker did not finish its setup in {SETUP_TIMEOUT_S:.0f} s")
+                if running is not None and t - running[1] > hang_s:  # the watchdog
+                    lost = running[0]
+                    w.lost(lost, "hang", f"still running after {hang_s} s (killed)")
+                elif not w.done and (w.eof or not w.proc.is_alive()):
+                    w.receive(0.0)
+                    if w.done:
+                        break
+                    w.proc.join()
+                    code = w.proc.exitcode or 0
+                    how = f"signal {-code}" if code < 0 else f"exit code {code}"
+                    if running is None:
+                        raise RuntimeError(f"{name}: the worker ended outside an input ({how}); see it with --verbose")
+                    lost = running[0]  # died on an input (a signal, the OOM killer, os._exit): a crash
+                    w.lost(lost, "crash", f"the worker process died ({how})")
+                elif t - last_log > 30:
+                    log(f"{name}: {start + int(w.shared[DONE])}/{n} inputs, {res.crashes} crashes, {res.hangs} hangs")
+                    last_log = t
+        finally:  # interrupted (Ctrl-C, SIGTERM): the worker goes too
+            if w.proc.is_alive() and not w.done:
                 w.proc.kill()
-                raise RuntimeError(f"{name}: the worker did not finish its setup in {SETUP_TIMEOUT_S:.0f} s")
-            if running is not None and t - running[1] > hang_s:  # the watchdog
-                lost = running[0]
-                w.lost(lost, "hang", f"still running after {hang_s} s (killed)")
-            elif not w.done and (w.eof or not w.proc.is_alive()):
-                w.receive(0.0)
-                if w.done:
-                    break
-                w.proc.join()
-                code = w.proc.exitcode or 0
-                how = f"signal {-code}" if code < 0 else f"exit code {code}"
-                if running is None:
-                    raise RuntimeError(f"{name}: the worker ended outside an input ({how}); see it with --verbose")
-                lost = running[0]  # died on an input (a signal, the OOM killer, os._exit): a crash
-                w.lost(lost, "crash", f"the worker process died ({how})")
-            elif t - last_log > 30:
-                log(f"{name}: {start + int(w.shared[DONE])}/{n} inputs, {res.crashes} crashes, {res.hangs} hangs")
-                last_log = t
         w.close()
         res.setup_s += w.setup_s
         if lost is None or res.stopped_by_time_limit:
@@ -452,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--verbose", action="store_true", help="let the workers print (libpng, log lines)")
     ap.add_argument("--replay", type=Path, help="run one saved reproducer (.json) again, in this process")
     args = ap.parse_args(argv)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))  # so that the worker is ended too
     if args.replay is not None:
         if not args.replay.is_file():
             ap.error(f"--replay {args.replay}: no such file")

@@ -45,18 +45,19 @@ class Choices(Protocol):
 
 
 class Drawn:
-    """``Choices`` drawn by hypothesis (so that it can shrink a failing input)."""
+    """``Choices`` drawn by hypothesis (so that it can shrink a failing input): ``Drawn(data.draw)``
+    in a test given ``st.data()``, ``Drawn(draw)`` in a composite strategy."""
 
-    def __init__(self, data: Any) -> None:
+    def __init__(self, draw: Callable[[Any], Any]) -> None:
         from hypothesis import strategies as st
 
-        self._data, self._st = data, st
+        self._draw, self._st = draw, st
 
     def choice(self, seq: Sequence[T]) -> T:
-        return self._data.draw(self._st.sampled_from(seq))
+        return self._draw(self._st.sampled_from(seq))
 
     def randint(self, a: int, b: int) -> int:
-        return self._data.draw(self._st.integers(a, b))
+        return self._draw(self._st.integers(a, b))
 
 
 @dataclass(frozen=True)
@@ -121,10 +122,11 @@ ODD_FLOATS = (math.nan, math.inf, -math.inf, 3.0e38, -3.0e38, 1e-40, 0.0, -0.0, 
 # ======================================================================================= serial
 
 
-def serial_target_link() -> Any:
+def serial_link(wheel_source: str = "ticks") -> Any:
+    """A serial link (never opened: no port) whose handler the fuzz tests call directly."""
     from drivers.serial_link import SerialVehicle
 
-    return SerialVehicle("serial:///dev/robotd-fuzz-not-opened?track_width_m=0.3")
+    return SerialVehicle("serial:///dev/robotd-fuzz-not-opened?track_width_m=0.3", wheel_source=wheel_source)
 
 
 def encode_stream(msgs: Sequence[Any]) -> tuple[bytes, list[tuple[int, int]]]:
@@ -235,7 +237,8 @@ class SerialTarget:
     """A stream of real frames (wheel odometry that mostly makes sense, with odd values among it:
     tick jumps, NaN and ±3e38 speeds, controls beyond ±1, MCU resets), damaged by
     ``mutate_stream``, fed to the decoder in random pieces (intact frames must come out), and the
-    decoded frames through the link's handler (nothing but counted errors; finite, gated odometry).
+    decoded frames through the link's handler, its odometry from ticks or from wheel speeds
+    (nothing but counted errors; finite, gated odometry).
     A raw piece also goes through ``decode_frame`` alone (only ``ProtocolError``)."""
 
     name = "serial"
@@ -275,20 +278,20 @@ class SerialTarget:
             mutations.append((kind, rng.randrange(10**6), rng.randbytes(rng.randint(1, 40))))
         mutated, touched = mutate_stream(stream, mutations)
         cuts = [rng.randint(1, 97) for _ in range(rng.randint(0, 30))]
-        return Case(mutated, (msgs, spans, touched, cuts))
+        return Case(mutated, (msgs, spans, touched, cuts, rng.choice(("ticks", "velocity"))))
 
     def check(self, case: Case) -> str:
         from drivers.serial_protocol import decode_frame
         from robotd.errors import ProtocolError
 
-        msgs, spans, touched, cuts = case.context
+        msgs, spans, touched, cuts, wheel_source = case.context
         try:
             decode_frame(case.data[: 1 + len(case.data) // 3])
         except ProtocolError:
             pass
         frames = check_decoded_stream(msgs, spans, case.data, touched, cuts)
         # the handler sees the frames with the MCU times they carry, arriving 10 ms apart
-        bad = check_serial_handler(serial_target_link(), frames, [10**12 + 10**7 * k for k in range(len(frames))])
+        bad = check_serial_handler(serial_link(wheel_source), frames, [10**12 + 10**7 * k for k in range(len(frames))])
         return "bad values" if bad else "clean"
 
 
@@ -761,7 +764,7 @@ def mutate_map_values(state: dict[str, Any], variant: tuple[str, int], c: Choice
     parent[path[-1]] = mutate_array(parent[path[-1]], c.choice(VALUE_OPS), c.randint(0, 2**31), c)
 
 
-class _Lines(logging.Handler):
+class LogLines(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.INFO)
         self.lines: list[str] = []
@@ -780,7 +783,7 @@ def resume_and_run(blob: bytes, variant: tuple[str, int]) -> str:
     from tests.support import saved_maps
 
     frames, _ = saved_maps.sim_frames()
-    log = _Lines()
+    log = LogLines()
     logger = logging.getLogger("robotd")
     level = logger.level
     logger.addHandler(log)
