@@ -876,7 +876,11 @@ def small_recording(tmp: Path) -> bytes:
 
     rng = np.random.default_rng(7)
     path = tmp / "small.mcap"
-    with SessionWriter(path, recording_model(), {"source": "fuzz"}, chunk_size=6 * 1024) as w:
+    # the wall clock fixed and no time-driven flushes: the same bytes in every process (bench/fuzz.py
+    # makes an input again from its seed and index)
+    with SessionWriter(
+        path, recording_model(), {"source": "fuzz"}, chunk_size=6 * 1024, flush_period_s=3600.0, wall_offset_ns=0
+    ) as w:
         for i in range(8):
             t = 1_000_000_000 + i * 33_333_333
             w.write_odometry(Odometry(t - 5, rng.normal(size=3), rng.normal(size=3), "sim", np.eye(6) * 0.01))
@@ -928,6 +932,21 @@ def rewrite_chunk(data: bytes, k: int, change: Callable[[bytes], bytes]) -> byte
     return data[:off] + struct.pack("<BQ", 0x06, len(rec)) + rec + data[off + 9 + n :]
 
 
+def edit_png(data: bytes, k: int, edit: Callable[[bytes], bytes]) -> bytes:
+    """The first PNG in chunk k passed through ``edit`` (PNG bytes -> PNG bytes of the same length),
+    the chunk's CRC fixed; in format 1 the PNG is base64 in JSON."""
+
+    def change(raw: bytes) -> bytes:
+        b64 = raw.find(b"iVBORw0KGgo")  # format 1: the PNG is base64 in JSON (same length after editing)
+        if b64 >= 0 and (raw.find(b"IHDR") < 0 or b64 < raw.find(b"IHDR")):
+            end = raw.index(b'"', b64)
+            return raw[:b64] + base64.b64encode(edit(base64.b64decode(raw[b64:end]))) + raw[end:]
+        at = raw.find(b"\x89PNG\r\n\x1a\n")
+        return raw if at < 0 else raw[:at] + edit(raw[at:])
+
+    return rewrite_chunk(data, k, change)
+
+
 def forge_png(data: bytes, k: int, width: int, height: int, depth: int) -> bytes:
     """The first PNG header in chunk k forged (IHDR width/height/bit depth) with a valid IHDR CRC
     and the chunk's CRC fixed, so only the image is wrong."""
@@ -940,14 +959,20 @@ def forge_png(data: bytes, k: int, width: int, height: int, depth: int) -> bytes
         struct.pack_into(">IIB", ihdr, 4, width, height, depth)
         return png[:at] + bytes(ihdr) + struct.pack(">I", zlib.crc32(bytes(ihdr))) + png[at + 21 :]
 
-    def change(raw: bytes) -> bytes:
-        b64 = raw.find(b"iVBORw0KGgo")  # format 1: the PNG is base64 in JSON (same length after forging)
-        if b64 >= 0 and (raw.find(b"IHDR") < 0 or b64 < raw.find(b"IHDR")):
-            end = raw.index(b'"', b64)
-            return raw[:b64] + base64.b64encode(forge(base64.b64decode(raw[b64:end]))) + raw[end:]
-        return forge(raw)
+    return edit_png(data, k, forge)
 
-    return rewrite_chunk(data, k, change)
+
+def forge_png_chunk_length(data: bytes, k: int, length: int, which: bytes = b"IDAT") -> bytes:
+    """The stated length of the first ``which`` chunk of the first PNG in chunk k forged (what
+    a PNG decoder may allocate before reading it), the recording's chunk CRC fixed."""
+
+    def forge(png: bytes) -> bytes:
+        at = png.find(which)
+        if at < 4:
+            return png
+        return png[: at - 4] + struct.pack(">I", length % 2**32) + png[at:]
+
+    return edit_png(data, k, forge)
 
 
 def flip(data: bytes, flips: Sequence[tuple[float, int]]) -> bytes:
@@ -1014,8 +1039,8 @@ PNG_SIDES = (0, 1, 40, 64, 65535, 2**31 - 1, 2**32 - 1)
 class RecordingTarget:
     """A small real format-2 recording and the real format-1 one in tests/support/data, damaged
     as in test_fuzz_recording.py (bytes flipped raw or behind valid chunk CRCs, truncation,
-    duplicated chunks, forged record lengths and chunk sizes, forged PNG headers) or by
-    ``mutate_bytes``. Oracle: ``read_all`` (the time bound is the bench's watchdog)."""
+    duplicated chunks, forged record lengths and chunk sizes, forged PNG headers and PNG chunk
+    lengths) or by ``mutate_bytes``. Oracle: ``read_all`` (the time bound is the bench's watchdog)."""
 
     name = "recording"
 
@@ -1026,7 +1051,7 @@ class RecordingTarget:
     def generate(self, rng: random.Random) -> Case:
         data = self.originals[rng.choice(("format2", "format2", "format2", "format1"))]
         flips = [(rng.random(), rng.randint(1, 255)) for _ in range(rng.randint(1, 8))]
-        kind = rng.randrange(7)
+        kind = rng.randrange(8)
         if kind == 0:
             out = flip(data, flips)
         elif kind == 1:
@@ -1041,6 +1066,9 @@ class RecordingTarget:
         elif kind == 5:
             sides = [rng.choice(PNG_SIDES) if rng.random() < 0.5 else rng.randrange(2**32) for _ in (0, 1)]
             out = forge_png(data, rng.randrange(100), sides[0], sides[1], rng.choice((1, 8, 16)))
+        elif kind == 6:
+            length = rng.choice(RECORD_LENGTHS) if rng.random() < 0.5 else rng.randrange(2**32)
+            out = forge_png_chunk_length(data, rng.randrange(100), length, rng.choice((b"IDAT", b"IHDR", b"IEND")))
         else:
             out = mutate_bytes(data, rng, rng.randint(1, 8), list(self.originals.values()))
         return Case(out)

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from drivers.dataset import McapCamera
 from robotd.record import SessionReader
 from tests.fuzz.targets import (
     FORMAT1_RECORDING,
@@ -25,6 +26,7 @@ from tests.fuzz.targets import (
     flip,
     forge_length,
     forge_png,
+    forge_png_chunk_length,
     read_all,
     rewrite_chunk,
     small_recording,
@@ -113,6 +115,30 @@ def test_forged_png_headers(originals, tmp_path: Path, which: str, k: int, w: in
     p = tmp_path / "m.mcap"
     p.write_bytes(forge_png(originals[which], k, w, h, depth))
     read_all(p)
+
+
+@FUZZ
+@given(which=WHICH, k=st.integers(0, 100), length=SIDES, chunk=st.sampled_from([b"IDAT", b"IHDR", b"IEND"]))
+def test_forged_png_chunk_lengths(originals, tmp_path: Path, which: str, k: int, length: int, chunk: bytes) -> None:
+    p = tmp_path / "m.mcap"
+    p.write_bytes(forge_png_chunk_length(originals[which], k, length, chunk))
+    read_all(p)
+
+
+def test_a_forged_png_chunk_length_stops_the_read_without_allocating_it(originals, tmp_path: Path) -> None:
+    """Found by bench/fuzz.py (seed 1, recording inputs 378 and 15460): an IDAT length with its top
+    bits flipped (2.3 and 4.2 GB) behind valid CRCs made OpenCV allocate that much and take 6–9 s
+    for one 2 kB image."""
+    p = tmp_path / "m.mcap"
+    p.write_bytes(forge_png_chunk_length(originals["format2"], 3, 2_332_034_984))  # chunk 3: frame 2
+    before = _rss_mb()
+    with McapCamera(p) as cam:
+        n = sum(1 for _ in cam.frames())
+        assert 0 < n < 8 and cam.reader.stopped is not None and "PNG chunk" in cam.reader.stopped, cam.reader.stopped
+    assert _rss_mb() - before < 200, f"peak RSS grew {_rss_mb() - before:.0f} MB"
+    r = SessionReader(p)
+    assert 0 < sum(1 for _ in r.frames()) < 8
+    assert r.stopped is not None and "PNG chunk IDAT at byte 33 says 2332034984 bytes" in r.stopped, r.stopped
 
 
 def test_a_forged_png_header_stops_the_read_there_and_says_so(originals, tmp_path: Path) -> None:
