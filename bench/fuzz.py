@@ -15,11 +15,12 @@ again from its index alone.
 ``--inputs`` is split across the chosen targets by fixed weights (``WEIGHTS``) that follow each
 target's cost per input, so that no target takes most of the time: serial 35 %, MAVLink 35 %,
 config 20 %, recording 9 %, map file 1 % (the map target resumes and steps a SLAM pipeline, about
-0.2 s an input against 0.5 ms for the serial one). ``--per-target N`` gives each target N instead.
+0.15 s an input against 0.5 ms for the serial one). ``--per-target N`` gives each target N instead.
 
 Each target runs in a forked worker process, one at a time. A crash is any exception from the
 target's oracle (outside its clean-error contract, or an ``AssertionError`` for a broken
-invariant) or the worker dying on an input (a signal, the OOM killer); a hang is an input that
+invariant), one input raising the worker's peak RSS by more than ``--memory-mb`` (300 MB: a forged
+size allocated), or the worker dying on an input (a signal, the OOM killer); a hang is an input that
 runs longer than ``--hang-s`` (2 s): the watchdog kills the worker, counts the hang and starts a
 new worker after that input. Every crash and hang is saved under ``--out`` as the input's bytes
 (``.bin``) and a ``.json`` (target, seed, index, the traceback and its last line); ``--replay``
@@ -36,6 +37,7 @@ import multiprocessing as mp
 import os
 import platform
 import random
+import resource
 import signal
 import sys
 import time
@@ -51,10 +53,11 @@ from tests.fuzz.targets import TARGETS
 
 WEIGHTS = {"serial": 0.35, "mavlink": 0.35, "config": 0.20, "recording": 0.09, "mapfile": 0.01}
 HANG_S = 2.0
+MEMORY_MB = 300.0  # one input raising the worker's peak RSS by more is a crash (a forged size allocated)
 SETUP_TIMEOUT_S = 600.0  # building the seed corpus (the map target steps SLAM on sim:// frames)
 # a worker's counts live in shared memory (exact even when the worker is killed): the input
 # running and since when (0: none), inputs done, their time, the slowest, then one count per outcome
-RUNNING, SINCE, DONE, BUSY_S, SLOWEST_S, SLOWEST_INDEX, OUTCOMES = range(7)
+RUNNING, SINCE, DONE, BUSY_S, SLOWEST_S, SLOWEST_INDEX, PEAK_MB, OUTCOMES = range(8)
 MAX_OUTCOMES = 16
 KEEP_PER_SITE = 5  # reproducers saved per distinct error (every crash is counted)
 
@@ -82,11 +85,16 @@ def case_rng(seed: int, name: str, index: int) -> random.Random:
 # ----------------------------------------------------------------------------------- the worker
 
 
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
 def _worker(factory: Callable[[], Any], name: str, seed: int, start: int, stop: int, regenerate: list[int],
-            conn: Any, shared: Any, stop_flag: Any, hang_s: float, quiet: bool) -> None:  # fmt: skip
+            conn: Any, shared: Any, stop_flag: Any, hang_s: float, memory_mb: float, quiet: bool) -> None:  # fmt: skip
     """Runs inputs start..stop-1 of ``name``, keeping its counts in ``shared`` (the layout above;
-    the watchdog reads RUNNING and SINCE) and sending crashes, slow inputs and the name of each
-    new outcome through ``conn``."""
+    the watchdog reads RUNNING and SINCE) and sending crashes (an exception, or the peak RSS
+    rising more than ``memory_mb`` on one input), slow inputs and the name of each new outcome
+    through ``conn``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     if quiet:  # libpng and the targets' log lines would bury the table
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -100,6 +108,7 @@ def _worker(factory: Callable[[], Any], name: str, seed: int, start: int, stop: 
     for i in regenerate:  # the inputs a killed worker was running: their bytes for the reproducers
         conn.send(("input", i, target.generate(case_rng(seed, name, i)).data))
     labels: dict[str, int] = {}
+    peak = shared[PEAK_MB] = _peak_rss_mb()
     for i in range(start, stop):
         if stop_flag.value:
             break
@@ -115,6 +124,12 @@ def _worker(factory: Callable[[], Any], name: str, seed: int, start: int, stop: 
             conn.send(("crash", i, tb, _last_line(tb), _site(exc), case.data))
             outcome = "crash"
         dt = time.perf_counter() - t
+        if (now_peak := _peak_rss_mb()) > peak:  # a high-water mark: each rise is this input's
+            if now_peak - peak > memory_mb and outcome != "crash":
+                error = f"peak RSS rose {now_peak - peak:.0f} MB to {now_peak:.0f} MB (limit {memory_mb:.0f} MB)"
+                conn.send(("crash", i, error, error, "peak RSS", case.data))
+                outcome = "crash"
+            peak = shared[PEAK_MB] = now_peak
         if outcome not in labels:
             labels[outcome] = min(len(labels), MAX_OUTCOMES - 1)  # the last slot: all the others
             conn.send(("outcome", labels[outcome], str(outcome)[:40]))
@@ -164,6 +179,7 @@ class TargetResult:
     slowest_s: float = 0.0
     slowest_index: int | None = None
     workers: int = 0
+    peak_rss_mb: float = 0.0
     outcomes: dict[str, int] = field(default_factory=dict)
     findings: list[dict[str, Any]] = field(default_factory=list)
     stopped_by_time_limit: bool = False
@@ -177,6 +193,7 @@ class TargetResult:
                 self.outcomes[label] = self.outcomes.get(label, 0) + int(shared[OUTCOMES + k])
         if shared[SLOWEST_S] > self.slowest_s:
             self.slowest_s, self.slowest_index = shared[SLOWEST_S], int(shared[SLOWEST_INDEX])
+        self.peak_rss_mb = max(self.peak_rss_mb, shared[PEAK_MB])
 
     def row(self) -> dict[str, Any]:
         return {
@@ -192,6 +209,7 @@ class TargetResult:
             "wall_s": round(self.wall_s, 1),
             "setup_s": round(self.setup_s, 1),
             "workers": self.workers,
+            "peak_rss_mb": round(self.peak_rss_mb),
             "outcomes": dict(sorted(self.outcomes.items())),
             "stopped_by_time_limit": self.stopped_by_time_limit,
         }
@@ -227,14 +245,14 @@ class _Incarnation:
     """One worker process of a target and the parent's side of its pipe and shared counts."""
 
     def __init__(self, ctx: Any, factory: Callable[[], Any], res: TargetResult, seed: int, start: int,
-                 pending: dict[int, dict[str, Any]], findings: Findings, hang_s: float, quiet: bool,
+                 pending: dict[int, dict[str, Any]], findings: Findings, hang_s: float, memory_mb: float, quiet: bool,
                  log: Callable[[str], None]) -> None:  # fmt: skip
         self.res, self.pending, self.findings, self.hang_s, self.log = res, pending, findings, hang_s, log
         self.shared = ctx.Array("d", OUTCOMES + MAX_OUTCOMES, lock=False)
         self.stop_flag = ctx.Value("b", 0, lock=False)
         self.conn, child_end = ctx.Pipe(duplex=False)
         args = (factory, res.name, seed, start, res.planned, sorted(pending), child_end, self.shared,
-                self.stop_flag, hang_s, quiet)  # fmt: skip
+                self.stop_flag, hang_s, memory_mb, quiet)  # fmt: skip
         self.proc = ctx.Process(target=_worker, args=args, daemon=True)
         self.proc.start()
         child_end.close()
@@ -297,8 +315,8 @@ class _Incarnation:
 
 
 def run_target(factory: Callable[[], Any], name: str, n: int, seed: int, findings: Findings, hang_s: float = HANG_S,
-               time_limit_s: float | None = None, quiet: bool = True, log: Callable[[str], None] = lambda s: None
-               ) -> TargetResult:  # fmt: skip
+               time_limit_s: float | None = None, quiet: bool = True, log: Callable[[str], None] = lambda s: None,
+               memory_mb: float = MEMORY_MB) -> TargetResult:  # fmt: skip
     """Inputs 0..n-1 of one target in worker processes; after a hang or a death, a new worker
     goes on after that input (and first makes its bytes again for the reproducer)."""
     ctx = mp.get_context("fork")  # the worker inherits the factory (tests inject their own)
@@ -308,7 +326,7 @@ def run_target(factory: Callable[[], Any], name: str, n: int, seed: int, finding
     ready_at: float | None = None
     t_begin = time.monotonic()
     while start < n:
-        w = _Incarnation(ctx, factory, res, seed, start, pending, findings, hang_s, quiet, log)
+        w = _Incarnation(ctx, factory, res, seed, start, pending, findings, hang_s, memory_mb, quiet, log)
         res.workers += 1
         try:
             t_spawn = last_log = time.monotonic()
@@ -359,7 +377,8 @@ def run_target(factory: Callable[[], Any], name: str, n: int, seed: int, finding
 
 def run(names: list[str], counts: dict[str, int], seed: int, out: Path, hang_s: float = HANG_S,
         time_limit_s: float | None = None, factories: dict[str, Callable[[], Any]] | None = None,
-        quiet: bool = True, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:  # fmt: skip
+        quiet: bool = True, log: Callable[[str], None] = lambda s: None,
+        memory_mb: float = MEMORY_MB) -> dict[str, Any]:  # fmt: skip
     """The whole run: each target in turn; the JSON document ``--json`` prints."""
     factories = factories or TARGETS
     findings = Findings(out, seed, hang_s)
@@ -367,13 +386,16 @@ def run(names: list[str], counts: dict[str, int], seed: int, out: Path, hang_s: 
     results = []
     for name in names:
         log(f"{name}: {counts[name]} inputs")
-        res = run_target(factories[name], name, counts[name], seed, findings, hang_s, time_limit_s, quiet, log)
+        res = run_target(
+            factories[name], name, counts[name], seed, findings, hang_s, time_limit_s, quiet, log, memory_mb
+        )
         log(f"{name}: {res.inputs} inputs, {res.crashes} crashes, {res.hangs} hangs in {res.wall_s:.0f} s")
         results.append(res)
     rows = [r.row() for r in results]
     return {
         "seed": seed,
         "hang_s": hang_s,
+        "memory_mb": memory_mb,
         "time_limit_s": time_limit_s,
         "targets": rows,
         "total": {
@@ -455,15 +477,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--time-limit", type=float, help="at most this many seconds per target")
     ap.add_argument("--hang-s", type=float, default=HANG_S, help="an input taking longer is a hang (default 2)")
+    ap.add_argument("--memory-mb", type=float, default=MEMORY_MB,
+                    help="one input raising the peak RSS by more is a crash (default 300)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=Path("fuzz-out"), help="reproducers go here (default fuzz-out/)")
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--verbose", action="store_true", help="let the workers print (libpng, log lines)")
     ap.add_argument("--replay", type=Path, help="run one saved reproducer (.json) again, in this process")
     args = ap.parse_args(argv)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))  # so that the worker is ended too
     if args.replay is not None:
-        if not args.replay.is_file():
-            ap.error(f"--replay {args.replay}: no such file")
+        try:
+            doc = json.loads(args.replay.read_text())
+            ok = doc["target"] in TARGETS and all(isinstance(doc[k], int) for k in ("seed", "index"))
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            ap.error(f"--replay {args.replay}: not a reproducer written by this bench ({type(exc).__name__}: {exc})")
+        if not ok:
+            ap.error(f"--replay {args.replay}: not a reproducer of one of {', '.join(TARGETS)}")
         return replay(args.replay)
     names = [n.strip() for n in args.targets.split(",") if n.strip()]
     unknown = [n for n in names if n not in TARGETS]
@@ -471,15 +499,16 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--targets: unknown {', '.join(unknown) or '(none given)'}; expected some of {', '.join(TARGETS)}")
     if args.inputs < len(names) or (args.per_target is not None and args.per_target < 1):
         ap.error(f"--inputs {args.inputs}: at least one per target ({len(names)})")
-    if args.hang_s <= 0 or (args.time_limit is not None and args.time_limit <= 0):
-        ap.error("--hang-s and --time-limit must be > 0")
+    if args.hang_s <= 0 or args.memory_mb <= 0 or (args.time_limit is not None and args.time_limit <= 0):
+        ap.error("--hang-s, --memory-mb and --time-limit must be > 0")
     counts = {n: args.per_target for n in names} if args.per_target else plan(args.inputs, names)
     doc = run(names, counts, args.seed, args.out, args.hang_s, args.time_limit, quiet=not args.verbose,
-              log=lambda s: print(s, file=sys.stderr, flush=True))  # fmt: skip
+              log=lambda s: print(s, file=sys.stderr, flush=True), memory_mb=args.memory_mb)  # fmt: skip
     doc["command"] = "python bench/fuzz.py " + " ".join(sys.argv[1:] if argv is None else argv)
     print(json.dumps(doc) if args.json else table(doc))
     return 1 if doc["total"]["crashes"] or doc["total"]["hangs"] else 0
 
 
 if __name__ == "__main__":
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))  # so that the worker is ended too
     sys.exit(main())

@@ -1,7 +1,7 @@
 """bench/fuzz.py (the long fuzz runs of issue 15): a short run over the five real targets gives
 the JSON document it documents, and the bench can fail: a target whose oracle raises, kills its
-worker or hangs is counted (crash, crash, hang), its reproducers are saved and replay, and the
-exit status is 1."""
+worker, uses 100 MB or hangs is counted (crash, crash, crash, hang), its reproducers are saved
+and replay, and the exit status is 1."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 
 from tests.fuzz.targets import TARGETS, Case
@@ -72,7 +73,7 @@ def test_inputs_are_deterministic_from_the_seed() -> None:
 
 class Faulty:
     """A target with planted faults: byte 0-9 an exception, 10 the worker killed by a signal,
-    11-13 a hang; everything else clean."""
+    11-13 a hang, 14 100 MB allocated; everything else clean."""
 
     name = "faulty"
 
@@ -90,6 +91,8 @@ class Faulty:
             os.kill(os.getpid(), signal.SIGKILL)  # as the OOM killer does
         if b in (11, 12, 13):
             time.sleep(30)
+        if b == 14:  # returns normally, but having used 100 MB (a forged size believed)
+            return "clean" if np.ones(12_500_000).sum() else "?"
         return "clean"
 
 
@@ -101,23 +104,27 @@ def test_planted_crashes_and_hangs_are_counted_saved_and_replayed(
     n = 150
     kinds = [bench.case_rng(1, "faulty", i).randrange(100) for i in range(n)]
     raised, died, hung = sum(k < 10 for k in kinds), kinds.count(10), sum(k in (11, 12, 13) for k in kinds)
-    assert raised and died and hung  # the seed plants each kind
+    hogs = kinds.count(14)  # each in another worker (a death or hang between): each raises its peak
+    assert raised and died and hung and hogs  # the seed plants each kind
     out = tmp_path / "out"
-    code = bench.main(["--json", "--targets", "faulty", "--per-target", str(n), "--hang-s", "0.5", "--out", str(out)])
+    args = ["--targets", "faulty", "--per-target", str(n), "--hang-s", "0.5", "--memory-mb", "50", "--out", str(out)]
+    code = bench.main(["--json", *args])
     doc = json.loads(capsys.readouterr().out)
     assert code == 1
     (row,) = doc["targets"]
-    assert (row["inputs"], row["crashes"], row["hangs"]) == (n, raised + died, hung)
+    assert (row["inputs"], row["crashes"], row["hangs"]) == (n, raised + died + hogs, hung)
     assert row["workers"] == 1 + died + hung  # a new worker after each death and each hang
-    assert row["outcomes"] == {"clean": n - raised - died - hung}  # the rest finished
+    assert row["outcomes"] == {"clean": n - raised - died - hung - hogs}  # the rest finished
     by_index = {f["index"]: f for f in doc["findings"]}
-    assert sorted(by_index) == [i for i, k in enumerate(kinds) if k <= 13]
+    assert sorted(by_index) == [i for i, k in enumerate(kinds) if k <= 14]
     for i, f in by_index.items():
-        assert f["kind"] == ("hang" if kinds[i] > 10 else "crash")
+        assert f["kind"] == ("hang" if kinds[i] in (11, 12, 13) else "crash")
         if kinds[i] < 10:
             assert f["error"] == f"KeyError: 'planted {kinds[i]}'"
         elif kinds[i] == 10:
             assert f["error"] == f"the worker process died (signal {int(signal.SIGKILL)})"
+        elif kinds[i] == 14:
+            assert f["error"].startswith("peak RSS rose ") and f["error"].endswith("(limit 50 MB)")
     # reproducers: the input's bytes (also for the killed inputs) and a replayable .json
     seg = next(f for i, f in by_index.items() if kinds[i] == 10)
     assert Path(seg["reproducer"]).with_suffix(".bin").read_bytes() == bytes([10])
@@ -129,12 +136,16 @@ def test_planted_crashes_and_hangs_are_counted_saved_and_replayed(
     assert "python bench/fuzz.py --replay " in bench.table(doc)
 
 
-def test_bad_arguments_exit_2_and_the_split_of_the_inputs(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_arguments_exit_2_and_the_split_of_the_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bench = _bench()
     with pytest.raises(SystemExit) as exc:
         bench.main(["--targets", "serial,nope"])
     assert exc.value.code == 2
     assert "--targets: unknown nope" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--replay", str(tmp_path / "missing.json")])
+    assert exc.value.code == 2
+    assert "--replay" in capsys.readouterr().err.splitlines()[-1]
     assert bench.plan(1_000_000, list(bench.WEIGHTS)) == {
         "serial": 350_000, "mavlink": 350_000, "config": 200_000, "recording": 90_000, "mapfile": 10_000,
     }  # fmt: skip
