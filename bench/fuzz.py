@@ -40,6 +40,7 @@ import random
 import resource
 import signal
 import sys
+import tempfile
 import time
 import traceback
 from collections.abc import Callable
@@ -384,13 +385,19 @@ def run(names: list[str], counts: dict[str, int], seed: int, out: Path, hang_s: 
     findings = Findings(out, seed, hang_s)
     t0 = time.monotonic()
     results = []
-    for name in names:
-        log(f"{name}: {counts[name]} inputs")
-        res = run_target(
-            factories[name], name, counts[name], seed, findings, hang_s, time_limit_s, quiet, log, memory_mb
-        )
-        log(f"{name}: {res.inputs} inputs, {res.crashes} crashes, {res.hangs} hangs in {res.wall_s:.0f} s")
-        results.append(res)
+    saved_tempdir = tempfile.tempdir
+    with tempfile.TemporaryDirectory(prefix="robotd-fuzz-") as tmp:
+        tempfile.tempdir = tmp  # the workers' scratch files (also a killed worker's) go here and go with it
+        try:
+            for name in names:
+                log(f"{name}: {counts[name]} inputs")
+                res = run_target(
+                    factories[name], name, counts[name], seed, findings, hang_s, time_limit_s, quiet, log, memory_mb
+                )
+                log(f"{name}: {res.inputs} inputs, {res.crashes} crashes, {res.hangs} hangs in {res.wall_s:.0f} s")
+                results.append(res)
+        finally:
+            tempfile.tempdir = saved_tempdir
     rows = [r.row() for r in results]
     return {
         "seed": seed,

@@ -11,6 +11,7 @@ import os
 import random
 import signal
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import ModuleType
@@ -34,8 +35,13 @@ def _bench() -> ModuleType:
 ROW_KEYS = {"target", "inputs", "planned", "crashes", "hangs", "inputs_per_s", "slowest_input_ms", "outcomes"}
 
 
-def test_a_short_run_over_the_five_targets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_short_run_over_the_five_targets(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     bench = _bench()
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     # 1000 inputs by the weights: 350 serial and MAVLink, 200 config, 90 recordings, 10 maps
     code = bench.main(["--json", "--inputs", "1000", "--seed", "5", "--out", str(tmp_path / "out")])
     doc = json.loads(capsys.readouterr().out)
@@ -55,6 +61,7 @@ def test_a_short_run_over_the_five_targets(tmp_path: Path, capsys: pytest.Captur
     assert {"read", "stopped"} <= set(rows["recording"]["outcomes"])
     assert set(rows["mavlink"]["outcomes"]) == {"clean", "bad data"}
     assert not (tmp_path / "out").exists()  # nothing to reproduce
+    assert not list(scratch.iterdir())  # the workers' scratch files are gone
 
 
 def test_inputs_are_deterministic_from_the_seed() -> None:
