@@ -14,8 +14,8 @@ again from its index alone.
 
 ``--inputs`` is split across the chosen targets by fixed weights (``WEIGHTS``) that follow each
 target's cost per input, so that no target takes most of the time: serial 35 %, MAVLink 35 %,
-config 20 %, recording 9 %, map file 1 % (the map target resumes and steps a SLAM pipeline, about
-0.15 s an input against 0.5 ms for the serial one). ``--per-target N`` gives each target N instead.
+config 20 %, recording 9 %, map file 1 % (the map target resumes and steps a SLAM pipeline,
+0.08–0.15 s an input, against 0.2–0.5 ms for the serial one). ``--per-target N`` gives each target N instead.
 
 Each target runs in a forked worker process, one at a time. A crash is any exception from the
 target's oracle (outside its clean-error contract, or an ``AssertionError`` for a broken
