@@ -8,9 +8,6 @@ documents).
 
 from __future__ import annotations
 
-import dataclasses
-import datetime
-import math
 import os
 import tempfile
 from pathlib import Path
@@ -19,66 +16,11 @@ from typing import Any
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from robotd.config import Config, load_config, to_toml
-from robotd.errors import ConfigError
-from tests.support.paths import REPO
+from tests.fuzz.targets import CONFIG_TOKENS, SHIPPED_CONFIG, Drawn, check_config, config_sections, damage_text
+from tests.fuzz.targets import toml_document as _document
 
 MAX_EXAMPLES = int(os.environ.get("ROBOTD_FUZZ_EXAMPLES", "150"))
-SHIPPED = (REPO / "config" / "robotd.toml").read_text(encoding="utf-8")
-
-SECTIONS = {f.name: [g.name for g in dataclasses.fields(getattr(Config(), f.name))] for f in dataclasses.fields(Config)}
-
-# ------------------------------------------------------------------------- a TOML writer for the test
-
-
-def _key(k: str) -> str:
-    bare = k and all(c.isascii() and (c.isalnum() or c in "_-") for c in k)
-    return k if bare else _string(k)
-
-
-def _string(s: str) -> str:
-    out = []
-    for c in s:
-        if c in '"\\':
-            out.append("\\" + c)
-        elif ord(c) < 0x20 or ord(c) == 0x7F:
-            out.append(f"\\u{ord(c):04X}")
-        else:
-            out.append(c)
-    return '"' + "".join(out) + '"'
-
-
-def _value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
-    if isinstance(v, str):
-        return _string(v)
-    if isinstance(v, datetime.datetime | datetime.date | datetime.time):
-        return v.isoformat()
-    if isinstance(v, list):
-        return "[" + ", ".join(_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{_key(k)} = {_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(type(v))
-
-
-def _document(tree: dict[str, Any]) -> str:
-    lines: list[str] = []
-    tables: list[tuple[str, dict[str, Any]]] = []
-    for k, v in tree.items():
-        if isinstance(v, dict) and v and not any(isinstance(x, dict) for x in v.values()):
-            tables.append((k, v))
-        else:
-            lines.append(f"{_key(k)} = {_value(v)}")
-    for name, body in tables:
-        lines.append(f"[{_key(name)}]")
-        lines += [f"{_key(k)} = {_value(x)}" for k, x in body.items()]
-    return "\n".join(lines) + "\n"
-
+SECTIONS = config_sections()
 
 # ----------------------------------------------------------------------------------- strategies
 
@@ -119,36 +61,14 @@ def documents(draw: st.DrawFn) -> str:
 
 @st.composite
 def mutated_shipped(draw: st.DrawFn) -> bytes:
-    data = bytearray(SHIPPED.encode())
-    for _ in range(draw(st.integers(1, 4))):
-        at = draw(st.integers(0, len(data)))
-        kind = draw(st.sampled_from(("insert", "delete", "replace")))
-        chunk = draw(st.binary(min_size=1, max_size=6) | st.sampled_from((b"[", b"]", b'"', b"=", b"\n", b"\\u")))
-        if kind == "insert":
-            data[at:at] = chunk
-        elif kind == "delete":
-            del data[at : at + len(chunk)]
-        else:
-            data[at : at + len(chunk)] = chunk
-    return bytes(data)
-
-
-# ------------------------------------------------------------------------------------- property
+    c = Drawn(draw)
+    chunk = st.binary(min_size=1, max_size=6) | st.sampled_from(CONFIG_TOKENS[:6])
+    return damage_text(SHIPPED_CONFIG.encode(), c, c.randint(1, 4), lambda: draw(chunk))
 
 
 def _check(blob: bytes) -> None:
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "c.toml"
-        path.write_bytes(blob)
-        try:
-            cfg = load_config(path)
-        except ConfigError as exc:
-            msg = str(exc)
-            assert msg and "\n" not in msg and "\r" not in msg, repr(msg)
-            return
-        out = Path(tmp) / "printed.toml"
-        out.write_text(to_toml(cfg, with_docs=True), encoding="utf-8")
-        assert load_config(out) == cfg
+        check_config(blob, Path(tmp))
 
 
 @settings(max_examples=MAX_EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -12,34 +12,22 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.mavlink_link import MavlinkVehicle, mavlink_module
+from drivers.mavlink_link import mavlink_module
 from robotd.odometry import OdometryGate
-from tests.support.odometry_checks import assert_finite_and_gated
+from tests.fuzz.targets import (
+    AUTOPILOT,
+    INT_RANGES,
+    MAVLINK_KINDS,
+    check_mavlink_link,
+    dispatch_checked,
+    mavlink_classes,
+    mavlink_link_with_autopilot,
+    mavlink_parse,
+    mavlink_wire,
+)
 
 m = mavlink_module()
-KINDS = (
-    "HEARTBEAT",
-    "SYSTEM_TIME",
-    "TIMESYNC",
-    "ATTITUDE",
-    "WHEEL_DISTANCE",
-    "LOCAL_POSITION_NED",
-    "SERVO_OUTPUT_RAW",
-    "RC_CHANNELS",
-    "EKF_STATUS_REPORT",
-    "GPS_GLOBAL_ORIGIN",
-)
-CLASSES = {k: getattr(m, f"MAVLink_{k.lower()}_message") for k in KINDS}
-INT_RANGES = {
-    "uint8_t": (0, 255),
-    "int8_t": (-128, 127),
-    "uint16_t": (0, 0xFFFF),
-    "int16_t": (-(1 << 15), (1 << 15) - 1),
-    "uint32_t": (0, (1 << 32) - 1),
-    "int32_t": (-(1 << 31), (1 << 31) - 1),
-    "uint64_t": (0, (1 << 64) - 1),
-    "int64_t": (-(1 << 63), (1 << 63) - 1),
-}
+CLASSES = mavlink_classes()
 SPECIAL = st.sampled_from([math.nan, math.inf, -math.inf, 3.0e38, -3.0e38, 1e-40, 0.0, -1.0])
 
 
@@ -65,69 +53,32 @@ def message(draw: st.DrawFn, kind: str) -> Any:
     return cls(*args)
 
 
-def _wire(msg: Any, sysid: int, compid: int) -> Any:
-    """Pack ``msg`` as ``sysid``/``compid`` and parse it back: what the receive thread would see."""
-    tx = m.MAVLink(None, srcSystem=sysid, srcComponent=compid)
-    rx = m.MAVLink(None)
-    return rx.decode(bytearray(msg.pack(tx)))
-
-
-SENDERS = st.sampled_from([(1, 1), (1, 1), (1, 1), (2, 1), (1, 7)])  # mostly the autopilot
+SENDERS = st.sampled_from([AUTOPILOT, AUTOPILOT, AUTOPILOT, (2, 1), (1, 7)])  # mostly the autopilot
 ITEMS = st.lists(
-    st.tuples(st.sampled_from(KINDS).flatmap(message), SENDERS, st.integers(1, 200_000_000)),
+    st.tuples(st.sampled_from(MAVLINK_KINDS).flatmap(message), SENDERS, st.integers(1, 200_000_000)),
     min_size=1,
     max_size=40,
 )
 
 
-def _used_values_bad(msg: Any) -> bool:
-    """ATTITUDE and WHEEL_DISTANCE (wheels 0 and 1) carrying a non-finite value the link reads."""
-    kind = msg.get_type()
-    if kind == "ATTITUDE":
-        vals = [msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
-    elif kind == "WHEEL_DISTANCE":
-        vals = list(msg.distance[:2])
-    else:
-        return False
-    return not all(math.isfinite(v) for v in vals)
-
-
 @given(ITEMS)
 @settings(max_examples=150, deadline=None)
 def test_arbitrary_messages_never_raise_and_bad_values_are_counted(items) -> None:
-    link = MavlinkVehicle("mavlink+udp://127.0.0.1:14550", track_width_m=0.4)  # never opened: no socket
-    link._conn = type("Conn", (), {"mav": m.MAVLink(None)})()  # the heartbeat sets our srcSystem on it
     t_ns = 10**12
-    hb = m.MAVLink_heartbeat_message(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3)
-    link._dispatch(_wire(hb, 1, 1), t_ns, None)  # the autopilot is sysid 1, compid 1
+    link = mavlink_link_with_autopilot(t_ns)
     for msg, (sysid, compid), dt in items:
         t_ns += dt
-        rx = _wire(msg, sysid, compid)
-        before = link.c["bad_values"]
-        link._dispatch(rx, t_ns, None)  # never raises
-        if (sysid, compid) == (1, 1) and _used_values_bad(rx) and link.autopilot_sysid == 1:
-            if rx.get_type() == "ATTITUDE" or rx.count > 1:  # wheels 0 and 1 exist
-                assert link.c["bad_values"] == before + 1, rx
-    samples = link.drain()
-    assert len(samples) == link.c["odometry"]
-    assert_finite_and_gated(samples)
-    ctl = link.latest_controls()
-    assert ctl is None or (abs(ctl.throttle) <= 1.4 and abs(ctl.steering) <= 1.4)  # 800–2200 µs
-    st_ = link.stats()
-    assert st_["autopilot_sysid"] == 1  # nobody else took the autopilot's place
-    foreign = sum(1 for msg, sender, _ in items if sender != (1, 1) and msg.get_type() != "HEARTBEAT")
-    assert st_["rejected_source"] >= foreign
+        dispatch_checked(link, mavlink_parse(mavlink_wire(msg, sysid, compid)), t_ns)
+    foreign = sum(1 for msg, sender, _ in items if sender != AUTOPILOT and msg.get_type() != "HEARTBEAT")
+    check_mavlink_link(link, foreign)
 
 
 def test_wheel_distance_plus_10_km_is_refused_by_the_gate() -> None:
     # issue 15 item 1's MAVLink case: one WHEEL_DISTANCE sample 10 km ahead
-    link = MavlinkVehicle("mavlink+udp://127.0.0.1:14550", track_width_m=0.4)
-    link._conn = type("Conn", (), {"mav": m.MAVLink(None)})()
-    hb = m.MAVLink_heartbeat_message(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3)
-    link._dispatch(_wire(hb, 1, 1), 10**12, None)
+    link = mavlink_link_with_autopilot(10**12)
     for k, d in enumerate((0.0, 0.01, 10_000.0, 10_000.01)):
         wd = m.MAVLink_wheel_distance_message(1_000_000 + 20_000 * k, 2, [d, d] + [0.0] * 14)
-        link._dispatch(_wire(wd, 1, 1), 10**12 + 20_000_000 * (k + 1), None)
+        link._dispatch(mavlink_parse(mavlink_wire(wd, *AUTOPILOT)), 10**12 + 20_000_000 * (k + 1), None)
     samples = link.drain()
     gate = OdometryGate()
     verdicts = [gate.accept(s) for s in samples]

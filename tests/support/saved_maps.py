@@ -81,10 +81,19 @@ def saved_state(filt: str = "fastslam2", dim: int = 3) -> dict[str, Any]:
     return copy.deepcopy(_state(filt, dim))
 
 
-def seal(state: Any, robot: str = "r1", t_ns: int = 1, **top: Any) -> bytes:
-    """A map file holding ``state`` (arrays packed as robotd.codec does) with a valid checksum;
+def payload(state: Any, robot: str = "r1", t_ns: int = 1, **top: Any) -> bytes:
+    """The CBOR payload of a map file holding ``state`` (arrays packed as robotd.codec does);
     ``top`` replaces or adds top-level payload keys."""
     msg = {"schema": STATE_SCHEMA, "robot": robot, "saved_unix_s": 0.0, "t_ns": t_ns, "state": pack_tree(state)}
     msg.update(top)
-    payload = cbor2.dumps(msg)
-    return MAGIC + struct.pack("<Q", len(payload)) + payload + struct.pack("<I", zlib.crc32(payload))
+    return cbor2.dumps(msg)
+
+
+def seal_payload(data: bytes) -> bytes:
+    """A map file around any payload bytes (CBOR or not), its length and checksum valid."""
+    return MAGIC + struct.pack("<Q", len(data)) + data + struct.pack("<I", zlib.crc32(data))
+
+
+def seal(state: Any, robot: str = "r1", t_ns: int = 1, **top: Any) -> bytes:
+    """A map file holding ``state`` with a valid checksum (``payload`` for the arguments)."""
+    return seal_payload(payload(state, robot, t_ns, **top))
