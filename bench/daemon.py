@@ -44,21 +44,14 @@ def _free_port() -> int:
 
 
 def _overrides(pairs: list[str]) -> dict[str, dict[str, object]]:
-    """["slam.numba_threads=1", ...] -> {"slam": {"numba_threads": 1}} (values parsed as TOML)."""
-    import tomllib
+    """["slam.numba_threads=1", ...] -> {"slam": {"numba_threads": 1}} (robotd.config.parse_overrides)."""
+    from robotd.config import parse_overrides
+    from robotd.errors import ConfigError
 
-    out: dict[str, dict[str, object]] = {}
-    for kv in pairs:
-        key, _, val = kv.partition("=")
-        section, _, name = key.strip().partition(".")
-        if not (section and name and val):
-            raise SystemExit(f"--set: expected SECTION.KEY=VALUE, got {kv!r}")
-        try:
-            v = tomllib.loads(f"v = {val}")["v"]
-        except tomllib.TOMLDecodeError:
-            v = val  # a bare string
-        out.setdefault(section, {})[name] = v
-    return out
+    try:
+        return parse_overrides(pairs)
+    except ConfigError as exc:
+        raise SystemExit(str(exc)) from exc
 
 
 _PROBE = """

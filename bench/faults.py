@@ -46,7 +46,6 @@ import sys
 import tempfile
 import threading
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,7 +59,8 @@ from drivers.mavlink_mock import MockAutopilot  # noqa: E402
 from drivers.mcu_sim import McuSimulator, open_pty  # noqa: E402
 from drivers.serial_protocol import WHEEL_VEL_VALID, WheelOdometry  # noqa: E402
 from drivers.simworld import build_world  # noqa: E402
-from robotd.errors import PersistenceError  # noqa: E402
+from robotd.config import parse_overrides  # noqa: E402
+from robotd.errors import ConfigError, PersistenceError  # noqa: E402
 from robotd.persist import MAP_FILENAME, MapStore  # noqa: E402
 
 FPS = 10  # the simulated camera's rate: the daemon keeps up with it on a loaded 2-core machine
@@ -104,19 +104,11 @@ def to_toml(tree: dict[str, dict[str, Any]]) -> str:
 
 
 def parse_sets(pairs: list[str]) -> dict[str, dict[str, Any]]:
-    """["slam.n_particles=50", ...] -> {"slam": {"n_particles": 50}} (values read as TOML)."""
-    out: dict[str, dict[str, Any]] = {}
-    for kv in pairs:
-        key, _, val = kv.partition("=")
-        section, _, name = key.strip().partition(".")
-        if not (section and name and val):
-            raise SystemExit(f"faults: --set: expected SECTION.KEY=VALUE, got {kv!r}")
-        try:
-            value = tomllib.loads(f"v = {val}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = val
-        out.setdefault(section, {})[name] = value
-    return out
+    """["slam.n_particles=50", ...] -> {"slam": {"n_particles": 50}} (robotd.config.parse_overrides)."""
+    try:
+        return parse_overrides(pairs)
+    except ConfigError as exc:
+        raise SystemExit(f"faults: {exc}") from exc
 
 
 def merge(a: dict[str, dict[str, Any]], b: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:

@@ -428,3 +428,21 @@ def to_toml(cfg: Config, with_docs: bool = False) -> str:
             lines.append(f"{f.name} = {_toml_value(getattr(sub, f.name))}")
         lines.append("")
     return "\n".join(lines)
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, dict[str, Any]]:
+    """``["slam.n_particles=50", ...]`` -> ``{"slam": {"n_particles": 50}}``: command-line config
+    overrides (the benchmarks' ``--set``), each value read as TOML, else taken as a bare string.
+    Raises ConfigError naming the pair when it is not SECTION.KEY=VALUE."""
+    out: dict[str, dict[str, Any]] = {}
+    for kv in pairs:
+        key, _, val = kv.partition("=")
+        section, _, name = key.strip().partition(".")
+        if not (section and name and val):
+            raise ConfigError(f"--set: expected SECTION.KEY=VALUE, got {kv!r}")
+        try:
+            value = tomllib.loads(f"v = {val}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = val  # a bare string
+        out.setdefault(section, {})[name] = value
+    return out

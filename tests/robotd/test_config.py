@@ -175,3 +175,14 @@ def test_odd_documents_fail_in_one_line(tmp_path: Path, text: str, message: str)
     with pytest.raises(ConfigError, match=message) as err:
         load_config(p)
     assert "\n" not in str(err.value) and len(str(err.value)) < 400
+
+
+def test_parse_overrides_reads_toml_values_and_names_a_bad_pair() -> None:
+    from robotd.config import parse_overrides
+
+    got = parse_overrides(["slam.n_particles=50", "camera.url=sim://", "zenoh.listen=['tcp/127.0.0.1:7448']"])
+    assert got["slam"] == {"n_particles": 50} and got["camera"] == {"url": "sim://"}
+    assert got["zenoh"] == {"listen": ["tcp/127.0.0.1:7448"]}
+    for bad in ("n_particles=50", "slam.n_particles", "slam.=1"):
+        with pytest.raises(ConfigError, match="SECTION.KEY=VALUE"):
+            parse_overrides([bad])
