@@ -66,7 +66,7 @@ class McuSimStats:
     corrupted: int = 0
     skipped_seq: int = 0
     host_frames: int = 0
-    version_requests: int = 0
+    version_requests: int = 0  # counted once the reply is written
     resets: int = 0
     write_errors: int = 0
     poses: list[HostPose] = field(default_factory=list)
@@ -235,8 +235,8 @@ class McuSimulator:
         for fr in self._decoder.feed(data):
             self.stats.host_frames += 1
             if isinstance(fr.msg, VersionRequest):
-                self.stats.version_requests += 1
                 self.send(Version(PROTOCOL_VERSION, *FW_VERSION))
+                self.stats.version_requests += 1
             elif isinstance(fr.msg, HostPose):
                 self.stats.poses.append(fr.msg)
                 del self.stats.poses[:-100]  # keep the last 100 only

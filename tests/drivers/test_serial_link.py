@@ -322,6 +322,9 @@ def test_protocol_mismatch_is_degraded_while_frames_flow() -> None:
             assert wait_for(lambda: link.stats()["state"] == "ok", 2.0)
             from drivers.serial_protocol import Version
 
+            # The MCU's reply to the host's request on open must be in the stream before the wrong
+            # VERSION: the latest one wins, as after a reconnect (CI once saw the reply come second).
+            assert wait_for(lambda: sim.stats.version_requests >= 1, 2.0)
             sim.send(Version(9, 1, 0, 0))
             assert wait_for(lambda: link.stats()["version_mismatch"] == 1, 2.0)
             assert link.stats()["state"] == "degraded" and "version" in link.stats()["fault"]
