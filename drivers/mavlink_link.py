@@ -156,6 +156,9 @@ class MavlinkOptions:
     heartbeat_hz: float = 1.0
     timesync_hz: float = 1.0
     timesync_reply_hz: float = 20.0  # at most this many TIMESYNC replies a second (PX4 asks at up to 10 Hz)
+    # ATTITUDE's roll and pitch (the autopilot's gravity-referenced AHRS) go with each odometry
+    # sample as the direction of gravity, with this σ; 0: not used
+    gravity_sigma_deg: float = 2.0
     bind: str = ""  # udp mode=out: local address ("" = the one that routes to the target)
     request_rates: bool = True
     rates_hz: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_RATES_HZ))
@@ -186,6 +189,7 @@ _SCALARS: dict[str, type] = {
     "heartbeat_hz": float,
     "timesync_hz": float,
     "timesync_reply_hz": float,
+    "gravity_sigma_deg": float,
     "bind": str,
     "request_rates": bool,
     "signing_key": str,
@@ -246,6 +250,8 @@ def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
         v = getattr(opts, name)
         if not (math.isfinite(v) and v > 0):
             raise DriverError(f"{url!r}: {name}={v:g}: expected a finite variance > 0")
+    if not (math.isfinite(opts.gravity_sigma_deg) and 0 <= opts.gravity_sigma_deg <= 45):
+        raise DriverError(f"{url!r}: gravity_sigma_deg={opts.gravity_sigma_deg}: expected 0 (off) to 45")
     if not (math.isfinite(opts.timesync_reply_hz) and opts.timesync_reply_hz >= 0):
         raise DriverError(f"{url!r}: timesync_reply_hz={opts.timesync_reply_hz}: expected a number >= 0")
     if opts.bind:
@@ -669,7 +675,7 @@ class MavlinkVehicle(QueuedVehicleLink):
             rates = att[1]
         else:
             rates = np.zeros(3)  # forward speed only; the motion model inflates yaw noise
-        self._emit(Odometry(t, np.array([v, 0.0, 0.0]), np.asarray(rates, float), source="mavlink"))
+        self._emit(Odometry(t, np.array([v, 0.0, 0.0]), np.asarray(rates, float), "mavlink", *self._gravity(att)))
 
     def _unwrap_m(self, d: float) -> float:
         if d > WHEEL_WRAP_M:
@@ -692,7 +698,17 @@ class MavlinkVehicle(QueuedVehicleLink):
             raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
         # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
         v_R = euler_to_R(att[0]).T @ v_ned
-        self._emit(Odometry(t, v_R, att[1].copy(), source="mavlink"))
+        self._emit(Odometry(t, v_R, att[1].copy(), "mavlink", *self._gravity(att)))
+
+    def _gravity(self, att: tuple[np.ndarray, np.ndarray] | None) -> tuple[None, np.ndarray | None, float]:
+        """(cov, gravity_R, σ) of an Odometry: the direction of gravity in the body frame from the
+        autopilot's roll and pitch, R(rpy)^T (0, 0, 1), which does not depend on its yaw."""
+        sigma = math.radians(self.opts.gravity_sigma_deg)
+        if att is None or sigma <= 0:
+            return None, None, 0.0
+        roll, pitch = float(att[0][0]), float(att[0][1])
+        g = np.array([-math.sin(pitch), math.sin(roll) * math.cos(pitch), math.cos(roll) * math.cos(pitch)])
+        return None, g, sigma
 
     def _on_servo_output_raw(self, msg: Any, t_ns: int) -> None:
         o = self.opts

@@ -38,6 +38,11 @@ realtime   1        1: emit at capture times on time.monotonic_ns(); 0: as fast 
 noise      0.05     odometry speed noise, σ as a fraction of the speed (per sample)
 gyro_noise 0.005    gyro white noise σ [rad/s] (per sample)
 gyro_bias  0.002    gyro bias σ [rad/s], drawn once per seed and held constant
+gravity    1        1: each odometry sample carries the IMU's direction of gravity (roll and pitch
+                    against the vertical); 0: a rover without one
+gravity_noise 0.005 its white noise σ [rad] per axis (per sample)
+gravity_bias 0.005  its bias σ [rad] per axis, drawn once per seed and held
+gravity_sigma 0.02  the σ [rad] the simulated IMU states with each sample
 odom_hz    50       odometry rate [Hz] (1..1000)
 img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
 odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
@@ -111,6 +116,10 @@ class SimParams:
     noise: float = 0.05
     gyro_noise: float = 0.005
     gyro_bias: float = 0.002
+    gravity: int = 1
+    gravity_noise: float = 0.005
+    gravity_bias: float = 0.005
+    gravity_sigma: float = 0.02
     odom_hz: float = 50.0
     img_noise: float = 2.0
     odometry: int = 1
@@ -151,6 +160,10 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "noise": (float, 0.0, 1.0),
     "gyro_noise": (float, 0.0, 1.0),
     "gyro_bias": (float, 0.0, 1.0),
+    "gravity": (int, 0, 1),
+    "gravity_noise": (float, 0.0, 0.5),
+    "gravity_bias": (float, 0.0, 0.5),
+    "gravity_sigma": (float, 1e-4, 1.0),
     "odom_hz": (float, 1.0, 1000.0),
     "img_noise": (float, 0.0, 50.0),
     "odometry": (int, 0, 1),
@@ -227,9 +240,13 @@ class _Session:
         self.refs = 0
         rng = np.random.default_rng([params.seed, 8])
         self._gyro_bias_unit = rng.standard_normal(3)  # scaled by each link's gyro_bias
+        self._gravity_bias_unit = rng.standard_normal(3)  # scaled by each link's gravity_bias
 
     def gyro_bias(self, sigma: float) -> np.ndarray:
         return sigma * self._gyro_bias_unit
+
+    def gravity_bias(self, sigma: float) -> np.ndarray:
+        return sigma * self._gravity_bias_unit
 
 
 _SESSIONS: dict[tuple[int, str, float, float, float, float], _Session] = {}
@@ -544,6 +561,8 @@ class SimVehicle(Driver):
         self._autopilot = SimAutopilot(url, self.truth_T_world_robot)
         self._block_id = -1
         self._block = np.zeros((self._BLOCK, 6))
+        self._grav_block_id = -1
+        self._grav_block = np.zeros((self._BLOCK, 3))
 
     def __exit__(self, *exc: object) -> None:
         super().__exit__(*exc)
@@ -595,7 +614,27 @@ class SimVehicle(Driver):
         v = float(np.linalg.norm(truth.vel_R_mps))
         vel = truth.vel_R_mps + p.noise * v * np.array([1.0, 0.2, 0.2]) * n[:3]
         rate = truth.rate_R_radps + self._session.gyro_bias(p.gyro_bias) + p.gyro_noise * n[3:]
-        return Odometry(self.sample_t_ns(j), vel, rate, "sim")
+        if not p.gravity:
+            return Odometry(self.sample_t_ns(j), vel, rate, "sim")
+        return Odometry(
+            self.sample_t_ns(j), vel, rate, "sim", None, self._gravity(j, truth.T_world_robot), p.gravity_sigma
+        )
+
+    def _gravity(self, j: int, T_world_robot: np.ndarray) -> np.ndarray:
+        """The IMU's direction of gravity in the robot frame at sample j: the truth (the world's z
+        is the vertical: the rover starts level) tilted by a held bias and white noise, each a small
+        angle across the direction (σ gravity_bias, gravity_noise per axis)."""
+        assert self._session is not None
+        p = self.params
+        g = T_world_robot[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        block = j // self._BLOCK
+        if block != self._grav_block_id:
+            self._grav_block = np.random.default_rng([p.seed, 9, block]).standard_normal((self._BLOCK, 3))
+            self._grav_block_id = block
+        e = self._session.gravity_bias(p.gravity_bias) + p.gravity_noise * self._grav_block[j % self._BLOCK]
+        e -= (e @ g) * g  # across the direction: a tilt, not a change of length
+        g = g + e
+        return g / np.linalg.norm(g)  # type: ignore[no-any-return]
 
     def odometry(self, timeout_s: float = 1.0) -> Iterator[Odometry]:
         """Yield samples until ``duration`` or :meth:`close`. In real time a late consumer gets the

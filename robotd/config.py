@@ -141,6 +141,11 @@ class SlamConfig:
     motion_noise_scale: float = _f(
         1.0, "multiplier on the motion prior's covariance (odometry or visual motion)", min=0.01, max=100.0
     )
+    gravity: bool = _f(
+        True,
+        "3D: fuse the direction of gravity when the vehicle measures it (an autopilot's attitude, the"
+        " simulator's IMU): it holds the absolute roll and pitch, which vision and a gyro leave to drift",
+    )
     numba_threads: int = _f(0, "threads of the FastSLAM kernel; 0: one per core", min=0, max=256)
     blas_threads: int = _f(
         1,

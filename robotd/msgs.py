@@ -11,6 +11,7 @@ the rectified rig, world ``W`` is the robot frame at start-up (MAVLink LOCAL_FRD
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +32,17 @@ def _check_array(name: str, a: Any, shape: tuple[int | None, ...], finite: bool 
     if finite and a.dtype.kind == "f" and a.size and not np.all(np.isfinite(a)):
         raise InputError(f"{name}: expected finite values, got {int(np.sum(~np.isfinite(a)))} non-finite")
     return a
+
+
+def _check_gravity(owner: str, g: Any, sigma: float) -> None:
+    if g is None:
+        return
+    _check_array(f"{owner}.gravity_R", g, (3,))
+    n = float(np.linalg.norm(g))
+    if not 0.5 <= n <= 1.5:
+        raise InputError(f"{owner}.gravity_R: expected a direction (norm about 1), got norm {n:.3g}")
+    if not (isinstance(sigma, float | int) and math.isfinite(sigma) and 0.0 < sigma <= 1.0):
+        raise InputError(f"{owner}.gravity_sigma_rad: expected a noise in (0, 1] rad, got {sigma!r}")
 
 
 def _check_time(name: str, t_ns: Any) -> None:
@@ -85,6 +97,10 @@ class Odometry:
     rate_R_radps: np.ndarray  # (3,) [rad/s] roll, pitch, yaw rates (positive yaw turns right)
     source: str = "unknown"  # "wheels", "mavlink", "serial", "sim", "visual", "oxts", ...
     cov: np.ndarray | None = None  # (6, 6) [m²/s², m·rad/s², rad²/s²] over (vel, rate), or None
+    # the direction of gravity (down) in the robot frame at t_ns, from an accelerometer or the
+    # autopilot's attitude (its roll and pitch), with its angular noise σ [rad]; None: not measured
+    gravity_R: np.ndarray | None = None
+    gravity_sigma_rad: float = 0.0
 
     def __post_init__(self) -> None:
         _check_time("Odometry.t_ns", self.t_ns)
@@ -94,6 +110,7 @@ class Odometry:
             _check_array("Odometry.cov", self.cov, (6, 6))
             if not np.allclose(self.cov, self.cov.T) or np.any(np.diag(self.cov) < 0):
                 raise InputError("Odometry.cov: expected a symmetric matrix with a non-negative diagonal")
+        _check_gravity("Odometry", self.gravity_R, self.gravity_sigma_rad)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -110,6 +127,9 @@ class MotionIncrement:
     dp_R_m: np.ndarray  # (3,)
     drot_R_rad: np.ndarray  # (3,)
     cov: np.ndarray  # (6, 6)
+    # the latest measured direction of gravity in the robot frame at t1 (Odometry.gravity_R), or None
+    gravity_R: np.ndarray | None = None
+    gravity_sigma_rad: float = 0.0
 
     def __post_init__(self) -> None:
         _check_time("MotionIncrement.t0_ns", self.t0_ns)
@@ -119,6 +139,7 @@ class MotionIncrement:
         _check_array("MotionIncrement.dp_R_m", self.dp_R_m, (3,))
         _check_array("MotionIncrement.drot_R_rad", self.drot_R_rad, (3,))
         _check_array("MotionIncrement.cov", self.cov, (6, 6))
+        _check_gravity("MotionIncrement", self.gravity_R, self.gravity_sigma_rad)
 
     @property
     def dt_s(self) -> float:

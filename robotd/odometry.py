@@ -45,6 +45,9 @@ logger = logging.getLogger(__name__)
 # apparent acceleration from its noise alone over 20 ms).
 MIN_ACCEL_DT_S = 0.02
 REJECT_REASONS = ("speed", "acceleration", "rate", "clock")
+# A gravity direction older than this at a frame's time is not used for it (a vehicle turning at
+# 1 rad/s rolls and pitches little in 0.2 s; the samples come at the odometry rate).
+GRAVITY_MAX_AGE_S = 0.2
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +125,8 @@ class OdometryIntegrator:
         self.max_gap_ns = int(max_gap_s * 1e9)
         self.out_of_order = 0
         self.gaps = 0
+        # measured gravity directions (t_ns, g_R, σ): the newest at or before a frame goes with it
+        self._gravity: deque[tuple[int, np.ndarray, float]] = deque(maxlen=256)
 
     def add(self, odo: Odometry) -> None:
         if self._t and odo.t_ns < self._t[-1]:
@@ -131,6 +136,16 @@ class OdometryIntegrator:
         self._v.append(np.asarray(odo.vel_R_mps, float))
         self._w.append(np.asarray(odo.rate_R_radps, float))
         self._c.append(None if odo.cov is None else np.asarray(odo.cov, float))
+        if odo.gravity_R is not None:
+            self._gravity.append((int(odo.t_ns), np.asarray(odo.gravity_R, float), float(odo.gravity_sigma_rad)))
+
+    def gravity_at(self, t_ns: int) -> tuple[np.ndarray, float] | None:
+        """The newest measured gravity direction at or before ``t_ns`` and within
+        ``GRAVITY_MAX_AGE_S`` of it, with its σ; None when there is none."""
+        for t, g, sigma in reversed(self._gravity):
+            if t <= t_ns:
+                return (g, sigma) if t_ns - t <= GRAVITY_MAX_AGE_S * 1e9 else None
+        return None
 
     @property
     def latest_t_ns(self) -> int | None:
@@ -176,7 +191,16 @@ class OdometryIntegrator:
             R = R @ so3_exp(W[j] * dt)
             if stated:
                 P = _propagate(P, a, R_mid, R, V[j], dt, covs[k])  # type: ignore[arg-type]
-        return MotionIncrement(int(t0_ns), int(t1_ns), p, so3_log(R), 0.5 * (P + P.T))
+        grav = self.gravity_at(t1_ns)
+        return MotionIncrement(
+            int(t0_ns),
+            int(t1_ns),
+            p,
+            so3_log(R),
+            0.5 * (P + P.T),
+            None if grav is None else grav[0],
+            0.0 if grav is None else grav[1],
+        )
 
     def prune_before(self, t_ns: int) -> None:
         """Forget samples no longer needed (keep the last one at or before t_ns)."""

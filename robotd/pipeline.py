@@ -16,6 +16,7 @@ reports as pruned (``UpdateReport.pruned_ids``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -70,6 +71,9 @@ class PipelineCounters:
     gaps_by_images: int = 0
     gaps_by_map: int = 0
     gaps_guessed: int = 0
+    # measured gravity directions fused (3D; slam.gravity), and those the filter's gate refused
+    gravity_fused: int = 0
+    gravity_rejected: int = 0
 
 
 class TrackingMonitor:
@@ -132,6 +136,8 @@ class Pipeline:
         self._measured: MotionIncrement | None = None
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+        # the direction of gravity in the world frame (3D, slam.gravity): from the first measurement
+        self._gravity_W: np.ndarray | None = None
 
     @property
     def tracking(self) -> bool:
@@ -370,8 +376,25 @@ class Pipeline:
         if inc is not None:
             k = self.cfg.slam.motion_noise_scale
             if k != 1.0:
-                inc = MotionIncrement(inc.t0_ns, inc.t1_ns, inc.dp_R_m, inc.drot_R_rad, inc.cov * k)
+                inc = dataclasses.replace(inc, cov=inc.cov * k)
             self.estimator.predict(inc)
+            if inc.gravity_R is not None and self.cfg.slam.gravity and self.cfg.slam.dim == 3:
+                self._fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad)
+
+    def _fuse_gravity(self, g_R: np.ndarray, sigma_rad: float) -> None:
+        """The vehicle's measured direction of gravity into the filter (docs/slam.md "Gravity").
+        The world frame is the robot's at the start, not necessarily level: gravity's direction in
+        it is taken once, from the first measurement and the pose then, and held."""
+        if self._gravity_W is None:
+            self._gravity_W = self.estimator.estimate().T_world_robot[:3, :3] @ (g_R / np.linalg.norm(g_R))
+            logger.info(
+                "gravity in the world frame: %s (from the vehicle's first measurement)", self._gravity_W.round(4)
+            )
+        fused, _ = self.estimator.update_gravity(g_R, self._gravity_W, sigma_rad)
+        if fused:
+            self.counters.gravity_fused += 1
+        else:
+            self.counters.gravity_rejected += 1
 
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend

@@ -225,6 +225,8 @@ def replay(
         "visual_priors": pipeline.counters.visual_priors,
         "odometry_priors": pipeline.counters.odometry_priors,
         "odometry_rejected": sum(gate.rejected.values()),
+        "gravity_fused": pipeline.counters.gravity_fused,
+        "gravity_rejected": pipeline.counters.gravity_rejected,
     }
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}
@@ -255,7 +257,22 @@ def _truth_metrics(
     except RobotdError as exc:
         logger.warning("no truth metrics: %s", exc)
         return {}
-    return {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
+    out = {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
+    out.update(_tilt_errors(stamps, T, t_gt, G))
+    return out
+
+
+def _tilt_errors(stamps: np.ndarray, T: np.ndarray, t_gt: np.ndarray, G: np.ndarray) -> dict[str, float]:
+    """Roll and pitch error without yaw: the angle between the world's z axis seen from the
+    estimated and from the true robot, both worlds the robot's first pose (no alignment, so a
+    tilted world cannot hide). Frames with a truth at their own stamp only."""
+    common, i_est, i_gt = np.intersect1d(np.asarray(stamps, np.int64), t_gt, return_indices=True)
+    if common.size == 0:
+        return {}
+    ze = T[i_est, 2, :3]  # R^T e_z is the third row of R
+    zg = G[i_gt, 2, :3]
+    ang = np.degrees(np.arccos(np.clip(np.sum(ze * zg, axis=1), -1.0, 1.0)))
+    return {"truth_tilt_rmse_deg": float(np.sqrt(np.mean(ang**2))), "truth_tilt_max_deg": float(ang.max())}
 
 
 def _odometry_name(vehicle: Any, source: str) -> str:

@@ -306,6 +306,9 @@ class Daemon:
         devices = {"camera": self.camera, "vehicle": self.vehicle}
         doc = self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
         doc["odometry"] = {**self.odometry_gate.stats(), "gaps": self.integrator.gaps}
+        if self.pipeline is not None:
+            c = self.pipeline.counters
+            doc["odometry"].update(gravity_fused=c.gravity_fused, gravity_rejected=c.gravity_rejected)
         if self.maps is not None:
             doc["map_file"] = self.maps.stats()
         return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))

@@ -5,6 +5,7 @@ saved-state header, and the two public update entry points.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from typing import Any
 
@@ -226,6 +227,22 @@ class UpdateEntryPoints(ABC):
         if t_ns is not None:
             self.t_ns = int(t_ns)
         return rep
+
+
+def gravity_inputs(dim: int, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Checked unit vectors (g_R, g_W) of a gravity update (3D filters only); InputError otherwise."""
+    if dim != 3:
+        raise InputError(f"update_gravity: expected a 3D filter, got dim={dim}")
+    out = []
+    for name, v in (("g_R", g_R), ("g_W", g_W)):
+        v = np.asarray(v, dtype=float).reshape(-1)
+        n = float(np.linalg.norm(v)) if v.shape == (3,) and np.all(np.isfinite(v)) else float("nan")
+        if not 0.5 <= n <= 1.5:  # NaN fails too
+            raise InputError(f"update_gravity: {name} must be a finite 3-vector of norm about 1, got {v}")
+        out.append(v / n)
+    if not (math.isfinite(sigma_rad) and 1e-6 <= sigma_rad <= 1.0):
+        raise InputError(f"update_gravity: sigma_rad must be in [1e-6, 1] rad, got {sigma_rad}")
+    return out[0], out[1]
 
 
 def check_header(st: StateTable, name: str, dim: int) -> int:

@@ -33,6 +33,7 @@ from robotd.slam.common import (
     check_reset_pose,
     check_saved_poses,
     control_from_increment,
+    gravity_inputs,
     lm_to_3d,
     measurement_model,
     pixel_noise,
@@ -43,6 +44,7 @@ from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
     MeasurementModel,
+    gravity3d,
     motion3d,
     odometry2d,
     pose_angle_slice,
@@ -110,6 +112,31 @@ class EkfSlam(UpdateEntryPoints):
         self._apply_motion(x_new[0], G[0], S)
         if t_ns is not None:
             self.t_ns = int(t_ns)
+
+    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+        """Fuse a measured direction of gravity in the robot frame (3D only; as
+        :meth:`robotd.slam.fastslam.FastSlam.update_gravity`): one Kalman update of the whole state
+        (the landmarks move with the pose through their correlations). Returns (fused, NIS)."""
+        g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
+        dx = self.dx
+        h, H = gravity3d(self.mu[None, :dx], g_W)
+        nu = g_R - h[0]
+        Hx = H[0]  # (3, 6)
+        PHt = self.Sigma[:, :dx] @ Hx.T  # (n, 3)
+        Psi = sym(Hx @ PHt[:dx] + sigma_rad**2 * np.eye(3))
+        try:
+            cf = scipy.linalg.cho_factor(Psi, lower=True)
+        except np.linalg.LinAlgError:
+            return False, float("nan")
+        d2 = float(nu @ scipy.linalg.cho_solve(cf, nu))
+        if not np.isfinite(d2) or (self.params.gate_enabled and d2 > self.params.gate_chi2_2d):
+            return False, d2
+        K = scipy.linalg.cho_solve(cf, PHt.T).T
+        self.mu += K @ nu
+        ang = pose_angle_slice(self.dim)
+        self.mu[ang] = wrap_angle(self.mu[ang])
+        self._joseph(K, PHt, Psi)
+        return True, d2
 
     # ------------------------------------------------------------------------------------ update
 

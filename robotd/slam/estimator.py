@@ -31,6 +31,11 @@ class Estimator(Protocol):
         """Fuse one frame of identified (``~is_new``) and new (``is_new``) landmark measurements."""
         ...
 
+    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+        """3D: fuse a measured direction of gravity in the robot frame (world direction ``g_W``);
+        returns (fused, its normalised innovation squared); a gated measurement changes nothing."""
+        ...
+
     def estimate(self) -> PoseEstimate:
         """Current pose: EKF mean/marginal; FastSLAM weighted (circular) mean and particle covariance."""
         ...

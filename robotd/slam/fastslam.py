@@ -39,6 +39,7 @@ from robotd.slam.common import (
     check_reset_pose,
     check_saved_poses,
     control_from_increment,
+    gravity_inputs,
     lm_to_3d,
     measurement_model,
     pixel_noise,
@@ -48,6 +49,7 @@ from robotd.slam.common import (
 from robotd.slam.models import (
     COS_PITCH_MIN,
     MeasurementModel,
+    gravity3d,
     motion3d,
     odometry2d,
     stereo_basis,
@@ -405,6 +407,47 @@ class FastSlam(UpdateEntryPoints):
             deg = float(np.rad2deg(self.pose[bad, 4]))
             raise EstimatorError(f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
         return x, (S if S is not None else np.empty((0, 6, 6)))
+
+    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+        """Fuse a measured direction of gravity ``g_R`` in the robot frame (3D only; docs/slam.md
+        "Gravity"): ``g_R = R(η)^T g_W + n``, n ~ N(0, σ² I).
+
+        2.0 with a pending prior: each particle's prior (x̂, S) takes the linear-Gaussian update,
+        and its weight the marginal likelihood N(g_R; h(x̂), H S H^T + σ² I), as the proposal does
+        with landmarks. 1.0 (or a prior already drawn): the weight takes N(g_R; h(x), σ² I).
+        Gate: the normalised innovation squared of the particle mixture (its mean direction, with
+        the particles' spread plus their prior covariances plus σ² I) against ``gate_chi2_2d`` (the
+        innovation has two degrees of freedom: its component along h is of second order). A gated
+        measurement changes nothing. Returns (fused, that NIS).
+        """
+        g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
+        h, H = gravity3d(self.pose, g_W)
+        y = g_R[None, :] - h
+        Rm = sigma_rad**2 * np.eye(3)
+        S = self.pending_S if self.version == 2 else None
+        if S is not None:
+            PHt = S @ np.swapaxes(H, 1, 2)  # (P, 6, 3)
+            Psi = sym(H @ PHt + Rm)
+        else:
+            Psi = np.broadcast_to(Rm, (self.n_particles, 3, 3))
+        Psi_inv, Psi_det = inv_det_small(Psi)
+        w = normalize_log_weights(self.log_w)[1]
+        y_bar = w @ y
+        dy = y - y_bar
+        C = np.einsum("p,pi,pj->ij", w, dy, dy) + np.einsum("p,pij->ij", w, Psi)
+        try:
+            nis = float(y_bar @ np.linalg.solve(C, y_bar))
+        except np.linalg.LinAlgError:
+            return False, float("nan")
+        if not np.isfinite(nis) or (self.params.gate_enabled and nis > self.params.gate_chi2_2d):
+            return False, nis
+        if S is not None:
+            K = PHt @ Psi_inv  # (P, 6, 3)
+            self.pose = wrap_pose(self.pose + np.einsum("pij,pj->pi", K, y), 3)
+            self.pending_S = sym(S - K @ np.swapaxes(PHt, 1, 2))
+        self.log_w = normalize_log_weights(self.log_w + gauss_logpdf(y, Psi_inv, Psi_det))[0]
+        self._post = None
+        return True, nis
 
     # ------------------------------------------------------------------------------------ update
 

@@ -231,6 +231,31 @@ def motion3d_noise(
     return np.diag(np.concatenate([sp, sr]) ** 2)
 
 
+def gravity3d(x: np.ndarray, g_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The direction of gravity in the robot frame, as an accelerometer or an AHRS gives it.
+
+    ``h(x) = R(η)^T g_W`` with ``g_W`` the (unit) direction of gravity in the world frame: it
+    depends on roll and pitch (and on yaw only when the world's z is not the vertical), never on
+    position. This is what holds the absolute roll and pitch that vision and a gyro leave free.
+
+    Args:
+        x: (B, 6) poses.
+        g_W: (3,) unit vector.
+
+    Returns:
+        h (B, 3) and H = ∂h/∂x (B, 3, 6) (zero in the position columns).
+    """
+    x = np.asarray(x, dtype=float)
+    g = np.asarray(g_W, dtype=float)
+    R, Rr, Rp, Ry = _rot3_all(x[:, 3:6])
+    h = np.einsum("bji,j->bi", R, g)
+    H = np.zeros((x.shape[0], 3, 6))
+    H[:, :, 3] = np.einsum("bji,j->bi", Rr, g)
+    H[:, :, 4] = np.einsum("bji,j->bi", Rp, g)
+    H[:, :, 5] = np.einsum("bji,j->bi", Ry, g)
+    return h, H
+
+
 # --------------------------------------------------------------------------------------------
 # Measurement models (algorithms.md §7)
 
