@@ -39,6 +39,8 @@ class MockAutopilot:
     track_width_m: float = 0.4
     stream_hz: float = 50.0  # ATTITUDE and WHEEL_DISTANCE
     wheel_start_m: float = 0.0
+    roll_rad: float = 0.0  # the attitude ATTITUDE reports (a rover on a slope)
+    pitch_rad: float = 0.0
     signing_key: bytes | None = None
     send_wheels: bool = True
     send_timesync_requests: bool = True
@@ -105,7 +107,7 @@ class MockAutopilot:
         mav = self.conn.mav
         boot_ns = self.boot_time_ns(t_ns)
         self._advance(t_ns)
-        mav.attitude_send(boot_ns // 1_000_000, 0.0, 0.0, self._yaw, 0.0, 0.0, self.yaw_rate_radps)
+        mav.attitude_send(boot_ns // 1_000_000, self.roll_rad, self.pitch_rad, self._yaw, 0.0, 0.0, self.yaw_rate_radps)
         if self.send_wheels:
             # Rover stamps WHEEL_DISTANCE with millisecond resolution
             t_us = (boot_ns // 1_000_000) * 1000

@@ -146,6 +146,11 @@ class SlamConfig:
         "3D: fuse the direction of gravity when the vehicle measures it (an autopilot's attitude, the"
         " simulator's IMU): it holds the absolute roll and pitch, which vision and a gyro leave to drift",
     )
+    gravity_bias: bool = _f(
+        True,
+        "3D: learn the measured gravity's bias in the robot frame (a misaligned or uncalibrated IMU) from"
+        ' its residual as the rover turns, and take it off (docs/slam.md "Gravity")',
+    )
     numba_threads: int = _f(0, "threads of the FastSLAM kernel; 0: one per core", min=0, max=256)
     blas_threads: int = _f(
         1,

@@ -48,6 +48,12 @@ from robotd.timing import StageClock
 
 logger = logging.getLogger(__name__)
 
+# The filter's gate may refuse the measured gravity for this long before its roll and pitch are
+# reopened to it (Pipeline._fuse_gravity): longer than a bump or a glitch, short of a visible tilt.
+GRAVITY_REOPEN_S = 1.0
+# time constant of the gravity bias's low-pass (GravityBias): several laps of a small loop
+GRAVITY_BIAS_TAU_S = 60.0
+
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
@@ -74,6 +80,37 @@ class PipelineCounters:
     # measured gravity directions fused (3D; slam.gravity), and those the filter's gate refused
     gravity_fused: int = 0
     gravity_rejected: int = 0
+    gravity_reopened: int = 0  # fused with roll and pitch reopened after GRAVITY_REOPEN_S of refusals
+
+
+class GravityBias:
+    """The measured direction of gravity's bias in the robot frame (a tilted or uncalibrated IMU),
+    learnt from the residual against the filter's own attitude, g_R − R̂ᵀ g_W, by a first-order
+    low-pass of time constant ``tau_s`` (0: off), and taken off each measurement.
+
+    A bias fixed in the robot frame tilts every measurement the same way in that frame; an error
+    of the filter's attitude (of the map's) is fixed in the world and turns in the robot frame as
+    the rover turns, so over a few turns the mean residual is the bias. Fused uncorrected, a bias
+    of b rad pulls the pose's pitch off the map's by b, and z drifts by b per metre driven (0.5 %
+    for the simulator's 0.005 rad). On a straight drive the two cannot be told apart, and the
+    low-pass takes in slow attitude drift as well: tau_s is long against a turn."""
+
+    def __init__(self, tau_s: float) -> None:
+        self.tau_s = tau_s
+        self.b = np.zeros(3)
+        self._t_ns: int | None = None
+
+    def correct(self, g_R: np.ndarray, h_R: np.ndarray, t_ns: int) -> np.ndarray:
+        if self.tau_s <= 0:
+            return g_R
+        if self._t_ns is not None and t_ns > self._t_ns:
+            a = min(1.0, (t_ns - self._t_ns) * 1e-9 / self.tau_s)
+            r = g_R - h_R
+            r -= (r @ g_R) * g_R  # across the direction
+            self.b += a * (r - self.b)
+        self._t_ns = t_ns
+        g = g_R - (self.b - (self.b @ g_R) * g_R)
+        return g / np.linalg.norm(g)  # type: ignore[no-any-return]
 
 
 class TrackingMonitor:
@@ -138,6 +175,8 @@ class Pipeline:
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
         # the direction of gravity in the world frame (3D, slam.gravity): from the first measurement
         self._gravity_W: np.ndarray | None = None
+        self._gravity_refused_since: int | None = None  # t_ns of the first of the refusals in a row
+        self._gravity_bias = GravityBias(GRAVITY_BIAS_TAU_S if cfg.slam.gravity_bias else 0.0)
 
     @property
     def tracking(self) -> bool:
@@ -379,22 +418,36 @@ class Pipeline:
                 inc = dataclasses.replace(inc, cov=inc.cov * k)
             self.estimator.predict(inc)
             if inc.gravity_R is not None and self.cfg.slam.gravity and self.cfg.slam.dim == 3:
-                self._fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad)
+                self._fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad, inc.t1_ns)
 
-    def _fuse_gravity(self, g_R: np.ndarray, sigma_rad: float) -> None:
+    def _fuse_gravity(self, g_R: np.ndarray, sigma_rad: float, t_ns: int) -> None:
         """The vehicle's measured direction of gravity into the filter (docs/slam.md "Gravity").
         The world frame is the robot's at the start, not necessarily level: gravity's direction in
-        it is taken once, from the first measurement and the pose then, and held."""
+        it is taken once, from the first measurement and the pose then, and held.
+
+        The filter's gate refuses a measurement that does not fit its roll and pitch (a glitch, a
+        hard bump). When it has refused every one for ``GRAVITY_REOPEN_S``, the filter is the one
+        that is wrong (over-confident after an unmodelled gyro bias): the next is fused with roll
+        and pitch reopened, so the gate cannot lock the reference out for good."""
+        g_R = g_R / np.linalg.norm(g_R)
+        R_est = self.estimator.estimate().T_world_robot[:3, :3]
         if self._gravity_W is None:
-            self._gravity_W = self.estimator.estimate().T_world_robot[:3, :3] @ (g_R / np.linalg.norm(g_R))
-            logger.info(
-                "gravity in the world frame: %s (from the vehicle's first measurement)", self._gravity_W.round(4)
-            )
-        fused, _ = self.estimator.update_gravity(g_R, self._gravity_W, sigma_rad)
-        if fused:
-            self.counters.gravity_fused += 1
-        else:
+            self._gravity_W = R_est @ g_R
+            logger.info("gravity in the world frame: %s (the first measurement)", self._gravity_W.round(4))
+        g_R = self._gravity_bias.correct(g_R, R_est.T @ self._gravity_W, t_ns)
+        since = self._gravity_refused_since
+        reopen = since is not None and t_ns - since >= GRAVITY_REOPEN_S * 1e9
+        fused, nis = self.estimator.update_gravity(g_R, self._gravity_W, sigma_rad, reopen=reopen)
+        if not fused:
             self.counters.gravity_rejected += 1
+            if since is None:
+                self._gravity_refused_since = t_ns
+            return
+        self.counters.gravity_fused += 1
+        self._gravity_refused_since = None
+        if reopen and since is not None:
+            self.counters.gravity_reopened += 1
+            logger.warning("gravity refused for %.1f s: roll and pitch reopened (NIS %.0f)", (t_ns - since) / 1e9, nis)
 
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend

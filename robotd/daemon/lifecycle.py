@@ -308,7 +308,9 @@ class Daemon:
         doc["odometry"] = {**self.odometry_gate.stats(), "gaps": self.integrator.gaps}
         if self.pipeline is not None:
             c = self.pipeline.counters
-            doc["odometry"].update(gravity_fused=c.gravity_fused, gravity_rejected=c.gravity_rejected)
+            doc["odometry"].update(
+                gravity_fused=c.gravity_fused, gravity_rejected=c.gravity_rejected, gravity_reopened=c.gravity_reopened
+            )
         if self.maps is not None:
             doc["map_file"] = self.maps.stats()
         return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))

@@ -113,10 +113,14 @@ class EkfSlam(UpdateEntryPoints):
         if t_ns is not None:
             self.t_ns = int(t_ns)
 
-    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+    def update_gravity(
+        self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, reopen: bool = False
+    ) -> tuple[bool, float]:
         """Fuse a measured direction of gravity in the robot frame (3D only; as
         :meth:`robotd.slam.fastslam.FastSlam.update_gravity`): one Kalman update of the whole state
-        (the landmarks move with the pose through their correlations). Returns (fused, NIS)."""
+        (the landmarks move with the pose through their correlations). ``reopen``: the roll and
+        pitch variances grow by the squared innovation angle first, and the gate is skipped.
+        Returns (fused, NIS before any reopening)."""
         g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
         dx = self.dx
         h, H = gravity3d(self.mu[None, :dx], g_W)
@@ -129,8 +133,16 @@ class EkfSlam(UpdateEntryPoints):
         except np.linalg.LinAlgError:
             return False, float("nan")
         d2 = float(nu @ scipy.linalg.cho_solve(cf, nu))
-        if not np.isfinite(d2) or (self.params.gate_enabled and d2 > self.params.gate_chi2_2d):
+        gated = not np.isfinite(d2) or (self.params.gate_enabled and d2 > self.params.gate_chi2_2d)
+        if gated and not reopen:
             return False, d2
+        if reopen:
+            a2 = float(nu @ nu)
+            self.Sigma[3, 3] += a2
+            self.Sigma[4, 4] += a2
+            PHt = self.Sigma[:, :dx] @ Hx.T
+            Psi = sym(Hx @ PHt[:dx] + sigma_rad**2 * np.eye(3))
+            cf = scipy.linalg.cho_factor(Psi, lower=True)
         K = scipy.linalg.cho_solve(cf, PHt.T).T
         self.mu += K @ nu
         ang = pose_angle_slice(self.dim)

@@ -31,9 +31,12 @@ class Estimator(Protocol):
         """Fuse one frame of identified (``~is_new``) and new (``is_new``) landmark measurements."""
         ...
 
-    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+    def update_gravity(
+        self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, reopen: bool = False
+    ) -> tuple[bool, float]:
         """3D: fuse a measured direction of gravity in the robot frame (world direction ``g_W``);
-        returns (fused, its normalised innovation squared); a gated measurement changes nothing."""
+        returns (fused, its normalised innovation squared); a gated measurement changes nothing.
+        ``reopen``: widen roll and pitch by the innovation and fuse without the gate."""
         ...
 
     def estimate(self) -> PoseEstimate:

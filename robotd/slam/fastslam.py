@@ -19,6 +19,7 @@ observations one after another (loop over observations, vectorised over particle
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -408,7 +409,9 @@ class FastSlam(UpdateEntryPoints):
             raise EstimatorError(f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
         return x, (S if S is not None else np.empty((0, 6, 6)))
 
-    def update_gravity(self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float) -> tuple[bool, float]:
+    def update_gravity(
+        self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, reopen: bool = False
+    ) -> tuple[bool, float]:
         """Fuse a measured direction of gravity ``g_R`` in the robot frame (3D only; docs/slam.md
         "Gravity"): ``g_R = R(η)^T g_W + n``, n ~ N(0, σ² I).
 
@@ -418,36 +421,59 @@ class FastSlam(UpdateEntryPoints):
         Gate: the normalised innovation squared of the particle mixture (its mean direction, with
         the particles' spread plus their prior covariances plus σ² I) against ``gate_chi2_2d`` (the
         innovation has two degrees of freedom: its component along h is of second order). A gated
-        measurement changes nothing. Returns (fused, that NIS).
+        measurement changes nothing. ``reopen``: the filter's roll and pitch are the ones in doubt
+        (the caller saw the gate refuse gravity for too long): their prior variance grows by the
+        squared innovation angle (1.0: the particles spread by it), and the measurement is fused
+        without the gate. Returns (fused, the NIS before any reopening).
         """
         g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
+        w = normalize_log_weights(self.log_w)[1]
+        y, PHt, Psi, nis = self._gravity_terms(g_R, g_W, sigma_rad, w)
+        gated = not np.isfinite(nis) or (self.params.gate_enabled and nis > self.params.gate_chi2_2d)
+        if gated and not reopen:
+            return False, nis
+        if reopen:
+            a2 = float(np.sum((w @ y) ** 2))  # ≈ the tilt error², rad²
+            if self.version == 2 and self.pending_S is not None:
+                S = self.pending_S.copy()
+                S[:, 3, 3] += a2
+                S[:, 4, 4] += a2
+                self.pending_S = S
+            else:
+                self.pose[:, 3:5] += math.sqrt(a2) * self.rng.standard_normal((self.n_particles, 2))
+            y, PHt, Psi, _ = self._gravity_terms(g_R, g_W, sigma_rad, w)
+        Psi_inv, Psi_det = inv_det_small(Psi)
+        if PHt is not None and self.pending_S is not None:
+            K = PHt @ Psi_inv  # (P, 6, 3)
+            self.pose = wrap_pose(self.pose + np.einsum("pij,pj->pi", K, y), 3)
+            self.pending_S = sym(self.pending_S - K @ np.swapaxes(PHt, 1, 2))
+        self.log_w = normalize_log_weights(self.log_w + gauss_logpdf(y, Psi_inv, Psi_det))[0]
+        self._post = None
+        return True, nis
+
+    def _gravity_terms(
+        self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, w: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
+        """Innovations y (P, 3), S H^T (P, 6, 3) or None (no pending prior), their covariances
+        (P, 3, 3) and the mixture's NIS (see :meth:`update_gravity`)."""
         h, H = gravity3d(self.pose, g_W)
         y = g_R[None, :] - h
         Rm = sigma_rad**2 * np.eye(3)
         S = self.pending_S if self.version == 2 else None
+        PHt = None
         if S is not None:
-            PHt = S @ np.swapaxes(H, 1, 2)  # (P, 6, 3)
+            PHt = S @ np.swapaxes(H, 1, 2)
             Psi = sym(H @ PHt + Rm)
         else:
             Psi = np.broadcast_to(Rm, (self.n_particles, 3, 3))
-        Psi_inv, Psi_det = inv_det_small(Psi)
-        w = normalize_log_weights(self.log_w)[1]
         y_bar = w @ y
         dy = y - y_bar
         C = np.einsum("p,pi,pj->ij", w, dy, dy) + np.einsum("p,pij->ij", w, Psi)
         try:
             nis = float(y_bar @ np.linalg.solve(C, y_bar))
         except np.linalg.LinAlgError:
-            return False, float("nan")
-        if not np.isfinite(nis) or (self.params.gate_enabled and nis > self.params.gate_chi2_2d):
-            return False, nis
-        if S is not None:
-            K = PHt @ Psi_inv  # (P, 6, 3)
-            self.pose = wrap_pose(self.pose + np.einsum("pij,pj->pi", K, y), 3)
-            self.pending_S = sym(S - K @ np.swapaxes(PHt, 1, 2))
-        self.log_w = normalize_log_weights(self.log_w + gauss_logpdf(y, Psi_inv, Psi_det))[0]
-        self._post = None
-        return True, nis
+            nis = float("nan")
+        return y, PHt, Psi, nis
 
     # ------------------------------------------------------------------------------------ update
 

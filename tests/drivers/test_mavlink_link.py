@@ -20,6 +20,7 @@ from drivers.mavlink_mock import MockAutopilot
 from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
 from robotd.errors import DriverError
+from robotd.geometry import euler_to_R
 from robotd.msgs import PoseEstimate
 from tests.support.tolerances import CENTRAL_DIFF_ATOL, FLOAT32_ROUNDING_TOL
 
@@ -296,6 +297,26 @@ def test_local_position_ned_fallback_rotated_into_body_frame() -> None:
     for o in odo:
         assert o.vel_R_mps == pytest.approx([0.5, 0.0, 0.0], abs=0.05)
         assert o.rate_R_radps[2] == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize("send_wheels", [True, False])
+def test_attitude_roll_and_pitch_go_with_each_sample_as_the_direction_of_gravity(send_wheels: bool) -> None:
+    roll, pitch = math.radians(4.0), math.radians(-7.0)
+    with MockAutopilot(roll_rad=roll, pitch_rad=pitch, send_wheels=send_wheels, yaw_rate_radps=0.5) as ap:
+        with open_vehicle(ap.url, track_width_m=0.4, gravity_sigma_deg=1.5) as link:
+            odo: list = []
+            assert wait_for(lambda: bool(odo.extend(link.drain())) or len(odo) >= 3, 4.0)
+        with open_vehicle(ap.url, track_width_m=0.4, gravity_sigma_deg=0) as off:
+            plain: list = []
+            assert wait_for(lambda: bool(plain.extend(off.drain())) or len(plain) >= 2, 4.0)
+    # R(rpy)^T (0, 0, 1) whatever the yaw: the autopilot's vertical seen from the body
+    expected = euler_to_R(np.array([roll, pitch, 1.234])).T @ np.array([0.0, 0.0, 1.0])
+    with_gravity = [o for o in odo if o.gravity_R is not None]
+    assert len(with_gravity) >= len(odo) - 1  # the first may precede the first ATTITUDE
+    for o in with_gravity:
+        np.testing.assert_allclose(o.gravity_R, expected, atol=FLOAT32_ROUNDING_TOL)
+        assert o.gravity_sigma_rad == pytest.approx(math.radians(1.5))
+    assert all(o.gravity_R is None for o in plain)
 
 
 def _key_file(tmp_path: Path, key: bytes, mode: int = 0o600) -> str:

@@ -111,3 +111,66 @@ def test_odometry_and_increment_check_their_gravity() -> None:
     with pytest.raises(InputError, match="gravity_sigma_rad"):
         MotionIncrement(0, t, np.zeros(3), np.zeros(3), np.zeros((6, 6)), DOWN, float("nan"))
     Odometry(t, np.zeros(3), np.zeros(3), "x", None, DOWN, 0.01)  # valid
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_reopen_lets_gravity_correct_a_filter_too_sure_of_a_wrong_tilt(name: str) -> None:
+    """An unmodelled gyro bias leaves the filter sure of a wrong tilt: the gate then refuses the
+    right measurement for good. Reopened, roll and pitch take it (Pipeline._fuse_gravity does so
+    after GRAVITY_REOPEN_S of refusals)."""
+    est = make_estimator(SlamParams(filter=name, dim=3, n_particles=200), np.random.default_rng(5))
+    x0 = np.array([0.0, 0.0, 0.0, 0.12, -0.1, 0.3])  # 6.9° and -5.7° off level, σ 0.06°
+    est.reset_pose(x0, np.diag([1e-4] * 3 + [1e-3**2] * 3))
+    g_R = euler_to_R(np.array([0.0, 0.0, x0[5]])).T @ DOWN
+    est.predict(_still(0, 100_000_000))
+    fused, _ = est.update_gravity(g_R, DOWN, 0.01)
+    assert not fused
+    fused, nis = est.update_gravity(g_R, DOWN, 0.01, reopen=True)
+    assert fused and nis > SlamParams().gate_chi2_2d
+    rpy = est.estimate().rpy_rad
+    assert np.hypot(rpy[0], rpy[1]) < np.radians(1.5), np.degrees(rpy)
+
+
+def _turning(t_s: float, tilt_W: np.ndarray | None = None) -> np.ndarray:
+    """R_world_robot of a level rover turning at 0.5 rad/s, the world optionally tilted by a
+    small rotation vector ``tilt_W`` (an error of the filter's attitude, fixed in the world)."""
+    from robotd.geometry import so3_exp
+
+    R = euler_to_R(np.array([0.0, 0.0, 0.5 * t_s]))
+    return R if tilt_W is None else so3_exp(tilt_W) @ R
+
+
+def test_gravity_bias_fixed_in_the_robot_is_learnt_as_the_rover_turns() -> None:
+    from robotd.pipeline import GravityBias
+
+    b = np.array([0.005, -0.004, 0.0])  # a tilted IMU: 0.37° across the vertical
+    gb = GravityBias(60.0)
+    for k in range(3000):  # 300 s at 10 Hz
+        R = _turning(0.1 * k)
+        g_true = R.T @ DOWN
+        g_meas = (g_true + b) / np.linalg.norm(g_true + b)
+        corrected = gb.correct(g_meas, g_true, k * 100_000_000)  # the filter has the true attitude
+    np.testing.assert_allclose(gb.b, b, atol=0.1 * np.linalg.norm(b))
+    assert np.degrees(np.arccos(np.clip(corrected @ g_true, -1, 1))) < 0.05
+
+
+def test_gravity_bias_leaves_a_world_fixed_attitude_error_to_the_filter() -> None:
+    from robotd.pipeline import GravityBias
+
+    tilt = np.array([0.01, -0.008, 0.0])  # the filter's world is 0.73° off the vertical
+    gb = GravityBias(60.0)
+    for k in range(3000):
+        g_meas = _turning(0.1 * k).T @ DOWN  # an unbiased IMU
+        g_est = _turning(0.1 * k, tilt).T @ DOWN
+        gb.correct(g_meas, g_est, k * 100_000_000)
+    # the residual turns in the robot frame: it averages out instead of being taken for a bias
+    assert np.linalg.norm(gb.b) < 0.1 * np.linalg.norm(tilt)
+
+
+def test_gravity_bias_off_is_the_identity() -> None:
+    from robotd.pipeline import GravityBias
+
+    g = np.array([0.1, 0.0, 1.0]) / np.linalg.norm([0.1, 0.0, 1.0])
+    gb = GravityBias(0.0)
+    for k in range(10):
+        assert gb.correct(g, DOWN, k) is g
