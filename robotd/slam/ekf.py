@@ -44,7 +44,7 @@ from robotd.slam.models import (
     CARTESIAN_2D,
     CARTESIAN_3D,
     MeasurementModel,
-    gravity3d,
+    gravity3d_tilt,
     motion3d,
     odometry2d,
     pose_angle_slice,
@@ -123,7 +123,7 @@ class EkfSlam(UpdateEntryPoints):
         Returns (fused, NIS before any reopening)."""
         g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
         dx = self.dx
-        h, H = gravity3d(self.mu[None, :dx], g_W)
+        h, H = gravity3d_tilt(self.mu[None, :dx], g_W)
         nu = g_R - h[0]
         Hx = H[0]  # (3, 6)
         PHt = self.Sigma[:, :dx] @ Hx.T  # (n, 3)

@@ -50,7 +50,7 @@ from robotd.slam.common import (
 from robotd.slam.models import (
     COS_PITCH_MIN,
     MeasurementModel,
-    gravity3d,
+    gravity3d_tilt,
     motion3d,
     odometry2d,
     stereo_basis,
@@ -456,7 +456,8 @@ class FastSlam(UpdateEntryPoints):
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
         """Innovations y (P, 3), S H^T (P, 6, 3) or None (no pending prior), their covariances
         (P, 3, 3) and the mixture's NIS (see :meth:`update_gravity`)."""
-        h, H = gravity3d(self.pose, g_W)
+        yaw = float(np.arctan2(w @ np.sin(self.pose[:, 5]), w @ np.cos(self.pose[:, 5])))
+        h, H = gravity3d_tilt(self.pose, g_W, yaw)
         y = g_R[None, :] - h
         Rm = sigma_rad**2 * np.eye(3)
         S = self.pending_S if self.version == 2 else None

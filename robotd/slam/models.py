@@ -256,6 +256,22 @@ def gravity3d(x: np.ndarray, g_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return h, H
 
 
+def gravity3d_tilt(x: np.ndarray, g_W: np.ndarray, yaw: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gravity3d` as the filters fuse it: a measurement of roll and pitch only. The yaw
+    column of H is zeroed and, given ``yaw`` (a particle filter's mean heading), every pose is
+    evaluated at that heading, so the particles' weights do not tell headings apart either.
+    Gravity says nothing about the heading; it would only when the world's z is not the vertical,
+    and g_W comes from one measurement (its noise and the sensor's bias included), so that would
+    be false heading information, accumulated at every frame."""
+    x = np.asarray(x, dtype=float)
+    if yaw is not None:
+        x = x.copy()
+        x[:, 5] = yaw
+    h, H = gravity3d(x, g_W)
+    H[:, :, 5] = 0.0
+    return h, H
+
+
 # --------------------------------------------------------------------------------------------
 # Measurement models (algorithms.md §7)
 

@@ -174,3 +174,21 @@ def test_gravity_bias_off_is_the_identity() -> None:
     gb = GravityBias(0.0)
     for k in range(10):
         assert gb.correct(g, DOWN, k) is g
+
+
+def test_gravity_leaves_the_heading_alone_in_a_tilted_world() -> None:
+    """g_W comes from one measurement, its noise and the sensor's bias included: in a world whose
+    z is not the vertical its yaw column would be false heading information at every frame. (The
+    EKF, deterministic; FastSLAM's particles evaluate h at their mean heading, models.gravity3d_tilt.)"""
+    g_W = euler_to_R(np.array([0.05, -0.04, 0.0])) @ DOWN  # the world 3.7° off the vertical
+    est = make_estimator(SlamParams(filter="ekf", dim=3), np.random.default_rng(2))
+    x0 = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.4])  # heading 0.4 rad off the truth's 0
+    est.reset_pose(x0, np.diag([1e-4] * 3 + [0.01**2, 0.01**2, 0.1**2]))
+    g_R = euler_to_R(np.zeros(3)).T @ g_W  # the truth: level in the world, heading 0
+    for k in range(50):
+        est.predict(_still(k * 100_000_000, (k + 1) * 100_000_000))
+        est.update_gravity(g_R, g_W, 0.01)
+    # the full model's yaw column moves the heading by a quarter of the way to 0 (measured 0.4 -> 0.29)
+    assert abs(est.estimate().rpy_rad[2] - x0[5]) < 0.03
+    _, H = md.gravity3d_tilt(x0[None], g_W)
+    np.testing.assert_array_equal(H[0][:, 5], 0.0)
