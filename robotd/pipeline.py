@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.choices import FILTERS
+from robotd.choices import FILTERS, MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
 from robotd.errors import MapMismatchError, PersistenceError, RobotdError
@@ -540,10 +540,12 @@ class Pipeline:
 
     # ---------------------------------------------------------------- start-up and persistence
     @staticmethod
-    def warmup() -> float:
+    def warmup(measurements: tuple[str, ...] = MEASUREMENTS) -> float:
         """Compile or load every numba kernel a step uses, so the first frame is not delayed
-        (compiling takes ~15–20 s on a 2-core machine, loading the cache ~1–2 s). Returns seconds.
-        Needs no pipeline: the daemon calls it before it opens the devices."""
+        (compiling takes ~30 s on a 2-core machine, ~20 s with one measurement model; loading
+        the cache ~1–2 s). ``measurements``: the FastSLAM measurement models to prepare (the
+        daemon passes its own). Returns seconds. Needs no pipeline: the daemon calls it before it
+        opens the devices."""
         import time
 
         from robotd import outliers
@@ -551,7 +553,7 @@ class Pipeline:
         from robotd.slam.factory import warmup as warmup_filters
 
         t0 = time.perf_counter()
-        warmup_filters()
+        warmup_filters(measurements)
         detectors.warmup()
         stereo_match.warmup()
         outliers.warmup()

@@ -139,7 +139,7 @@ class Daemon:
         # only then, so no camera streams into a queue nobody reads (and sim:// starts its path
         # when the daemon can follow it)
         logger.info("loading the filter and matcher kernels (the first run compiles them: ~20 s)")
-        logger.info("filter and matcher kernels ready in %.1f s", Pipeline.warmup())
+        logger.info("filter and matcher kernels ready in %.1f s", Pipeline.warmup((cfg.slam.measurement,)))
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
         dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link

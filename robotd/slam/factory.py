@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from robotd.choices import MEASUREMENTS
 from robotd.slam.ekf import EkfSlam
 from robotd.slam.estimator import Estimator
 from robotd.slam.fastslam import FastSlam
@@ -33,8 +34,9 @@ def make_estimator(
     return FastSlam(params, rng, visible, version=2 if params.filter == "fastslam2" else 1)
 
 
-def warmup() -> float | None:
-    """Compile or load the numba FastSLAM kernels now; returns the seconds it took, None without numba.
+def warmup(models: tuple[str, ...] = MEASUREMENTS) -> float | None:
+    """Compile or load the numba FastSLAM kernels now, for the measurement ``models`` (each one
+    compiles on its own); returns the seconds it took, None without numba.
 
     Call it at daemon start-up (after NUMBA_CACHE_DIR is set) so that the first frame is not
     delayed: compiling takes ~11–16 s on a 2-core machine, loading the cache ~1–2 s.
@@ -46,5 +48,5 @@ def warmup() -> float | None:
     except ImportError:
         return None
     t0 = time.perf_counter()
-    warmup()
+    warmup(tuple(models))
     return time.perf_counter() - t0
