@@ -58,6 +58,13 @@ class VehicleConfig:
     max_accel_mps2: float = _f(50.0, "odometry whose speed changes faster than this is refused", min=0.1)
     max_rate_radps: float = _f(10.0, "odometry turning faster than this is refused", min=0.01)
     max_future_s: float = _f(0.5, "odometry stamped this far after the host's clock is refused", min=0.0)
+    max_tilt_deg: float = _f(
+        60.0,
+        "a measured direction of gravity tilted further than this from the robot's vertical is refused (counted,"
+        " never fused): no rover drives there, and a glitch held for a second would otherwise be taken",
+        min=5.0,
+        max=85.0,
+    )
 
 
 @dataclass(frozen=True)

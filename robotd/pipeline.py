@@ -53,6 +53,9 @@ logger = logging.getLogger(__name__)
 GRAVITY_REOPEN_S = 1.0
 # time constant of the gravity bias's low-pass (GravityBias): several laps of a small loop
 GRAVITY_BIAS_TAU_S = 60.0
+# the largest bias it takes (3°): an IMU mounted further off is a calibration to fix, and a cap keeps
+# a filter that is far off (after a stall, say) from being taken for the sensor's bias
+GRAVITY_BIAS_MAX_RAD = math.radians(3.0)
 
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
@@ -81,6 +84,7 @@ class PipelineCounters:
     gravity_fused: int = 0
     gravity_rejected: int = 0
     gravity_reopened: int = 0  # fused with roll and pitch reopened after GRAVITY_REOPEN_S of refusals
+    gravity_implausible: int = 0  # tilted beyond vehicle.max_tilt_deg: never fused
 
 
 class GravityBias:
@@ -108,6 +112,9 @@ class GravityBias:
             r = g_R - h_R
             r -= (r @ g_R) * g_R  # across the direction
             self.b += a * (r - self.b)
+            n = float(np.linalg.norm(self.b))
+            if n > GRAVITY_BIAS_MAX_RAD:  # a mounting error, not the filter's whole attitude error
+                self.b *= GRAVITY_BIAS_MAX_RAD / n
         self._t_ns = t_ns
         g = g_R - (self.b - (self.b @ g_R) * g_R)
         return g / np.linalg.norm(g)  # type: ignore[no-any-return]
@@ -430,6 +437,17 @@ class Pipeline:
         that is wrong (over-confident after an unmodelled gyro bias): the next is fused with roll
         and pitch reopened, so the gate cannot lock the reference out for good."""
         g_R = g_R / np.linalg.norm(g_R)
+        if g_R[2] < math.cos(math.radians(self.cfg.vehicle.max_tilt_deg)):
+            # implausible for a rover (and a pitch of 90° is the filter's singularity): never fused,
+            # never counted toward reopening
+            self.counters.gravity_implausible += 1
+            if self.counters.gravity_implausible in (1, 10, 100, 1000):
+                logger.warning(
+                    "gravity refused (%d so far): tilted %.1f° from the robot's vertical, beyond vehicle.max_tilt_deg",
+                    self.counters.gravity_implausible,
+                    math.degrees(math.acos(max(-1.0, min(1.0, float(g_R[2]))))),
+                )
+            return
         R_est = self.estimator.estimate().T_world_robot[:3, :3]
         if self._gravity_W is None:
             self._gravity_W = R_est @ g_R

@@ -309,7 +309,10 @@ class Daemon:
         if self.pipeline is not None:
             c = self.pipeline.counters
             doc["odometry"].update(
-                gravity_fused=c.gravity_fused, gravity_rejected=c.gravity_rejected, gravity_reopened=c.gravity_reopened
+                gravity_fused=c.gravity_fused,
+                gravity_rejected=c.gravity_rejected,
+                gravity_reopened=c.gravity_reopened,
+                gravity_implausible=c.gravity_implausible,
             )
         if self.maps is not None:
             doc["map_file"] = self.maps.stats()

@@ -86,35 +86,21 @@ def test_step_times_every_stage_in_data_flow_order(sim_frames):
     assert r.timings_ms["total"] >= sum(v for k, v in r.timings_ms.items() if k != "total")
 
 
-def test_a_failed_update_leaves_no_orphan_descriptors(sim_frames, monkeypatch):
+@pytest.mark.parametrize("stage", ["update", "predict"])
+def test_a_failed_filter_step_leaves_no_orphan_descriptors(sim_frames, monkeypatch, stage):
+    """predict is the soak's case: once the pose reached the pitch singularity every predict raised,
+    after the frame's new landmarks had their descriptors; they piled up (233 835 descriptors for
+    2675 landmarks after 12 minutes) and the saved map no longer passed its own check."""
     frames, rig = sim_frames
     p = _pipeline(rig)
     p.step(frames[0], None)
     before = p.frontend.descriptors.ids.copy()
 
-    def refuse(obs):
-        raise InputError("refused for the test")
+    def refuse(*_):
+        raise InputError(f"{stage} refused for the test")
 
-    monkeypatch.setattr(p.estimator, "update", refuse)
-    with pytest.raises(InputError, match="refused"):
-        p.step(frames[1], None)
-    np.testing.assert_array_equal(p.frontend.descriptors.ids, before)
-
-
-def test_a_failed_predict_leaves_no_orphan_descriptors(sim_frames, monkeypatch):
-    """The soak's case: once the pose reached the pitch singularity every predict raised, after the
-    frame's new landmarks had their descriptors; they piled up (233 835 descriptors for 2675
-    landmarks after 12 minutes) and the saved map no longer passed its own check."""
-    frames, rig = sim_frames
-    p = _pipeline(rig)
-    p.step(frames[0], None)
-    before = p.frontend.descriptors.ids.copy()
-
-    def refuse(inc):
-        raise InputError("motion3d: pitch 90.029 deg is at the ZYX singularity (for the test)")
-
-    monkeypatch.setattr(p.estimator, "predict", refuse)
-    with pytest.raises(InputError, match="singularity"):
+    monkeypatch.setattr(p.estimator, stage, refuse)
+    with pytest.raises(InputError, match="refused for the test"):
         p.step(frames[1], None)
     np.testing.assert_array_equal(p.frontend.descriptors.ids, before)
     p.check_state_dict(p.state_dict())  # the map it would save still passes its own check
@@ -193,3 +179,31 @@ def test_non_finite_odometry_never_reaches_the_motion_stage_and_a_zero_interval_
     assert r.tracking and p._velocity is velocity  # not a velocity: no division by a zero interval
     for f in frames[6:10]:
         assert p.step(f, None).tracking
+
+
+@pytest.mark.parametrize("max_tilt_deg, fused", [(60.0, False), (85.0, True)])
+def test_gravity_tilted_beyond_any_rover_is_never_fused(sim_frames, max_tilt_deg, fused):
+    """A glitching AHRS that says pitch 80° for 3 s: refused by vehicle.max_tilt_deg (never fused,
+    never counted toward reopening). With the limit above it, the gate refuses it for 1 s and the
+    reopening then takes it: the filter is pulled far off, toward the pitch singularity."""
+    from robotd.geometry import euler_to_R
+    from robotd.msgs import MotionIncrement
+
+    frames, rig = sim_frames
+    cfg = load_config(None, {"slam": {"max_new_per_frame": 15}, "vehicle": {"max_tilt_deg": max_tilt_deg}})
+    p = Pipeline(cfg, rig, np.random.default_rng(5))
+    p.step(frames[0], None)
+    g_level = np.array([0.0, 0.0, 1.0])
+    g_glitch = euler_to_R(np.array([0.0, np.radians(80.0), 0.0])).T @ g_level
+    t = frames[0].t_ns
+    for g in [g_level] + [g_glitch] * 30:
+        inc = MotionIncrement(t, t + 100_000_000, np.zeros(3), np.zeros(3), np.eye(6) * 1e-6, g, 0.02)
+        p._predict(inc)
+        t += 100_000_000
+    pitch = abs(float(p.estimator.estimate().rpy_rad[1]))
+    c = p.counters
+    if fused:
+        assert c.gravity_reopened >= 1 and pitch > np.radians(20.0)
+    else:
+        assert (c.gravity_implausible, c.gravity_reopened, c.gravity_fused) == (30, 0, 1)
+        assert pitch < np.radians(1.0)

@@ -192,3 +192,13 @@ def test_gravity_leaves_the_heading_alone_in_a_tilted_world() -> None:
     assert abs(est.estimate().rpy_rad[2] - x0[5]) < 0.03
     _, H = md.gravity3d_tilt(x0[None], g_W)
     np.testing.assert_array_equal(H[0][:, 5], 0.0)
+
+
+def test_gravity_bias_is_capped_at_a_mounting_error() -> None:
+    from robotd.pipeline import GRAVITY_BIAS_MAX_RAD, GravityBias
+
+    gb = GravityBias(60.0)
+    g_meas = euler_to_R(np.array([0.2, 0.0, 0.0])).T @ DOWN  # 11° off what the filter expects
+    for k in range(3000):
+        gb.correct(g_meas, DOWN, k * 100_000_000)
+    assert np.linalg.norm(gb.b) == pytest.approx(GRAVITY_BIAS_MAX_RAD)
