@@ -22,8 +22,10 @@ from __future__ import annotations
 import threading
 from typing import Any, Protocol
 
+import numpy as np
+
 from drivers import HEALTH_STATES
-from robotd.autopilot import CovarianceFloors, VelocityFromPoses, odometry_fields, vision_position_fields
+from robotd.autopilot import CovarianceFloors, odometry_fields, vision_position_fields
 from robotd.errors import DriverError
 from robotd.msgs import PoseEstimate
 
@@ -68,19 +70,27 @@ class MavlinkAutopilot:
         self._c = counters
         self._wake = wake
         self._lock = threading.Lock()  # guards the pending pose
-        self._pending_pose: tuple[PoseEstimate, int, int] | None = None
-        self._velocity = VelocityFromPoses()
+        self._pending_pose: tuple[PoseEstimate, int, int, np.ndarray] | None = None
         self._last_pose_t_ns: int | None = None
         self._last_quality = 0
         self._health: str | None = None  # None: derive from quality
 
     # -- AutopilotLink (any thread) ------------------------------------------------------------
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Queue the pose for the transmit thread; a newer pose replaces an unsent one."""
+    def send_pose(
+        self, pose: PoseEstimate, quality: int, reset_counter: int, vel_R_mps: np.ndarray | None = None
+    ) -> None:
+        """Queue the pose for the transmit thread; a newer pose replaces an unsent one.
+
+        ``vel_R_mps`` (3,) is the body-frame velocity ODOMETRY carries (the daemon's
+        :class:`robotd.autopilot.ResetCounterPolicy` fits it); None or a non-finite value sends
+        zero, since ArduPilot fuses the velocity without a NaN check."""
+        v = np.zeros(3) if vel_R_mps is None else np.asarray(vel_R_mps, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v)):
+            v = np.zeros(3)
         with self._lock:
             if self._pending_pose is not None:
                 self._c["poses_superseded"] += 1
-            self._pending_pose = (pose, int(quality), int(reset_counter))
+            self._pending_pose = (pose, int(quality), int(reset_counter), v)
         self._wake.set()
 
     def set_health(self, state: str | None) -> None:
@@ -113,13 +123,14 @@ class MavlinkAutopilot:
         if pending is not None:
             self._send_pose_now(mav, *pending)
 
-    def _send_pose_now(self, mav: PoseWire, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+    def _send_pose_now(
+        self, mav: PoseWire, pose: PoseEstimate, quality: int, reset_counter: int, vel: np.ndarray
+    ) -> None:
         if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
             self._c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
             return
         self._last_pose_t_ns = pose.t_ns
         self._last_quality = quality
-        vel = self._velocity.update(pose, reset_counter)
         if self.message == "odometry":
             f = odometry_fields(pose, quality, reset_counter, vel_R_mps=vel, floors=self.floors)
             mav.odometry_send(*f.as_args())

@@ -700,7 +700,9 @@ class SimAutopilot:
         self.last_pose_error_m = float("nan")
         self.health: str | None = None
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+    def send_pose(
+        self, pose: PoseEstimate, quality: int, reset_counter: int, vel_R_mps: np.ndarray | None = None
+    ) -> None:
         self.poses_received += 1
         truth = self._truth(pose.t_ns)
         self.last_pose_error_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))

@@ -39,7 +39,7 @@ from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
 from robotd.errors import ConfigError, RobotdError
-from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
 from robotd.outputs.base import shortest_period
@@ -61,6 +61,7 @@ class _Stepped:
     frame: StereoFrame
     result: StepResult
     event: str | None  # a pose discontinuity in this step (ResetEvent)
+    odometry: MotionIncrement | None  # the vehicle's motion from the previous step's frame to this one
     landmarks: LandmarkMap | None
     state: dict[str, Any] | None
 
@@ -236,7 +237,7 @@ class Daemon:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
                 # the autopilot must not fuse the jump as motion (interfaces.md §1.5)
                 event = event or ResetEvent.STALL
-            self.pub_q.put(_Stepped(frame, result, event, landmarks, snapshot))
+            self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
@@ -250,16 +251,23 @@ class Daemon:
             res = item.result
             seq += 1
             event, self._pending_event = self._pending_event or item.event, None
+            bumps = self.reset_policy.bumps
+            reset_counter = self.reset_policy.update(res.pose, event, item.odometry)
+            if self.reset_policy.bumps != bumps:
+                logger.info(
+                    "reset_counter %d: %s at frame %d", reset_counter, self.reset_policy.last_reason, item.frame.seq
+                )
             report = StepReport(
                 result=res,
                 seq=seq,
                 frame_seq=item.frame.seq,
                 quality=pose_quality(res, self.cfg.frontend.min_inliers, self.cfg.mavlink.quality_good_sigma_m),
-                reset_counter=self.reset_policy.update(res.pose, event),
+                reset_counter=reset_counter,
                 latency_ms=(time.monotonic_ns() - res.t_ns) / 1e6,
                 health=self._health_state(res),
                 landmarks=item.landmarks,
                 state=item.state,
+                vel_R_mps=self.reset_policy.velocity_R,
             )
             self.health.on_published(report, item.frame.truth_T_world_robot)
             for out in self.outputs:

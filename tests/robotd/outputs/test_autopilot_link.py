@@ -46,3 +46,8 @@ def test_daemon_sends_odometry_to_the_autopilot(tmp_path: Path) -> None:
     assert hb and all(h.msg.get_srcComponent() == 197 for h in hb)
     # the rover moved forward: +x in LOCAL_FRD
     assert m.x > 0.5
+    # a smooth drive is one segment for the autopilot: no reset, and ODOMETRY's velocity is the
+    # rover's (sim:// drives at 1 m/s; the body frame is FRD, so forward is +vx)
+    assert {r.msg.reset_counter for r in odo} == {0}, d.reset_policy.last_reason
+    moving = [r.msg for r in odo if r.msg.x > 0.5]
+    assert moving and all(0.6 < o.vx < 1.4 and abs(o.vy) < 0.3 and abs(o.vz) < 0.3 for o in moving)
