@@ -74,6 +74,7 @@ DIALECT = "ardupilotmega"
 MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
 PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
+ORIGIN_CHECK_S = 2.0  # how often the autopilot's EKF origin is checked (and sent again if it is gone)
 
 # ids of the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz]
 DEFAULT_RATES_HZ: dict[str, float] = {
@@ -96,6 +97,7 @@ COUNTERS = (
     "timesync_replies",
     "timesync_samples",
     "origins_sent",
+    "origin_requests",
     "rate_requests",
     "autopilot_reboots",
     "link_losses",
@@ -419,6 +421,8 @@ class MavlinkVehicle(QueuedVehicleLink):
         self._last_wheel_mono = -math.inf
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
+        self._origin_heard = False  # a GPS_GLOBAL_ORIGIN with our origin since the last check
+        self._next_origin_check = math.inf
         self.c: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._clock = _AutopilotClock(self.c)
         self.rx_types: dict[str, int] = {}
@@ -734,7 +738,22 @@ class MavlinkVehicle(QueuedVehicleLink):
         self.ekf_flags = int(msg.flags)
 
     def _on_gps_global_origin(self, msg: Any, t_ns: int) -> None:
-        self.origin_confirmed = True
+        o = self.opts.origin
+        if o is None:
+            self.origin_confirmed = True
+            return
+        # ours, to the message's resolution (1e-7 deg); another origin is not a confirmation
+        ours = (round(o[0] * 1e7), round(o[1] * 1e7))
+        match = (int(msg.latitude), int(msg.longitude)) == ours
+        self.origin_confirmed = match
+        self._origin_heard = self._origin_heard or match
+        if not match:
+            logger.warning(
+                "%s: the autopilot's EKF origin is (%.7f, %.7f), not the configured one",
+                self.url,
+                msg.latitude * 1e-7,
+                msg.longitude * 1e-7,
+            )
 
     def _outbox_put(self, kind: str, arg: Any) -> None:
         with self._lock:
@@ -762,6 +781,8 @@ class MavlinkVehicle(QueuedVehicleLink):
                         break
                     self._do(item)
                 self._autopilot.send_pending(self._conn.mav)
+                if now >= self._next_origin_check:
+                    self._check_origin(now)
             except (OSError, ValueError) as exc:
                 self.c["tx_errors"] += 1
                 logger.warning("%s: send failed: %s", self.url, exc)
@@ -794,9 +815,40 @@ class MavlinkVehicle(QueuedVehicleLink):
             if self.opts.request_rates:
                 self._request_rates()
 
+    def _check_origin(self, now: float) -> None:
+        """Keep the EKF origin set: ArduPilot's EKF3 forgets an origin set before it initialised
+        (measured in SITL: "origin set", then the EKF started, then no origin, and a mission in
+        AUTO waits for one for ever). Every ORIGIN_CHECK_S robotd asks for GPS_GLOBAL_ORIGIN
+        (MAV_CMD_REQUEST_MESSAGE); when no matching one came since the last check, the origin is
+        sent again (``origins_sent`` counts every send)."""
+        self._next_origin_check = now + ORIGIN_CHECK_S
+        if not self._link_up or self._ap_sysid is None:
+            return
+        if not self._origin_heard:
+            self.origin_confirmed = False
+            self._send_origin()
+        self._origin_heard = False
+        m = _mav()
+        self._conn.mav.command_long_send(
+            self._ap_sysid,
+            self._ap_compid,
+            m.MAV_CMD_REQUEST_MESSAGE,
+            0,
+            m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        self.c["origin_requests"] += 1
+
     def _send_origin(self) -> None:
         if self.opts.origin is None or self._ap_sysid is None:
             return
+        if self._next_origin_check == math.inf:
+            self._next_origin_check = time.monotonic() + ORIGIN_CHECK_S
         lat, lon, alt = self.opts.origin
         self._conn.mav.set_gps_global_origin_send(
             self._ap_sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), time.monotonic_ns() // 1000

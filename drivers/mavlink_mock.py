@@ -48,6 +48,7 @@ class MockAutopilot:
     timesync_replies: list[tuple[int, int, Any]] = field(default_factory=list)  # (ts1 sent, t_reply_ns, msg)
     heartbeat_enabled: bool = True
     bad_data: int = 0
+    origin: tuple[int, int, int] | None = None  # the EKF origin (lat, lon [1e-7 deg], alt [mm]) once set
 
     def __post_init__(self) -> None:
         self.conn = mavutil.mavlink_connection(
@@ -75,9 +76,10 @@ class MockAutopilot:
         return (time.monotonic_ns() if t_host_ns is None else t_host_ns) - self.boot_ns
 
     def reboot(self) -> None:
-        """Restart the boot clock: SYSTEM_TIME.time_boot_ms drops."""
+        """Restart the boot clock: SYSTEM_TIME.time_boot_ms drops (and the EKF origin is gone)."""
         with self._lock:
             self.boot_ns = time.monotonic_ns()
+            self.origin = None
 
     def messages(self, kind: str) -> list[Received]:
         with self._lock:
@@ -144,8 +146,24 @@ class MockAutopilot:
                 self.timesync_replies.append((self._ts_sent.pop(msg.ts1), t_ns, msg))
         elif kind == "COMMAND_LONG":
             self.conn.mav.command_ack_send(msg.command, m.MAV_RESULT_ACCEPTED)
+            if msg.command == m.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+                self._send_origin()  # as ArduPilot: nothing when it has no origin
         elif kind == "SET_GPS_GLOBAL_ORIGIN":
-            self.conn.mav.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude, msg.time_usec)
+            with self._lock:
+                if self.origin is None:  # ArduPilot sets it once per boot
+                    self.origin = (int(msg.latitude), int(msg.longitude), int(msg.altitude))
+            self._send_origin()
+
+    def _send_origin(self) -> None:
+        with self._lock:
+            o = self.origin
+        if o is not None:
+            self.conn.mav.gps_global_origin_send(*o, self.boot_time_ns() // 1000)
+
+    def forget_origin(self) -> None:
+        """What EKF3 does when it initialises after an origin was set: the origin is gone."""
+        with self._lock:
+            self.origin = None
 
     def run(self) -> None:
         period = 1.0 / self.stream_hz

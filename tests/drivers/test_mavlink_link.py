@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from drivers import AutopilotLink, VehicleLink, mavlink_pose, open_vehicle
-from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_url
+from drivers.mavlink_link import ORIGIN_CHECK_S, MavlinkVehicle, mavlink_module, parse_mavlink_url
 from drivers.mavlink_mock import MockAutopilot
 from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
@@ -220,6 +220,21 @@ def test_reboot_resends_origin_and_rates() -> None:
             assert wait_for(lambda: link.stats()["autopilot_reboots"] == 1, 3.0)
             assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 2, 2.0)
             assert wait_for(lambda: len(ap.messages("COMMAND_LONG")) >= 2 * n_cmd, 2.0)
+
+
+def test_an_origin_the_autopilot_forgot_is_sent_again() -> None:
+    # ArduPilot's EKF3 forgets an origin set before the filter initialised (seen in SITL: a
+    # mission in AUTO then waits for an origin for ever); robotd checks and sends it again
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url, origin=(10.0, 20.0, 30.0)) as link:
+            assert wait_for(lambda: link.stats()["origin_confirmed"], 3.0)
+            assert len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 1
+            ap.forget_origin()
+            assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 2, 3 * ORIGIN_CHECK_S)
+            assert wait_for(lambda: ap.origin == (100_000_000, 200_000_000, 30_000), 2.0)
+            assert wait_for(lambda: link.stats()["origin_confirmed"], 2 * ORIGIN_CHECK_S)
+            st = link.stats()
+    assert st["origins_sent"] == 2 and st["origin_requests"] >= 2
 
 
 def test_link_loss_after_3_s_and_recovery() -> None:
