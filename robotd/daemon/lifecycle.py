@@ -45,6 +45,7 @@ from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pos
 from robotd.outputs.base import shortest_period
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
+from robotd.persist import CounterFile, default_state_dir
 from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
 
@@ -94,6 +95,7 @@ class Daemon:
         self.vehicle: drivers.VehicleLink | None = None
         self.autopilot_link: drivers.VehicleLink | None = None  # a MAVLink link opened only for the pose
         self.reset_policy = ResetCounterPolicy()
+        self.counter_file: CounterFile | None = None
         self._pending_event: str | None = None  # a discontinuity before the first step (map load)
         self.pipeline: Pipeline | None = None
         self.budget: LatencyBudget | None = None
@@ -163,6 +165,14 @@ class Daemon:
             frame_period_ms=1000.0 / fps,
         )
         logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
+        # the autopilot's view of robotd's pose stream: a new run is a new segment (its counter
+        # differs from the last one the previous run sent)
+        self.counter_file = CounterFile(default_state_dir(cfg.persistence.state_dir))
+        last = self.counter_file.load()
+        if last is not None:
+            self.reset_policy.counter = (last + 1) & 0xFF
+            logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
+        self.counter_file.save(self.reset_policy.counter)
         # the map file is an input too: resume before the first step, then save like any output
         self.maps = stack.enter_context(MapFileOutput(cfg.persistence, cfg.robot.id))
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
@@ -257,6 +267,8 @@ class Daemon:
                 logger.info(
                     "reset_counter %d: %s at frame %d", reset_counter, self.reset_policy.last_reason, item.frame.seq
                 )
+                if self.counter_file is not None:
+                    self.counter_file.save(reset_counter)
             report = StepReport(
                 result=res,
                 seq=seq,
