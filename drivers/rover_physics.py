@@ -416,7 +416,7 @@ class JsonPhysicsServer:
         self._since_truth = 0
         self._truth_seq = 0
         names = ("steps", "resends", "restarts", "malformed", "skipped_frames", "answers", "send_errors")
-        self._counts = dict.fromkeys((*names, "truth_sent", "truth_errors"), 0)
+        self._counts = dict.fromkeys((*names, "errors", "truth_sent", "truth_errors"), 0)
         self._rate_hz = 0
 
     # -- protocol (no sockets) -------------------------------------------------------------------
@@ -540,7 +540,13 @@ class JsonPhysicsServer:
                 logger.warning("receive failed: %s", exc)
                 time.sleep(0.01)
                 continue
-            answer = self.handle(data, f"{addr[0]}:{addr[1]}")
+            try:
+                answer = self.handle(data, f"{addr[0]}:{addr[1]}")
+            except Exception:  # a bug must not stop the thread: SITL would wait for it forever
+                with self._lock:
+                    self._counts["errors"] += 1
+                logger.exception("datagram from %s:%d not answered", *addr[:2])
+                continue
             if answer is None:
                 continue
             try:

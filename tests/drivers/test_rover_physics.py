@@ -363,6 +363,27 @@ def test_malformed_datagrams_are_counted_logged_sparsely_and_not_answered(
     assert "frame_rate_hz = 0: expected > 0" in lines[1] and "(10 so far" in lines[1]
 
 
+def test_an_error_in_the_model_is_logged_and_the_server_goes_on(
+    server: JsonPhysicsServer, sitl: FakeSitl, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    sitl.doc(0)
+    step = server.model.step
+    calls = []
+
+    def failing_once(dt_s: float) -> None:
+        calls.append(dt_s)
+        if len(calls) == 1:
+            raise RuntimeError("a bug")
+        step(dt_s)
+
+    monkeypatch.setattr(server.model, "step", failing_once)
+    with caplog.at_level(logging.ERROR, logger="drivers.rover_physics"):
+        sitl.sock.sendto(encode_servo_packet(RATE_HZ, 1, [1500] * 16), server.address)
+        assert sitl.doc(2)["timestamp"] == pytest.approx(2 * DT)  # frame 1 was not answered; 2 is
+    assert server.stats()["errors"] == 1
+    assert any("not answered" in r.getMessage() and r.exc_info for r in caplog.records)
+
+
 def test_answers_go_back_to_each_datagrams_source(server: JsonPhysicsServer) -> None:
     a, b = FakeSitl(server.address), FakeSitl(server.address)
     try:
