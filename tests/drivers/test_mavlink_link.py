@@ -5,6 +5,7 @@ The mock records what robotd sends; the tests check what ArduPilot checks (inter
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -14,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import AutopilotLink, VehicleLink, mavlink_pose, open_vehicle
-from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_url
+from drivers import AutopilotLink, VehicleLink, mavlink_guard, mavlink_pose, open_vehicle
+from drivers.mavlink_link import DEFAULT_RATES_HZ, MavlinkVehicle, mavlink_module, parse_mavlink_url
 from drivers.mavlink_mock import MockAutopilot
 from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
@@ -25,6 +26,7 @@ from robotd.msgs import PoseEstimate
 from tests.support.tolerances import CENTRAL_DIFF_ATOL, FLOAT32_ROUNDING_TOL
 
 m = mavlink_module()
+S, MS = 1_000_000_000, 1_000_000
 
 
 def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> bool:
@@ -62,6 +64,11 @@ def test_enum_values_match_pymavlink() -> None:
     assert mavlink_pose.MAV_STATE_ACTIVE == m.MAV_STATE_ACTIVE
     assert mavlink_pose.MAV_STATE_CRITICAL == m.MAV_STATE_CRITICAL
     assert mavlink_pose.MAV_STATE_FLIGHT_TERMINATION == m.MAV_STATE_FLIGHT_TERMINATION
+    # and drivers.mavlink_guard the command results
+    assert mavlink_guard.MAV_RESULT_ACCEPTED == m.MAV_RESULT_ACCEPTED
+    assert mavlink_guard.MAV_RESULT_UNSUPPORTED == m.MAV_RESULT_UNSUPPORTED
+    assert mavlink_guard.MAV_RESULT_IN_PROGRESS == m.MAV_RESULT_IN_PROGRESS
+    assert mavlink_guard.NO_ACK not in m.enums["MAV_RESULT"]
 
 
 def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
@@ -113,8 +120,11 @@ def test_odometry_stream_heartbeat_origin_rates_and_inputs() -> None:
     assert st["origin_confirmed"]
     cmds = [r.msg for r in ap.messages("COMMAND_LONG") if r.msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL]
     requested = {int(c.param1): c.param2 for c in cmds}
-    assert requested[m.MAVLINK_MSG_ID_WHEEL_DISTANCE] == 20_000 and requested[m.MAVLINK_MSG_ID_ATTITUDE] == 20_000
+    assert requested == {getattr(m, f"MAVLINK_MSG_ID_{k}"): round(1e6 / hz) for k, hz in DEFAULT_RATES_HZ.items()}
+    assert requested[m.MAVLINK_MSG_ID_ATTITUDE] == 40_000  # 25 Hz: a default Rover grants at most 40
+    assert m.MAVLINK_MSG_ID_WHEEL_DISTANCE not in requested  # ArduPilot refuses it: it is never asked for
     assert all(c.target_system == 7 and c.target_component == 1 for c in cmds)
+    assert st["rates_accepted"] == len(DEFAULT_RATES_HZ) and st["rates_refused"] == 0
     # -- inputs: WHEEL_DISTANCE speed, ATTITUDE yaw rate, on the host clock
     assert len(odo_in) > 50
     v = np.array([o.vel_R_mps[0] for o in odo_in])
@@ -526,3 +536,44 @@ def test_spoofed_system_times_are_no_reboot_and_a_real_reboot_is_one() -> None:
             assert wait_for(lambda: len(ap.messages("SET_GPS_GLOBAL_ORIGIN")) == 2, 2.0)
             time.sleep(1.5)
             assert link.stats()["autopilot_reboots"] == 1
+
+
+def test_refused_rates_are_retried_at_half_logged_counted_and_in_health(caplog: pytest.LogCaptureFixture) -> None:
+    """ArduPilot Rover (SCHED_LOOP_RATE 50) refuses ATTITUDE at 50 Hz and every WHEEL_DISTANCE
+    request with MAV_RESULT_DENIED; robotd used to ask for both and say nothing (issue 24). Each
+    request now waits for its COMMAND_ACK; a refusal is logged (message, rate, MAV_RESULT name),
+    counted, retried once at half the rate, and shown in the link's stats and the health document,
+    without the link being any less ok."""
+    from robotd.daemon.budget import LatencyBudget
+    from robotd.daemon.health import HealthMonitor
+    from robotd.queues import DropOldestQueue
+
+    caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
+    rates = {"ATTITUDE": 50.0, "WHEEL_DISTANCE": 50.0, "SYSTEM_TIME": 1.0}
+    with MockAutopilot(sysid=7, loop_rate_hz=50.0) as ap:
+        with open_vehicle(ap.url, rates_hz=rates) as link:
+            assert wait_for(lambda: link.stats()["rates_accepted"] + link.stats()["rates_refused"] >= 5, 5.0)
+            st = link.stats()
+            budget = LatencyBudget(33.0, 1000, 100, 200, 20)
+            doc = HealthMonitor().doc(True, budget, DropOldestQueue(2), DropOldestQueue(2), {"vehicle": link})
+    asked = [
+        (int(r.msg.param1), int(r.msg.param2))
+        for r in ap.messages("COMMAND_LONG")
+        if r.msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL
+    ]
+    atti, wheels, systime = m.MAVLINK_MSG_ID_ATTITUDE, m.MAVLINK_MSG_ID_WHEEL_DISTANCE, m.MAVLINK_MSG_ID_SYSTEM_TIME
+    # in order, one at a time: each refusal is retried once at half the rate before the next message
+    assert asked == [(atti, 20_000), (atti, 40_000), (wheels, 20_000), (wheels, 40_000), (systime, 1_000_000)]
+    assert ap.attitude_hz == 25.0  # the retry was granted
+    assert (st["rates_refused"], st["rates_accepted"], st["rates_unacknowledged"]) == (3, 2, 0)
+    refused = ["ATTITUDE 50 Hz", "WHEEL_DISTANCE 50 Hz", "WHEEL_DISTANCE 25 Hz"]
+    assert st["rates_refused_messages"] == [f"{r}: MAV_RESULT_DENIED" for r in refused]
+    assert st["rates_granted"] == ["ATTITUDE 25 Hz", "SYSTEM_TIME 1 Hz"]
+    assert st["state"] == "ok" and st["link_up"]  # refused rates are not a lost link
+    v = doc["vehicle"]
+    assert v["rates_refused"] == 3 and v["rates_refused_messages"] == st["rates_refused_messages"]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 3, warnings  # one line per refusal
+    assert "ATTITUDE at 50 Hz refused by the autopilot (MAV_RESULT_DENIED); asking for 25 Hz instead" in warnings[0]
+    assert "WHEEL_DISTANCE at 25 Hz refused by the autopilot (MAV_RESULT_DENIED) too" in warnings[2]
+    assert "WENC_TYPE" in warnings[2]  # and where WHEEL_DISTANCE comes from instead
