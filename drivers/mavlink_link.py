@@ -31,7 +31,8 @@ requests are answered only for the autopilot, at most ``timesync_reply_hz`` a se
 
 In: ``WHEEL_DISTANCE`` (differential drive, track width from the options; ±100 000 m wrap) gives
 forward speed; ``ATTITUDE`` gives body rates (preferred for yaw rate) and the attitude used to
-rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data flows;
+rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data flows (the
+ATTITUDE nearest each sample's stamp, its yaw carried to the stamp: ``_attitude_at``);
 ``SERVO_OUTPUT_RAW``/``RC_CHANNELS`` are the control inputs. Autopilot stamps are mapped onto
 the host clock with the TIMESYNC offset (arrival time until the first round trip).
 
@@ -76,6 +77,12 @@ DIALECT = "ardupilotmega"
 MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
 PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
+# An odometry sample takes the ATTITUDE nearest its stamp, turned on by the body rates over the
+# difference: within ATTITUDE_FRESH_NS that is a refinement; up to ATTITUDE_MAX_AGE_NS (ArduPilot
+# streams ATTITUDE at 1 Hz when no rate request is granted) it is an extrapolation, counted in
+# ``attitude_extrapolated``; beyond it the sample is dropped, counted in ``no_attitude``.
+ATTITUDE_FRESH_NS = 200_000_000
+ATTITUDE_MAX_AGE_NS = 1_000_000_000
 # what to tell the user when the autopilot refuses a rate request for these messages
 RATE_HINTS = {
     "WHEEL_DISTANCE": "ArduPilot streams it only with wheel encoders (WENC_TYPE) in its EXTRA1 group "
@@ -117,6 +124,8 @@ COUNTERS = (
     "stamped_by_arrival",
     "wheel_wraps",
     "wheel_intervals_rejected",
+    "attitude_extrapolated",
+    "no_attitude",
     "tx_errors",
     "bad_values",
     "rejected_source",
@@ -427,7 +436,8 @@ class MavlinkVehicle(QueuedVehicleLink):
         )
         self._last_ap_hb_mono: float | None = None
         self._link_up = False
-        self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
+        # recent ATTITUDEs (t_ns, rpy, body rates), the newest last: at 25 Hz, 2.5 s of them
+        self._attitudes: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=64)
         self._rates = RateRequests()  # guarded by _lock (ACKs arrive on the receive thread)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
         self._last_wheel_mono = -math.inf
@@ -648,13 +658,35 @@ class MavlinkVehicle(QueuedVehicleLink):
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
         if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
             raise ValueError(f"ATTITUDE not finite: rpy {rpy}, rates {rates}")
-        self._attitude = (t, rpy, rates)
+        self._attitudes.append((t, rpy, rates))
 
-    def _fresh_attitude(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-        a = self._attitude
-        if a is None or abs(t_ns - a[0]) > 200_000_000:
+    def _attitude_at(self, t_ns: int, max_age_ns: int = ATTITUDE_FRESH_NS) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The autopilot's attitude at host time ``t_ns``: the ATTITUDE nearest in time, if within
+        ``max_age_ns``, its yaw carried over the difference Δt by the yaw rate its body rates give,
+        ψ̇ = (q sin φ + r cos φ) / cos θ (roll and pitch held: a ground vehicle's change slowly);
+        (roll/pitch/yaw at ``t_ns``, body rates, |Δt| in ns). None when there is none that near.
+
+        An odometry sample is paired with the attitude at its own stamp, not with whichever
+        ATTITUDE came last: LOCAL_POSITION_NED arrives at 10 Hz, ATTITUDE at whatever rate the
+        autopilot grants (1 Hz on ArduPilot when the request is refused), and only a sample
+        within 200 ms of the last ATTITUDE used to be kept, leaving holes in the odometry that
+        the integrator cannot bridge (issue 24: half the frames without odometry)."""
+        best: tuple[int, int, np.ndarray, np.ndarray] | None = None
+        for t_a, rpy, rates in reversed(self._attitudes):
+            d = abs(t_ns - t_a)
+            if best is None or d < best[0]:
+                best = (d, t_a, rpy, rates)
+            if t_a <= t_ns:
+                break  # the stamps increase: older ones are further away
+        if best is None or best[0] > max_age_ns:
             return None
-        return a[1], a[2]
+        d, t_a, rpy, rates = best
+        if t_ns != t_a:
+            roll, pitch = float(rpy[0]), float(rpy[1])
+            yaw_rate = (rates[1] * math.sin(roll) + rates[2] * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+            yaw = math.remainder(float(rpy[2]) + yaw_rate * (t_ns - t_a) * 1e-9, math.tau)
+            rpy = np.array([roll, pitch, yaw])
+        return rpy, rates, d
 
     def _on_wheel_distance(self, msg: Any, t_ns: int) -> None:
         o = self.opts
@@ -681,7 +713,8 @@ class MavlinkVehicle(QueuedVehicleLink):
             v, w_wheels = 0.5 * (ds_l + ds_r) / dt, math.nan
         # mean speed over the interval: stamp it at the midpoint
         t = self._clock.to_host((t_us * 1000) - int(dt * 5e8), t_ns)
-        att = self._fresh_attitude(t)
+        a = self._attitude_at(t)
+        att = None if a is None else (a[0], a[1])
         if o.yaw_rate_source == "attitude" and att is not None:
             rates = att[1]
         elif math.isfinite(w_wheels):
@@ -705,12 +738,16 @@ class MavlinkVehicle(QueuedVehicleLink):
         if time.monotonic() - self._last_wheel_mono < 1.0:
             return  # wheel odometry flows: it is the better velocity source
         t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
-        att = self._fresh_attitude(t)
-        if att is None:
-            return  # cannot rotate NED into the body frame without an attitude
         v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         if not np.all(np.isfinite(v_ned)):
             raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
+        a = self._attitude_at(t, ATTITUDE_MAX_AGE_NS)
+        if a is None:
+            self.c["no_attitude"] += 1  # cannot rotate NED into the body frame without an attitude
+            return
+        if a[2] > ATTITUDE_FRESH_NS:
+            self.c["attitude_extrapolated"] += 1
+        att = (a[0], a[1])
         # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
         v_R = euler_to_R(att[0]).T @ v_ned
         self._emit(Odometry(t, v_R, att[1].copy(), "mavlink", *self._gravity(att)))

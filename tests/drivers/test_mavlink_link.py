@@ -5,6 +5,7 @@ The mock records what robotd sends; the tests check what ArduPilot checks (inter
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
@@ -577,3 +578,51 @@ def test_refused_rates_are_retried_at_half_logged_counted_and_in_health(caplog: 
     assert "ATTITUDE at 50 Hz refused by the autopilot (MAV_RESULT_DENIED); asking for 25 Hz instead" in warnings[0]
     assert "WHEEL_DISTANCE at 25 Hz refused by the autopilot (MAV_RESULT_DENIED) too" in warnings[2]
     assert "WENC_TYPE" in warnings[2]  # and where WHEEL_DISTANCE comes from instead
+
+
+class _Autopilot:
+    """Messages of system 1, component 1, as pymavlink hands them to the link (header filled in)."""
+
+    def __init__(self) -> None:
+        self.mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def __call__(self, name: str, *fields: object) -> object:
+        msg = getattr(self.mav, f"{name}_encode")(*fields)
+        msg.pack(self.mav)
+        return msg
+
+
+def test_local_position_odometry_covers_every_frame_with_a_slow_attitude_stream() -> None:
+    """ArduPilot streams ATTITUDE at 1 Hz (MAVn_EXTRA1's default) when robotd's request is refused,
+    and LOCAL_POSITION_NED at 10 Hz. A LOCAL_POSITION_NED sample was kept only within 200 ms of
+    the last ATTITUDE, so two samples in ten reached the integrator and the 0.8 s holes left about
+    half the frames without odometry (issue 24: 291 of 544 on the SITL). Each sample now takes
+    the attitude at its own stamp, the yaw carried by the yaw rate. Simulated clock: the
+    autopilot's messages go through the link's own handlers with given arrival times."""
+    from robotd.odometry import OdometryIntegrator
+
+    link = MavlinkVehicle("mavlink+udp://127.0.0.1:14551?mode=in", sysid=1)  # never opened: no socket
+    ap = _Autopilot()
+    speed, yaw_rate = 2.0, 0.5  # a rover turning left at 0.5 rad/s: the yaw moves 0.45 rad in 0.9 s
+    t0 = 50 * S
+    link._dispatch(ap("heartbeat", m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4), t0, None)
+    for k in range(1, 101):  # 10 s at 10 Hz; an ATTITUDE every 10th step (1 Hz), before the position
+        t = t0 + k * S // 10
+        yaw = math.remainder(yaw_rate * (t - t0) * 1e-9, math.tau)
+        if k % 10 == 1:
+            link._dispatch(ap("attitude", (t - t0) // MS, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate), t, None)
+        v_ned = (speed * math.cos(yaw), speed * math.sin(yaw), 0.0)
+        link._dispatch(ap("local_position_ned", (t - t0) // MS, 0.0, 0.0, 0.0, *v_ned), t, None)
+    odo = link.drain()
+    st = link.stats()
+    assert len(odo) == 100 and st["no_attitude"] == 0 and st["attitude_extrapolated"] == 70  # > 200 ms: 7 in 10
+    # the body velocity is forward whatever the ATTITUDE's age: the yaw was carried to each stamp
+    for o in odo:
+        assert o.vel_R_mps == pytest.approx([speed, 0.0, 0.0], abs=1e-3)
+    # frames at 15 Hz over the samples' span: the integrator covers every one
+    integ = OdometryIntegrator(max_gap_s=0.5)
+    for o in odo:
+        integ.add(o)
+    frames = np.arange(odo[0].t_ns, odo[-1].t_ns, S // 15)
+    covered = [integ.integrate(int(a), int(b)) is not None for a, b in itertools.pairwise(frames)]
+    assert all(covered), f"{covered.count(False)} of {len(covered)} frames without odometry"
