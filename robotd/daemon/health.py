@@ -260,10 +260,17 @@ def _position_sigma_m(cov: np.ndarray) -> float:
 
 
 def _safe_stats(dev: HasStats | None) -> dict[str, Any]:
+    """A device's scalar figures, and its lists of them (a link's refused message rates)."""
     if dev is None:
         return {}
     try:
         s = dev.stats()
-        return {k: v for k, v in s.items() if isinstance(v, int | float | str | bool) or v is None}
+        return {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in s.items() if _plain(v)}
     except Exception as exc:
         return {"error": str(exc)}
+
+
+def _plain(v: Any) -> bool:
+    if isinstance(v, list | tuple):
+        return all(isinstance(x, int | float | str | bool) for x in v)
+    return isinstance(v, int | float | str | bool) or v is None
