@@ -74,6 +74,7 @@ class DaemonStats:
     last_stall_s: float = 0.0
     last_stall_ns: int = 0  # monotonic time the last stall (either kind) was seen
     frames_without_odometry: int = 0  # processed frames whose interval no odometry covered
+    frames_before_odometry: int = 0  # ... before the vehicle's first sample (not counted above)
     last_without_odometry_ns: int = 0
     stalls_without_odometry: int = 0  # of the stalls, those no odometry covered (a pose discontinuity)
     last_step_error_ns: int = 0
@@ -170,6 +171,7 @@ class HealthMonitor:
             "since_stall_s": round((now - st.last_stall_ns) / 1e9, 1) if st.last_stall_ns else None,
             "stalls_without_odometry": st.stalls_without_odometry,
             "frames_without_odometry": st.frames_without_odometry,
+            "frames_before_odometry": st.frames_before_odometry,
             "pose_sigma_m": None if sigma is None or not np.isfinite(sigma) else round(sigma, 4),
             "step_errors": self.stats.step_errors,
             "budget": budget.health(),

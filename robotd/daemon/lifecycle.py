@@ -190,6 +190,7 @@ class Daemon:
         last_t: int | None = None  # the last frame stepped
         last_in: int | None = None  # the last frame given to the step (it may have failed)
         last_seq: int | None = None
+        first_odo_ns: int | None = None  # the first plausible odometry sample's time
         map_period = shortest_period(self.outputs, "map_period_s")
         state_period = shortest_period(self.outputs, "state_period_s")
         next_map, next_state = 0.0, time.monotonic() + state_period
@@ -206,6 +207,8 @@ class Daemon:
             for odo in odometry:
                 if self.odometry_gate.accept(odo, now_ns):  # an implausible sample is never integrated
                     self.integrator.add(odo)
+                    if first_odo_ns is None:
+                        first_odo_ns = odo.t_ns
             if last_seq is not None and frame.seq > last_seq + 1:
                 self.stats.seq_gaps += 1
             last_seq = frame.seq
@@ -213,8 +216,13 @@ class Daemon:
                 continue
             inc = self.integrator.integrate(last_t, frame.t_ns) if last_t is not None else None
             if last_t is not None and inc is None:
-                self.stats.frames_without_odometry += 1
-                self.stats.last_without_odometry_ns = time.monotonic_ns()
+                if first_odo_ns is None or last_t < first_odo_ns:
+                    # the vehicle has not measured anything yet (an autopilot's EKF sends no
+                    # velocity for its first seconds): counted apart, not a fault of the link
+                    self.stats.frames_before_odometry += 1
+                else:
+                    self.stats.frames_without_odometry += 1
+                    self.stats.last_without_odometry_ns = time.monotonic_ns()
             # a stall: measured between frames that reached the step, whether or not the step worked
             stalled = last_in is not None and self._check_gap(frame.t_ns - last_in, inc is not None, budget)
             last_in = frame.t_ns
