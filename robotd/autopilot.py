@@ -327,7 +327,9 @@ class ResetCounterPolicy:
     T265 bridge's step) + ``jump_frac`` of the predicted step (an error of the twist) +
     ½·``accel_max``·Δt² (a vehicle braking or accelerating since the last pose); the same for yaw.
     A vehicle moving smoothly at 0.5–10 m/s, published at 5–30 Hz, never bumps; one jump bumps
-    once (docs/mavlink.md §5).
+    once (docs/mavlink.md §5). A pose more than ``max_gap_s`` after the last one starts a new
+    segment too: the autopilot dead-reckoned across the gap, and robotd's pose after it may lie
+    outside its innovation gate (EKF3 would refuse it, then fall back to DCM after 10 s).
 
     :attr:`velocity_R` is the body-frame (FRD) velocity [m/s] of the same twist: what ODOMETRY's
     vx, vy, vz carry. It is zero until two poses are seen (robotd starts at rest) and is kept,
@@ -340,6 +342,7 @@ class ResetCounterPolicy:
     accel_max_mps2: float = 4.0
     yaw_accel_max_radps2: float = 6.0
     window_s: float = 0.2
+    max_gap_s: float = 1.0
     counter: int = 0
     bumps: int = 0
     last_reason: str = ""  # why the last bump happened (an event's name, or "jump 0.42 m")
@@ -378,9 +381,15 @@ class ResetCounterPolicy:
         reason = event
         last = self._seg[-1] if self._seg else None
         if reason is None and last is not None and pose.t_ns > last.t_ns:
-            pred = self.predict(pose.t_ns, odometry)
-            if pred is not None:
-                reason = self._jump(last, pose, *pred)
+            gap_s = (pose.t_ns - last.t_ns) * 1e-9
+            if gap_s > self.max_gap_s:
+                # the autopilot dead-reckoned meanwhile and may have drifted further than its
+                # innovation gate lets the next pose through: a new segment (it snaps to robotd)
+                reason = f"gap {gap_s:.1f} s"
+            else:
+                pred = self.predict(pose.t_ns, odometry)
+                if pred is not None:
+                    reason = self._jump(last, pose, *pred)
         if reason is not None:
             self.counter = (self.counter + 1) & 0xFF
             self.bumps += 1

@@ -221,6 +221,16 @@ def test_reset_counter_events_yaw_jumps_and_wrap(rng: np.random.Generator) -> No
     assert pol.update(pose(t_ns=t + 4 * step), ResetEvent.FILTER_RESTART) == 0  # uint8 wraps
 
 
+def test_a_gap_in_the_poses_starts_a_new_segment(rng: np.random.Generator) -> None:
+    poses, _ = drive(2.0, 10.0, 6.0, rng)
+    pol = ResetCounterPolicy()
+    for p in poses[:30]:
+        assert pol.update(p) == 0
+    # 1.5 s without a pose (a stall, a lost link): the next one is a new segment, however plausible
+    assert pol.update(poses[45]) == 1 and pol.last_reason.startswith("gap 1.")
+    assert [pol.update(p) for p in poses[46:]] == [1] * len(poses[46:])
+
+
 def test_no_jump_test_before_the_motion_is_known() -> None:
     # a daemon resumed on a moving rover: its first poses come at speed, with no twist yet
     pol = ResetCounterPolicy()
