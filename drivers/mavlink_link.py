@@ -78,6 +78,9 @@ MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
 PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
 ORIGIN_CHECK_S = 2.0  # how often the autopilot's EKF origin is checked (and sent again if it is gone)
+ALIGN_STILL_S = 2.0  # the vehicle stood still this long before robotd asks for a vision-yaw alignment
+ALIGN_INTERVAL_S = 5.0  # ... and at most this often
+AUX_FUNCTION_VISO_ALIGN = 80  # ArduPilot's RC aux function "VisOdom align"
 # An odometry sample takes the ATTITUDE nearest its stamp, turned on by the body rates over the
 # difference: within ATTITUDE_FRESH_NS that is a refinement; up to ATTITUDE_MAX_AGE_NS (ArduPilot
 # streams ATTITUDE at 1 Hz when no rate request is granted) it is an extrapolation, counted in
@@ -115,6 +118,7 @@ COUNTERS = (
     "timesync_samples",
     "origins_sent",
     "origin_requests",
+    "yaw_align_requests",
     "rate_requests",
     "rates_accepted",
     "rates_refused",
@@ -194,6 +198,10 @@ class MavlinkOptions:
     floor_pos_m2: float = 1e-6
     floor_ang_rad2: float = 1e-6
     queue_size: int = 512
+    # when the autopilot reports its vision yaw off its own heading before arming ("VisOdom: yaw
+    # diff") and the vehicle stands still: ask it to align them (aux function 80), at most every
+    # ALIGN_INTERVAL_S (docs/mavlink.md §6)
+    align_yaw: bool = True
 
 
 _SCALARS: dict[str, type] = {
@@ -221,6 +229,7 @@ _SCALARS: dict[str, type] = {
     "floor_pos_m2": float,
     "floor_ang_rad2": float,
     "queue_size": int,
+    "align_yaw": bool,
 }
 
 
@@ -446,6 +455,9 @@ class MavlinkVehicle(QueuedVehicleLink):
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
         self._origin_heard = False  # a GPS_GLOBAL_ORIGIN with our origin since the last check
+        self.armed: bool | None = None  # from the autopilot's heartbeat
+        self._last_align_mono = -math.inf
+        self.last_visodom_text = ""
         self._next_origin_check = math.inf
         self.c: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._clock = _AutopilotClock(self.c)
@@ -521,6 +533,8 @@ class MavlinkVehicle(QueuedVehicleLink):
             "timesync_offset_ns": self._clock.filter.offset_ns,
             "timesync_rtt_ns": self._clock.filter.rtt_ns,
             "origin_confirmed": self.origin_confirmed,
+            "armed": self.armed,
+            "last_visodom_text": self.last_visodom_text,
             "ekf_flags": self.ekf_flags,
             **self._rate_stats(),
             "queued": len(self._queue),
@@ -627,6 +641,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         elif not self._from_autopilot(msg, addr):
             return False
         self._last_ap_hb_mono = time.monotonic()
+        self.armed = bool(msg.base_mode & m.MAV_MODE_FLAG_SAFETY_ARMED)
         self._boot.heartbeat(t_ns)
         if not self._link_up:
             self._link_up = True
@@ -807,6 +822,33 @@ class MavlinkVehicle(QueuedVehicleLink):
                 msg.longitude * 1e-7,
             )
 
+    def _on_statustext(self, msg: Any, t_ns: int) -> None:
+        """ArduPilot's pre-arm "VisOdom: yaw diff …" (its vision yaw, rotated onto its own heading
+        when it aligned them, no longer agrees with that heading): once the vehicle has stood
+        still for ALIGN_STILL_S, robotd asks it to align again (MAV_CMD_DO_AUX_FUNCTION, function
+        80), at most every ALIGN_INTERVAL_S and never while armed; an alignment taken while the
+        rover turned, or before the compass settled, is what left it off (docs/mavlink.md §6)."""
+        text = str(msg.text)
+        if "VisOdom:" not in text:
+            return
+        self.last_visodom_text = text
+        if "yaw diff" not in text or not self.opts.align_yaw or self.armed is not False:
+            return
+        now = time.monotonic()
+        if now - self._last_align_mono < ALIGN_INTERVAL_S:
+            return
+        if self._autopilot.still_for_s() < ALIGN_STILL_S:
+            return
+        self._last_align_mono = now
+        logger.info(
+            "%s: the autopilot says %r and the vehicle is still: asking it to align its vision yaw "
+            "to its own heading (aux function %d)",
+            self.url,
+            text,
+            AUX_FUNCTION_VISO_ALIGN,
+        )
+        self._outbox_put("align_yaw", text)
+
     def _on_command_ack(self, msg: Any, t_ns: int) -> None:
         """An answer to one of our SET_MESSAGE_INTERVAL requests (the outstanding one: the ACK
         does not say which message it concerns, drivers.mavlink_guard.RateRequests)."""
@@ -881,6 +923,22 @@ class MavlinkVehicle(QueuedVehicleLink):
         if kind == "timesync_reply":
             self._conn.mav.timesync_send(time.monotonic_ns(), arg)
             self.c["timesync_replies"] += 1
+        elif kind == "align_yaw":
+            m = _mav()
+            self._conn.mav.command_long_send(
+                self._ap_sysid or 1,
+                self._ap_compid,
+                m.MAV_CMD_DO_AUX_FUNCTION,
+                0,
+                AUX_FUNCTION_VISO_ALIGN,
+                2,  # switch high
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+            self.c["yaw_align_requests"] += 1
         elif kind == "vehicle_setup":
             self._send_origin()
             if self.opts.request_rates:

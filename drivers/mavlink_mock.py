@@ -59,6 +59,7 @@ class MockAutopilot:
     heartbeat_enabled: bool = True
     bad_data: int = 0
     origin: tuple[int, int, int] | None = None  # the EKF origin (lat, lon [1e-7 deg], alt [mm]) once set
+    armed: bool = False  # HEARTBEAT.base_mode's safety-armed flag
 
     def __post_init__(self) -> None:
         self.conn = mavutil.mavlink_connection(
@@ -141,7 +142,8 @@ class MockAutopilot:
         mav = self.conn.mav
         boot_ns = self.boot_time_ns(t_ns)
         if self.heartbeat_enabled:
-            mav.heartbeat_send(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE)
+            base_mode = m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
+            mav.heartbeat_send(m.MAV_TYPE_GROUND_ROVER, m.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode, 0, m.MAV_STATE_ACTIVE)
         mav.system_time_send(0, boot_ns // 1_000_000)
         mav.servo_output_raw_send(boot_ns // 1000 & 0xFFFFFFFF, 0, 1600, 0, 1750, 0, 0, 0, 0, 0)
         if self.send_timesync_requests:
@@ -180,6 +182,10 @@ class MockAutopilot:
             o = self.origin
         if o is not None:
             self.conn.mav.gps_global_origin_send(*o, self.boot_time_ns() // 1000)
+
+    def statustext(self, text: str, severity: int = 4) -> None:
+        """Send one STATUSTEXT (ArduPilot's pre-arm messages are severity 4, WARNING... or 2)."""
+        self.conn.mav.statustext_send(severity, text.encode()[:50])
 
     def forget_origin(self) -> None:
         """What EKF3 does when it initialises after an origin was set: the origin is gone."""

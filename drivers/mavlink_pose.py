@@ -19,6 +19,7 @@ written out below and tests check them against pymavlink.
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Any, Protocol
 
@@ -41,6 +42,9 @@ _SYSTEM_STATUS = {
     "degraded": MAV_STATE_CRITICAL,
     "failed": MAV_STATE_FLIGHT_TERMINATION,
 }
+
+STILL_SPEED_MPS = 0.05  # below this speed ...
+STILL_TURN_RADPS = 0.02  # ... and this turn rate the vehicle stands still
 
 # the keys of the link's counter dict this role counts in (and reports in stats())
 POSE_COUNTERS = ("odometry_sent", "vision_position_sent", "poses_superseded", "poses_stale", "poses_withheld")
@@ -74,6 +78,8 @@ class MavlinkAutopilot:
         self._last_pose_t_ns: int | None = None
         self._last_quality = 0
         self._health: str | None = None  # None: derive from quality
+        self._last_yaw: tuple[int, float] | None = None  # (t_ns, yaw) of the last pose sent
+        self._still_since_ns: int | None = None  # the vehicle has stood still since (pose time)
 
     # -- AutopilotLink (any thread) ------------------------------------------------------------
     def send_pose(
@@ -111,6 +117,24 @@ class MavlinkAutopilot:
     def stats(self) -> dict[str, Any]:
         return {**{k: self._c[k] for k in POSE_COUNTERS}, "health": self.health()}
 
+    def still_for_s(self) -> float:
+        """How long [s] the vehicle has stood still, by the poses sent (0 when moving or unknown)."""
+        since, last = self._still_since_ns, self._last_pose_t_ns
+        return 0.0 if since is None or last is None else (last - since) * 1e-9
+
+    def _note_motion(self, pose: PoseEstimate, vel: np.ndarray) -> None:
+        yaw = float(pose.rpy_rad[2])
+        turn = math.inf
+        if self._last_yaw is not None and pose.t_ns > self._last_yaw[0]:
+            dyaw = (yaw - self._last_yaw[1] + math.pi) % (2 * math.pi) - math.pi
+            turn = abs(dyaw) / ((pose.t_ns - self._last_yaw[0]) * 1e-9)
+        self._last_yaw = (pose.t_ns, yaw)
+        still = float(np.linalg.norm(vel)) < STILL_SPEED_MPS and turn < STILL_TURN_RADPS
+        if not still:
+            self._still_since_ns = None
+        elif self._still_since_ns is None:
+            self._still_since_ns = pose.t_ns
+
     # -- the link's transmit thread --------------------------------------------------------------
     def system_status(self) -> int:
         """HEARTBEAT.system_status (MAV_STATE) for :meth:`health`."""
@@ -129,6 +153,7 @@ class MavlinkAutopilot:
         if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
             self._c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
             return
+        self._note_motion(pose, vel)
         self._last_pose_t_ns = pose.t_ns
         self._last_quality = quality
         if self.message == "odometry":

@@ -250,6 +250,40 @@ def test_an_origin_the_autopilot_forgot_is_sent_again() -> None:
     assert st["origins_sent"] == 2 and st["origin_requests"] >= 2
 
 
+def test_a_vision_yaw_the_autopilot_finds_off_is_aligned_once_the_rover_is_still() -> None:
+    # ArduPilot with compass yaw aligns robotd's frame to its heading once; taken while the rover
+    # turned, it stays off and pre-arm fails ("VisOdom: yaw diff ..."). robotd asks for a new
+    # alignment (aux function 80) only while disarmed and once the rover has stood still 2 s.
+    m = mavlink_module()
+    complaint = "PreArm: VisOdom: yaw diff 12.3 deg (>10)"
+
+    def aligns(ap: MockAutopilot) -> list:
+        return [r for r in ap.messages("COMMAND_LONG") if r.msg.command == m.MAV_CMD_DO_AUX_FUNCTION]
+
+    def drive(link: MavlinkVehicle, ap: MockAutopilot, seconds: float, speed: float) -> None:
+        t_end = time.monotonic() + seconds
+        x = 0.0
+        while time.monotonic() < t_end:
+            x += speed / 20.0
+            link.autopilot.send_pose(pose_at(time.monotonic_ns(), x=x), 80, 0, np.array([speed, 0.0, 0.0]))
+            ap.statustext(complaint)
+            time.sleep(0.05)
+
+    with MockAutopilot() as ap:
+        with open_vehicle(ap.url) as link:
+            assert wait_for(lambda: link.link_up and link.stats()["armed"] is False, 3.0)
+            drive(link, ap, 1.5, speed=1.0)  # moving: no alignment
+            assert aligns(ap) == [] and link.stats()["last_visodom_text"] == complaint
+            drive(link, ap, 3.0, speed=0.0)  # still for more than 2 s: one request
+            assert wait_for(lambda: len(aligns(ap)) == 1, 2.0)
+            req = aligns(ap)[0].msg
+            assert (req.param1, req.param2) == (80, 2) and link.stats()["yaw_align_requests"] == 1
+            ap.armed = True  # armed: never
+            assert wait_for(lambda: link.stats()["armed"] is True, 3.0)
+            drive(link, ap, 6.0, speed=0.0)
+            assert len(aligns(ap)) == 1
+
+
 def test_link_loss_after_3_s_and_recovery() -> None:
     with MockAutopilot() as ap:
         with open_vehicle(ap.url) as link:
