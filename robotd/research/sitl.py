@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,7 @@ HOME = (-35.363261, 149.165230, 584.0)  # ArduPilot's SITL home (CMAC), lat, lon
 JSON_PORT = 9002  # SITL instance I sends its JSON physics datagrams to JSON_PORT + 10·I
 RC_PORT = 5501  # ... and listens for RC input on RC_PORT + 10·I (on every address: SITL's choice)
 ROVER_AUTO, ROVER_HOLD, ROVER_MANUAL = 10, 4, 0  # Rover's custom modes
+WHEEL_TRACK_M = 0.3  # the simulated wheel encoders' spacing (WENC_POS_Y = ∓ half of it)
 
 
 class SitlError(RobotdError):
@@ -179,6 +181,7 @@ class LoopOptions:
     viso_type: int | None = None  # None: 1 (MAVLink) with robotd's heading, 2 (T265) with the compass's
     viso_delay_ms: int = 40
     restart_at: float | None = None
+    hold_for_restart: bool = False  # the rover holds (stands still) while robotd restarts
     speedup: float = 1.0
     seed: int = 1
     timeout_s: float = 300.0
@@ -228,6 +231,20 @@ def sitl_params(opts: LoopOptions) -> dict[str, float]:
         "WP_SPEED": opts.speed_mps,
         "WP_RADIUS": 0.5,
     }
+    if opts.vehicle == "mavlink":
+        # wheel encoders on the simulated rover (SITL's quadrature model), streamed to robotd in
+        # the EXTRA1 group of its port (MAV2_* is SERIAL1's in this build): the link's odometry
+        p.update(
+            {
+                "WENC_TYPE": 10,
+                "WENC2_TYPE": 10,
+                "WENC_POS_Y": -WHEEL_TRACK_M / 2,
+                "WENC2_POS_Y": WHEEL_TRACK_M / 2,
+                "WENC_RADIUS": 0.05,
+                "WENC2_RADIUS": 0.05,
+                "MAV2_EXTRA1": 25,
+            }
+        )
     p.update(dict(opts.extra_params))
     return p
 
@@ -395,7 +412,7 @@ def robotd_config(
 ) -> str:
     """robotd's configuration for the loop (TOML)."""
     cam = f"sim://yard?fps={opts.fps:g}&seed={opts.seed}&follow=127.0.0.1:{truth_port}&yaw0={opts.yaw0_deg:g}"
-    mav = f"mavlink+udp://127.0.0.1:{mav_port}?mode=in"
+    mav = f"mavlink+udp://127.0.0.1:{mav_port}?mode=in&track_width_m={WHEEL_TRACK_M:g}"
     vehicle = mav if opts.vehicle == "mavlink" else cam
     lines = [
         "[robot]",
@@ -670,10 +687,20 @@ def run_loop(opts: LoopOptions, progress: Callable[[str], None] | None = None) -
                 break
             if restart_seq is not None and gcs.reached and gcs.reached[-1] >= restart_seq and robotd.starts == 1:
                 say(f"waypoint {gcs.reached[-1]}: restarting robotd from its saved map")
+                if opts.hold_for_restart:
+                    gcs.set_mode(ROVER_HOLD)
+                    gcs.wait(lambda: gcs.mode() == ROVER_HOLD and _speed(gcs) < 0.05, 20.0, "the rover to hold", alive)
                 restarting.set()
+                poses_before = watch.poses
+                t_stop = time.monotonic()
                 robotd.stop()
                 robotd.start()
                 restarting.clear()
+                gcs.wait(partial(_more_poses, watch, poses_before + 5), 60.0, "robotd's poses after the restart", alive)
+                result.figures["restart_gap_s"] = time.monotonic() - t_stop
+                if opts.hold_for_restart:
+                    time.sleep(2.0)  # let the autopilot take the new segment before it drives on
+                    gcs.set_mode(ROVER_AUTO)
             time.sleep(0.2)
         result.mission_s = time.monotonic() - t_start
         if not result.completed:
@@ -694,6 +721,15 @@ def run_loop(opts: LoopOptions, progress: Callable[[str], None] | None = None) -
         result.figures.update(figures)
         result.driven_m = float(figures.get("driven_m", 0.0))
     return result
+
+
+def _more_poses(watch: HealthWatch, n: int) -> bool:
+    return watch.poses > n
+
+
+def _speed(gcs: Gcs) -> float:
+    lp = gcs.latest.get("LOCAL_POSITION_NED")
+    return math.inf if lp is None else math.hypot(float(lp.vx), float(lp.vy))
 
 
 def _robotd_figures(watch: HealthWatch) -> dict[str, Any]:
@@ -725,6 +761,8 @@ def analyse_log(workdir: Path, waypoints: np.ndarray) -> dict[str, Any]:
     from drivers.mavlink_link import mavutil
 
     mlog = mavutil.mavlink_connection(str(logs[-1]), dialect="ardupilotmega")
+    sim2: list[tuple[int, float, float]] = []
+    visp_t: list[int] = []
     sim: list[tuple[int, float, float]] = []
     ekf: list[tuple[int, float, float]] = []
     visp_rst: list[int] = []
@@ -734,16 +772,19 @@ def analyse_log(workdir: Path, waypoints: np.ndarray) -> dict[str, Any]:
     texts: list[str] = []
     origin: tuple[float, float] | None = None
     while True:
-        m = mlog.recv_match(type=["SIM", "XKF1", "VISP", "ARM", "MSG", "ORGN"])
+        m = mlog.recv_match(type=["SIM", "SIM2", "XKF1", "VISP", "ARM", "MSG", "ORGN"])
         if m is None:
             break
         kind = m.get_type()
         if kind == "SIM":
             sim.append((int(m.TimeUS), float(m.Lat), float(m.Lng)))
+        elif kind == "SIM2":
+            sim2.append((int(m.TimeUS), float(m.PN), float(m.PE)))
         elif kind == "XKF1" and int(getattr(m, "C", 0)) == 0:
             ekf.append((int(m.TimeUS), float(m.PN), float(m.PE)))
         elif kind == "VISP":
             visp_n += 1
+            visp_t.append(int(m.TimeUS))
             visp_rst.append(int(getattr(m, "Rst", 0)))
             visp_ign += int(getattr(m, "Ign", 0))
         elif kind == "ARM":
@@ -755,15 +796,24 @@ def analyse_log(workdir: Path, waypoints: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {"log": str(logs[-1].name), "visp_messages": visp_n, "visp_ignored": visp_ign}
     out["visp_reset_counters"] = sorted(set(visp_rst))
     out["texts"] = texts
-    if not sim or not ekf:
+    # the AHRS left EKF3 for DCM (after it had been on EKF3), or EKF3 stopped aiding
+    after_ekf = texts[next((i for i, t in enumerate(texts) if "AHRS: EKF3 active" in t), len(texts)) :]
+    out["dcm_fallbacks"] = sum("AHRS: DCM active" in t for t in after_ekf)
+    out["stopped_aiding"] = sum("stopped aiding" in t for t in texts)
+    if not (sim or sim2) or not ekf:
         return out
-    o = origin or HOME[:2]
-    home = (o[0], o[1], 0.0)
-    t_sim = np.array([s[0] for s in sim])
-    truth = latlon_to_ned(np.array([s[1] for s in sim]), np.array([s[2] for s in sim]), home)
+    if sim2:  # the truth as NED from home: the EKF origin is home (robotd sends it)
+        t_sim = np.array([s[0] for s in sim2])
+        truth = np.array([[s[1], s[2]] for s in sim2])
+    else:
+        o = origin or HOME[:2]
+        t_sim = np.array([s[0] for s in sim])
+        truth = latlon_to_ned(np.array([s[1] for s in sim]), np.array([s[2] for s in sim]), (o[0], o[1], 0.0))
     t_ekf = np.array([e[0] for e in ekf])
     est = np.array([[e[1], e[2]] for e in ekf])
     armed_from = next((t for t, a in armed_us if a), t_sim[0])
+    vt = np.array([t for t in visp_t if t >= armed_from])
+    out["visp_max_gap_s"] = float(np.diff(vt).max() * 1e-6) if vt.size > 1 else float("nan")
     keep = t_ekf >= armed_from
     if keep.any():
         tr = np.column_stack([np.interp(t_ekf[keep], t_sim, truth[:, i]) for i in range(2)])
