@@ -71,7 +71,8 @@ def bench_serial(seconds: float) -> dict[str, Any]:
 
 def bench_mavlink(seconds: float, stream_hz: float) -> dict[str, Any]:
     with MockAutopilot(stream_hz=stream_hz, track_width_m=0.4) as ap:
-        with MavlinkVehicle(ap.url, track_width_m=0.4, heartbeat_hz=1.0) as link:
+        # no rate requests: the mock keeps ATTITUDE at --stream-hz (it grants at most 40 Hz, as a Rover)
+        with MavlinkVehicle(ap.url, track_width_m=0.4, heartbeat_hz=1.0, request_rates=False) as link:
             t_end = time.monotonic() + 3.0
             while not link.link_up and time.monotonic() < t_end:
                 time.sleep(0.01)

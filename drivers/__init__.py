@@ -35,6 +35,8 @@ from urllib.parse import urlsplit
 from robotd.errors import DriverError
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from robotd.msgs import Odometry, PoseEstimate, StereoFrame
     from robotd.stereo import RectifiedStereo
 
@@ -64,8 +66,11 @@ class StereoCamera(Protocol):
 class AutopilotLink(Protocol):
     """Where the SLAM pose goes (an autopilot's external navigation input). Any thread may call it."""
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Forward one pose; ``quality`` −1 (lost) or 1..100, ``reset_counter`` bumps on a jump."""
+    def send_pose(
+        self, pose: PoseEstimate, quality: int, reset_counter: int, vel_R_mps: np.ndarray | None = None
+    ) -> None:
+        """Forward one pose; ``quality`` −1 (lost) or 1..100, ``reset_counter`` bumps on a jump,
+        ``vel_R_mps`` the body-frame (FRD) velocity [m/s] (3,), None when unknown."""
         ...
 
     def set_health(self, state: str | None) -> None:

@@ -16,6 +16,10 @@
   it is a reboot when the new boot instant is more than ``min_jump_s`` after the old one (the
   autopilot booted again later). The first clock is established by ``min_samples`` agreeing
   samples, without counting a reboot.
+- :class:`RateRequests`: the MAV_CMD_SET_MESSAGE_INTERVAL requests, one outstanding at a time so
+  that each COMMAND_ACK (which does not say which message it answers) is matched to its request;
+  a refused rate is retried once at half the rate. The autopilot's refusals were once silent
+  (ArduPilot Rover refuses ATTITUDE at 50 Hz and any WHEEL_DISTANCE request, issue 24).
 """
 
 from __future__ import annotations
@@ -113,3 +117,107 @@ class BootClock:
         self.current, self.candidates = match, []
         self.reboots += rebooted
         return rebooted
+
+
+# MAV_RESULT values (common.xml; tests check them against pymavlink, which this module does not import)
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_UNSUPPORTED = 3
+MAV_RESULT_IN_PROGRESS = 5
+NO_ACK = -1  # RateOutcome.result when no COMMAND_ACK came within the timeout
+
+
+@dataclass(frozen=True, slots=True)
+class RateOutcome:
+    """What became of one MAV_CMD_SET_MESSAGE_INTERVAL request."""
+
+    name: str  # the message, e.g. "ATTITUDE"
+    hz: float  # the rate asked for (<= 0: the message was to be switched off)
+    result: int  # the COMMAND_ACK's MAV_RESULT, or NO_ACK
+    retry_hz: float | None  # the rate asked for next instead (a refusal retried at a lower rate)
+    was_retry: bool  # this request was itself the retry of a refused one
+
+
+@dataclass
+class RateRequests:
+    """MAV_CMD_SET_MESSAGE_INTERVAL requests, one at a time, each matched with its COMMAND_ACK.
+
+    ArduPilot's COMMAND_ACK names the command (511) but not the message it concerns
+    (``result_param2`` is 0, no echo of param1), so only the order tells which request an ACK
+    answers. Hence one request is outstanding at a time: the next leaves when the ACK of the
+    previous one arrived, or ``ack_timeout_s`` after it was sent (then it is counted as
+    unacknowledged; an ACK that arrives later still would be taken for the next request's, the
+    one ambiguity left). ``MAV_RESULT_IN_PROGRESS`` is not an answer yet. A refusal (any other
+    result but ACCEPTED) of a rate is retried once at ``retry_factor`` times that rate (ArduPilot
+    refuses an interval shorter than 1.25 scheduler periods: 40 Hz is the most a Rover with its
+    default 50 Hz SCHED_LOOP_RATE grants, so half of a refused rate is granted unless the rate
+    was far off); UNSUPPORTED (the command itself is unknown) and refused switch-offs are not.
+    Pure: the caller sends, receives and logs.
+    """
+
+    ack_timeout_s: float = 1.0
+    retry_factor: float = 0.5
+    accepted: int = 0
+    refused: int = 0
+    unacknowledged: int = 0
+    granted: dict[str, float] = field(default_factory=dict)  # this round's accepted rates
+    refusals: list[RateOutcome] = field(default_factory=list)  # this round's refusals and silences
+    _queue: list[tuple[str, float, bool]] = field(default_factory=list)
+    _outstanding: tuple[str, float, bool, int] | None = None  # (name, hz, was_retry, sent_ns)
+    _round_open: bool = False
+
+    def start(self, rates_hz: dict[str, float]) -> None:
+        """A new round (the autopilot's first heartbeat, or a reboot): every rate again, in order."""
+        self._queue = [(name, float(hz), False) for name, hz in rates_hz.items()]
+        self._outstanding = None
+        self.granted, self.refusals = {}, []
+        self._round_open = True
+
+    @property
+    def busy(self) -> bool:
+        """A request is outstanding or waiting to leave."""
+        return self._outstanding is not None or bool(self._queue)
+
+    def round_finished(self) -> bool:
+        """True once when every request of the round has its outcome (to report the round)."""
+        if self._round_open and not self.busy:
+            self._round_open = False
+            return True
+        return False
+
+    def next_request(self, now_ns: int) -> tuple[tuple[str, float] | None, RateOutcome | None]:
+        """(the request to send now, as (name, hz), or None; the outcome of an outstanding
+        request that just timed out, or None). The request returned is outstanding from now."""
+        timed_out = None
+        if self._outstanding is not None:
+            name, hz, was_retry, sent_ns = self._outstanding
+            if now_ns - sent_ns < self.ack_timeout_s * 1e9:
+                return None, None
+            self.unacknowledged += 1
+            timed_out = RateOutcome(name, hz, NO_ACK, None, was_retry)
+            self.refusals.append(timed_out)
+            self._outstanding = None
+        if not self._queue:
+            return None, timed_out
+        name, hz, was_retry = self._queue.pop(0)
+        self._outstanding = (name, hz, was_retry, now_ns)
+        return (name, hz), timed_out
+
+    def on_ack(self, result: int) -> RateOutcome | None:
+        """A COMMAND_ACK for MAV_CMD_SET_MESSAGE_INTERVAL: the outstanding request's outcome
+        (None when nothing is outstanding, or while the autopilot says IN_PROGRESS)."""
+        if self._outstanding is None or result == MAV_RESULT_IN_PROGRESS:
+            return None
+        name, hz, was_retry, _ = self._outstanding
+        self._outstanding = None
+        if result == MAV_RESULT_ACCEPTED:
+            self.accepted += 1
+            self.granted[name] = hz
+            return RateOutcome(name, hz, result, None, was_retry)
+        self.refused += 1
+        retry_hz = None
+        if not was_retry and hz > 0 and result != MAV_RESULT_UNSUPPORTED:
+            retry_hz = hz * self.retry_factor
+            self._queue.insert(0, (name, retry_hz, True))
+        outcome = RateOutcome(name, hz, result, retry_hz, was_retry)
+        self.refusals.append(outcome)
+        return outcome

@@ -17,7 +17,9 @@ requests estimate the autopilot clock offset.
 ``SET_GPS_GLOBAL_ORIGIN`` (when ``origin`` is configured) and the message-rate requests go out
 once the autopilot heartbeat is seen and again after an autopilot reboot: a new boot clock in
 SYSTEM_TIME seen consistently, with the autopilot's heartbeat, while the old one fell silent
-(:class:`drivers.mavlink_guard.BootClock`). Link loss: no autopilot heartbeat for
+(:class:`drivers.mavlink_guard.BootClock`). The rate requests go one at a time, each matched with
+its COMMAND_ACK; a refused rate is logged, counted in ``stats()`` and retried once at half the rate
+(:class:`drivers.mavlink_guard.RateRequests`). Link loss: no autopilot heartbeat for
 ``link_timeout_s`` (3 s).
 
 Exposure (issue 15): with ``mode=out`` the socket is connected to the target, so the kernel binds
@@ -29,7 +31,8 @@ requests are answered only for the autopilot, at most ``timesync_reply_hz`` a se
 
 In: ``WHEEL_DISTANCE`` (differential drive, track width from the options; ±100 000 m wrap) gives
 forward speed; ``ATTITUDE`` gives body rates (preferred for yaw rate) and the attitude used to
-rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data flows;
+rotate ``LOCAL_POSITION_NED`` velocities into the body frame when no wheel data flows (the
+ATTITUDE nearest each sample's stamp, its yaw carried to the stamp: ``_attitude_at``);
 ``SERVO_OUTPUT_RAW``/``RC_CHANNELS`` are the control inputs. Autopilot stamps are mapped onto
 the host clock with the TIMESYNC offset (arrival time until the first round trip).
 
@@ -60,7 +63,7 @@ from pymavlink import mavutil
 
 from drivers.base import ControlSample, QueuedVehicleLink
 from drivers.link_state import LOST, LinkState, LinkStateParams
-from drivers.mavlink_guard import BootClock, RateLimit
+from drivers.mavlink_guard import NO_ACK, BootClock, RateLimit, RateOutcome, RateRequests
 from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.serial_protocol import diff_drive
 from robotd.autopilot import CovarianceFloors, TimesyncFilter
@@ -74,11 +77,29 @@ DIALECT = "ardupilotmega"
 MAV_COMP_ID_VIO = 197
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
 PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry
+ORIGIN_CHECK_S = 2.0  # how often the autopilot's EKF origin is checked (and sent again if it is gone)
+ALIGN_STILL_S = 2.0  # the vehicle stood still this long before robotd asks for a vision-yaw alignment
+ALIGN_INTERVAL_S = 5.0  # ... and at most this often
+AUX_FUNCTION_VISO_ALIGN = 80  # ArduPilot's RC aux function "VisOdom align"
+# An odometry sample takes the ATTITUDE nearest its stamp, turned on by the body rates over the
+# difference: within ATTITUDE_FRESH_NS that is a refinement; up to ATTITUDE_MAX_AGE_NS (ArduPilot
+# streams ATTITUDE at 1 Hz when no rate request is granted) it is an extrapolation, counted in
+# ``attitude_extrapolated``; beyond it the sample is dropped, counted in ``no_attitude``.
+ATTITUDE_FRESH_NS = 200_000_000
+ATTITUDE_MAX_AGE_NS = 1_000_000_000
+# what to tell the user when the autopilot refuses a rate request for these messages
+RATE_HINTS = {
+    "WHEEL_DISTANCE": "ArduPilot streams it only with wheel encoders (WENC_TYPE) in its EXTRA1 group "
+    "(MAVn_EXTRA1, SRn_EXTRA1 before 4.7): docs/mavlink.md §3",
+}
 
-# ids of the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz]
+# the messages requested with MAV_CMD_SET_MESSAGE_INTERVAL, and the default rates [Hz], each one
+# that ArduPilot Rover grants with its default SCHED_LOOP_RATE of 50 Hz (measured on the SITL build,
+# docs/mavlink.md §3: it refuses an interval under 1.25 loop periods, so ATTITUDE at 41 Hz and more).
+# Not WHEEL_DISTANCE: ArduPilot has no interval for it (it refuses every request); it streams in
+# the EXTRA1 group when wheel encoders are configured, and the link uses it when it comes.
 DEFAULT_RATES_HZ: dict[str, float] = {
-    "ATTITUDE": 50.0,
-    "WHEEL_DISTANCE": 50.0,
+    "ATTITUDE": 25.0,
     "LOCAL_POSITION_NED": 10.0,
     "SERVO_OUTPUT_RAW": 10.0,
     "RC_CHANNELS": 5.0,
@@ -96,7 +117,12 @@ COUNTERS = (
     "timesync_replies",
     "timesync_samples",
     "origins_sent",
+    "origin_requests",
+    "yaw_align_requests",
     "rate_requests",
+    "rates_accepted",
+    "rates_refused",
+    "rates_unacknowledged",
     "autopilot_reboots",
     "link_losses",
     "odometry",
@@ -104,6 +130,8 @@ COUNTERS = (
     "stamped_by_arrival",
     "wheel_wraps",
     "wheel_intervals_rejected",
+    "attitude_extrapolated",
+    "no_attitude",
     "tx_errors",
     "bad_values",
     "rejected_source",
@@ -170,6 +198,10 @@ class MavlinkOptions:
     floor_pos_m2: float = 1e-6
     floor_ang_rad2: float = 1e-6
     queue_size: int = 512
+    # when the autopilot reports its vision yaw off its own heading before arming ("VisOdom: yaw
+    # diff") and the vehicle stands still: ask it to align them (aux function 80), at most every
+    # ALIGN_INTERVAL_S (docs/mavlink.md §6)
+    align_yaw: bool = True
 
 
 _SCALARS: dict[str, type] = {
@@ -197,6 +229,7 @@ _SCALARS: dict[str, type] = {
     "floor_pos_m2": float,
     "floor_ang_rad2": float,
     "queue_size": int,
+    "align_yaw": bool,
 }
 
 
@@ -414,11 +447,18 @@ class MavlinkVehicle(QueuedVehicleLink):
         )
         self._last_ap_hb_mono: float | None = None
         self._link_up = False
-        self._attitude: tuple[int, np.ndarray, np.ndarray] | None = None  # (t_ns, rpy, rates)
+        # recent ATTITUDEs (t_ns, rpy, body rates), the newest last: at 25 Hz, 2.5 s of them
+        self._attitudes: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=64)
+        self._rates = RateRequests()  # guarded by _lock (ACKs arrive on the receive thread)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
         self._last_wheel_mono = -math.inf
         self.ekf_flags: int | None = None
         self.origin_confirmed = False
+        self._origin_heard = False  # a GPS_GLOBAL_ORIGIN with our origin since the last check
+        self.armed: bool | None = None  # from the autopilot's heartbeat
+        self._last_align_mono = -math.inf
+        self.last_visodom_text = ""
+        self._next_origin_check = math.inf
         self.c: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._clock = _AutopilotClock(self.c)
         self.rx_types: dict[str, int] = {}
@@ -493,7 +533,10 @@ class MavlinkVehicle(QueuedVehicleLink):
             "timesync_offset_ns": self._clock.filter.offset_ns,
             "timesync_rtt_ns": self._clock.filter.rtt_ns,
             "origin_confirmed": self.origin_confirmed,
+            "armed": self.armed,
+            "last_visodom_text": self.last_visodom_text,
             "ekf_flags": self.ekf_flags,
+            **self._rate_stats(),
             "queued": len(self._queue),
             "rx_types": dict(self.rx_types),
         }
@@ -598,6 +641,7 @@ class MavlinkVehicle(QueuedVehicleLink):
         elif not self._from_autopilot(msg, addr):
             return False
         self._last_ap_hb_mono = time.monotonic()
+        self.armed = bool(msg.base_mode & m.MAV_MODE_FLAG_SAFETY_ARMED)
         self._boot.heartbeat(t_ns)
         if not self._link_up:
             self._link_up = True
@@ -633,13 +677,35 @@ class MavlinkVehicle(QueuedVehicleLink):
         rates = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
         if not (np.all(np.isfinite(rpy)) and np.all(np.isfinite(rates))):
             raise ValueError(f"ATTITUDE not finite: rpy {rpy}, rates {rates}")
-        self._attitude = (t, rpy, rates)
+        self._attitudes.append((t, rpy, rates))
 
-    def _fresh_attitude(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
-        a = self._attitude
-        if a is None or abs(t_ns - a[0]) > 200_000_000:
+    def _attitude_at(self, t_ns: int, max_age_ns: int = ATTITUDE_FRESH_NS) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """The autopilot's attitude at host time ``t_ns``: the ATTITUDE nearest in time, if within
+        ``max_age_ns``, its yaw carried over the difference Δt by the yaw rate its body rates give,
+        ψ̇ = (q sin φ + r cos φ) / cos θ (roll and pitch held: a ground vehicle's change slowly);
+        (roll/pitch/yaw at ``t_ns``, body rates, |Δt| in ns). None when there is none that near.
+
+        An odometry sample is paired with the attitude at its own stamp, not with whichever
+        ATTITUDE came last: LOCAL_POSITION_NED arrives at 10 Hz, ATTITUDE at whatever rate the
+        autopilot grants (1 Hz on ArduPilot when the request is refused), and only a sample
+        within 200 ms of the last ATTITUDE used to be kept, leaving holes in the odometry that
+        the integrator cannot bridge (issue 24: half the frames without odometry)."""
+        best: tuple[int, int, np.ndarray, np.ndarray] | None = None
+        for t_a, rpy, rates in reversed(self._attitudes):
+            d = abs(t_ns - t_a)
+            if best is None or d < best[0]:
+                best = (d, t_a, rpy, rates)
+            if t_a <= t_ns:
+                break  # the stamps increase: older ones are further away
+        if best is None or best[0] > max_age_ns:
             return None
-        return a[1], a[2]
+        d, t_a, rpy, rates = best
+        if t_ns != t_a:
+            roll, pitch = float(rpy[0]), float(rpy[1])
+            yaw_rate = (rates[1] * math.sin(roll) + rates[2] * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+            yaw = math.remainder(float(rpy[2]) + yaw_rate * (t_ns - t_a) * 1e-9, math.tau)
+            rpy = np.array([roll, pitch, yaw])
+        return rpy, rates, d
 
     def _on_wheel_distance(self, msg: Any, t_ns: int) -> None:
         o = self.opts
@@ -666,7 +732,8 @@ class MavlinkVehicle(QueuedVehicleLink):
             v, w_wheels = 0.5 * (ds_l + ds_r) / dt, math.nan
         # mean speed over the interval: stamp it at the midpoint
         t = self._clock.to_host((t_us * 1000) - int(dt * 5e8), t_ns)
-        att = self._fresh_attitude(t)
+        a = self._attitude_at(t)
+        att = None if a is None else (a[0], a[1])
         if o.yaw_rate_source == "attitude" and att is not None:
             rates = att[1]
         elif math.isfinite(w_wheels):
@@ -690,12 +757,16 @@ class MavlinkVehicle(QueuedVehicleLink):
         if time.monotonic() - self._last_wheel_mono < 1.0:
             return  # wheel odometry flows: it is the better velocity source
         t = self._clock.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
-        att = self._fresh_attitude(t)
-        if att is None:
-            return  # cannot rotate NED into the body frame without an attitude
         v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         if not np.all(np.isfinite(v_ned)):
             raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
+        a = self._attitude_at(t, ATTITUDE_MAX_AGE_NS)
+        if a is None:
+            self.c["no_attitude"] += 1  # cannot rotate NED into the body frame without an attitude
+            return
+        if a[2] > ATTITUDE_FRESH_NS:
+            self.c["attitude_extrapolated"] += 1
+        att = (a[0], a[1])
         # NED and the body FRD frame share the ZYX Euler convention: v_R = R(rpy)^T v_NED
         v_R = euler_to_R(att[0]).T @ v_ned
         self._emit(Odometry(t, v_R, att[1].copy(), "mavlink", *self._gravity(att)))
@@ -734,7 +805,67 @@ class MavlinkVehicle(QueuedVehicleLink):
         self.ekf_flags = int(msg.flags)
 
     def _on_gps_global_origin(self, msg: Any, t_ns: int) -> None:
-        self.origin_confirmed = True
+        o = self.opts.origin
+        if o is None:
+            self.origin_confirmed = True
+            return
+        # ours, to the message's resolution (1e-7 deg); another origin is not a confirmation
+        ours = (round(o[0] * 1e7), round(o[1] * 1e7))
+        match = (int(msg.latitude), int(msg.longitude)) == ours
+        self.origin_confirmed = match
+        self._origin_heard = self._origin_heard or match
+        if not match:
+            logger.warning(
+                "%s: the autopilot's EKF origin is (%.7f, %.7f), not the configured one",
+                self.url,
+                msg.latitude * 1e-7,
+                msg.longitude * 1e-7,
+            )
+
+    def _on_statustext(self, msg: Any, t_ns: int) -> None:
+        """ArduPilot's pre-arm "VisOdom: yaw diff …" (its vision yaw, rotated onto its own heading
+        when it aligned them, no longer agrees with that heading): once the vehicle has stood
+        still for ALIGN_STILL_S, robotd asks it to align again (MAV_CMD_DO_AUX_FUNCTION, function
+        80), at most every ALIGN_INTERVAL_S and never while armed; an alignment taken while the
+        rover turned, or before the compass settled, is what left it off (docs/mavlink.md §6)."""
+        text = str(msg.text)
+        if "VisOdom:" not in text:
+            return
+        self.last_visodom_text = text
+        if "yaw diff" not in text or not self.opts.align_yaw or self.armed is not False:
+            return
+        now = time.monotonic()
+        if now - self._last_align_mono < ALIGN_INTERVAL_S:
+            return
+        if self._autopilot.still_for_s() < ALIGN_STILL_S:
+            return
+        self._last_align_mono = now
+        logger.info(
+            "%s: the autopilot says %r and the vehicle is still: asking it to align its vision yaw "
+            "to its own heading (aux function %d)",
+            self.url,
+            text,
+            AUX_FUNCTION_VISO_ALIGN,
+        )
+        self._outbox_put("align_yaw", text)
+
+    def _on_command_ack(self, msg: Any, t_ns: int) -> None:
+        """An answer to one of our SET_MESSAGE_INTERVAL requests (the outstanding one: the ACK
+        does not say which message it concerns, drivers.mavlink_guard.RateRequests)."""
+        m = _mav()
+        if msg.command != m.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return
+        # MAVLink 2 ACKs name whom they answer (0 when not filled in): another requester's is not ours
+        mav = self._conn.mav if self._conn is not None else None
+        ours = (0, mav.srcSystem if mav is not None else 0), (0, self.opts.compid)
+        if getattr(msg, "target_system", 0) not in ours[0] or getattr(msg, "target_component", 0) not in ours[1]:
+            return
+        with self._lock:
+            outcome = self._rates.on_ack(int(msg.result))
+            self._count_rates()
+        if outcome is not None:
+            self._log_rate(outcome)
+            self._wake.set()  # the next request may leave now
 
     def _outbox_put(self, kind: str, arg: Any) -> None:
         with self._lock:
@@ -761,7 +892,10 @@ class MavlinkVehicle(QueuedVehicleLink):
                     if item is None:
                         break
                     self._do(item)
+                self._send_rate_request()
                 self._autopilot.send_pending(self._conn.mav)
+                if now >= self._next_origin_check:
+                    self._check_origin(now)
             except (OSError, ValueError) as exc:
                 self.c["tx_errors"] += 1
                 logger.warning("%s: send failed: %s", self.url, exc)
@@ -789,14 +923,62 @@ class MavlinkVehicle(QueuedVehicleLink):
         if kind == "timesync_reply":
             self._conn.mav.timesync_send(time.monotonic_ns(), arg)
             self.c["timesync_replies"] += 1
+        elif kind == "align_yaw":
+            m = _mav()
+            self._conn.mav.command_long_send(
+                self._ap_sysid or 1,
+                self._ap_compid,
+                m.MAV_CMD_DO_AUX_FUNCTION,
+                0,
+                AUX_FUNCTION_VISO_ALIGN,
+                2,  # switch high
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+            self.c["yaw_align_requests"] += 1
         elif kind == "vehicle_setup":
             self._send_origin()
             if self.opts.request_rates:
-                self._request_rates()
+                with self._lock:
+                    self._rates.start(self.opts.rates_hz)
+
+    def _check_origin(self, now: float) -> None:
+        """Keep the EKF origin set: ArduPilot's EKF3 forgets an origin set before it initialised
+        (measured in SITL: "origin set", then the EKF started, then no origin, and a mission in
+        AUTO waits for one for ever). Every ORIGIN_CHECK_S robotd asks for GPS_GLOBAL_ORIGIN
+        (MAV_CMD_REQUEST_MESSAGE); when no matching one came since the last check, the origin is
+        sent again (``origins_sent`` counts every send)."""
+        self._next_origin_check = now + ORIGIN_CHECK_S
+        if not self._link_up or self._ap_sysid is None:
+            return
+        if not self._origin_heard:
+            self.origin_confirmed = False
+            self._send_origin()
+        self._origin_heard = False
+        m = _mav()
+        self._conn.mav.command_long_send(
+            self._ap_sysid,
+            self._ap_compid,
+            m.MAV_CMD_REQUEST_MESSAGE,
+            0,
+            m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+            0,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        self.c["origin_requests"] += 1
 
     def _send_origin(self) -> None:
         if self.opts.origin is None or self._ap_sysid is None:
             return
+        if self._next_origin_check == math.inf:
+            self._next_origin_check = time.monotonic() + ORIGIN_CHECK_S
         lat, lon, alt = self.opts.origin
         self._conn.mav.set_gps_global_origin_send(
             self._ap_sysid, round(lat * 1e7), round(lon * 1e7), round(alt * 1000), time.monotonic_ns() // 1000
@@ -804,25 +986,91 @@ class MavlinkVehicle(QueuedVehicleLink):
         self.c["origins_sent"] += 1
         logger.info("%s: EKF origin sent (%.7f, %.7f, %.2f m)", self.url, lat, lon, alt)
 
-    def _request_rates(self) -> None:
+    def _send_rate_request(self) -> None:
+        """The next SET_MESSAGE_INTERVAL request, once the previous one was answered (or timed out)."""
+        with self._lock:
+            req, timed_out = self._rates.next_request(time.monotonic_ns())
+            done = self._rates.round_finished()
+            self._count_rates()
+        if timed_out is not None:
+            self._log_rate(timed_out)
+        if done:
+            self._log_rates_done()
+        if req is None:
+            return
+        name, hz = req
         m = _mav()
-        for name, hz in self.opts.rates_hz.items():
-            msg_id = getattr(m, f"MAVLINK_MSG_ID_{name}")
-            interval_us = -1 if hz <= 0 else round(1e6 / hz)  # -1 disables the message
-            self._conn.mav.command_long_send(
-                self._ap_sysid or 1,
-                self._ap_compid,
-                m.MAV_CMD_SET_MESSAGE_INTERVAL,
-                0,
-                msg_id,
-                interval_us,
-                0,
-                0,
-                0,
-                0,
-                0,
+        interval_us = -1 if hz <= 0 else round(1e6 / hz)  # -1 disables the message
+        self._conn.mav.command_long_send(
+            self._ap_sysid or 1,
+            self._ap_compid,
+            m.MAV_CMD_SET_MESSAGE_INTERVAL,
+            0,
+            getattr(m, f"MAVLINK_MSG_ID_{name}"),
+            interval_us,
+            0,
+            0,
+            0,
+            0,
+            0,
+        )
+        self.c["rate_requests"] += 1
+
+    def _count_rates(self) -> None:
+        r = self._rates
+        self.c["rates_accepted"], self.c["rates_refused"] = r.accepted, r.refused
+        self.c["rates_unacknowledged"] = r.unacknowledged
+
+    def _rate_stats(self) -> dict[str, Any]:
+        """This round's requests for stats(): the refused ones (and those never answered) as
+        ``NAME RATE Hz: MAV_RESULT``, and the granted rates."""
+        with self._lock:
+            refusals, granted = list(self._rates.refusals), dict(self._rates.granted)
+        return {
+            "rates_refused_messages": [f"{o.name} {o.hz:g} Hz: {_result_name(o.result)}" for o in refusals],
+            "rates_granted": [f"{name} {hz:g} Hz" for name, hz in granted.items()],
+        }
+
+    def _log_rate(self, o: RateOutcome) -> None:
+        """One line per request that was not granted; nothing for one that was."""
+        what = f"{self.url}: SET_MESSAGE_INTERVAL {o.name} at {o.hz:g} Hz"
+        if o.result == NO_ACK:
+            logger.warning(
+                "%s: no COMMAND_ACK within %.1f s (counted in rates_unacknowledged)", what, self._rates.ack_timeout_s
             )
-            self.c["rate_requests"] += 1
+        elif o.result == _mav().MAV_RESULT_ACCEPTED:
+            if o.was_retry:
+                logger.info("%s accepted", what)
+        elif o.retry_hz is not None:
+            logger.warning(
+                "%s refused by the autopilot (%s); asking for %g Hz instead", what, _result_name(o.result), o.retry_hz
+            )
+        else:
+            hint = RATE_HINTS.get(o.name)
+            logger.warning(
+                "%s refused by the autopilot (%s)%s; not asked again: it comes at the autopilot's rate, if at all%s",
+                what,
+                _result_name(o.result),
+                " too" if o.was_retry else "",
+                f" ({hint})" if hint else "",
+            )
+
+    def _log_rates_done(self) -> None:
+        st = self._rate_stats()
+        logger.info(
+            "%s: message rates granted: %s%s",
+            self.url,
+            ", ".join(st["rates_granted"]) or "none",
+            f"; refused: {', '.join(st['rates_refused_messages'])}" if st["rates_refused_messages"] else "",
+        )
+
+
+def _result_name(result: int) -> str:
+    """MAV_RESULT_DENIED for 2, ...; "no ACK" for a request never answered."""
+    if result == NO_ACK:
+        return "no ACK"
+    entry = _mav().enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else f"MAV_RESULT {result}"
 
 
 def _check_pwm(kind: str, *pwm_us: int) -> None:

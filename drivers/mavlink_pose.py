@@ -19,11 +19,14 @@ written out below and tests check them against pymavlink.
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Any, Protocol
 
+import numpy as np
+
 from drivers import HEALTH_STATES
-from robotd.autopilot import CovarianceFloors, VelocityFromPoses, odometry_fields, vision_position_fields
+from robotd.autopilot import CovarianceFloors, odometry_fields, vision_position_fields
 from robotd.errors import DriverError
 from robotd.msgs import PoseEstimate
 
@@ -39,6 +42,9 @@ _SYSTEM_STATUS = {
     "degraded": MAV_STATE_CRITICAL,
     "failed": MAV_STATE_FLIGHT_TERMINATION,
 }
+
+STILL_SPEED_MPS = 0.05  # below this speed ...
+STILL_TURN_RADPS = 0.02  # ... and this turn rate the vehicle stands still
 
 # the keys of the link's counter dict this role counts in (and reports in stats())
 POSE_COUNTERS = ("odometry_sent", "vision_position_sent", "poses_superseded", "poses_stale", "poses_withheld")
@@ -68,19 +74,29 @@ class MavlinkAutopilot:
         self._c = counters
         self._wake = wake
         self._lock = threading.Lock()  # guards the pending pose
-        self._pending_pose: tuple[PoseEstimate, int, int] | None = None
-        self._velocity = VelocityFromPoses()
+        self._pending_pose: tuple[PoseEstimate, int, int, np.ndarray] | None = None
         self._last_pose_t_ns: int | None = None
         self._last_quality = 0
         self._health: str | None = None  # None: derive from quality
+        self._last_yaw: tuple[int, float] | None = None  # (t_ns, yaw) of the last pose sent
+        self._still_since_ns: int | None = None  # the vehicle has stood still since (pose time)
 
     # -- AutopilotLink (any thread) ------------------------------------------------------------
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
-        """Queue the pose for the transmit thread; a newer pose replaces an unsent one."""
+    def send_pose(
+        self, pose: PoseEstimate, quality: int, reset_counter: int, vel_R_mps: np.ndarray | None = None
+    ) -> None:
+        """Queue the pose for the transmit thread; a newer pose replaces an unsent one.
+
+        ``vel_R_mps`` (3,) is the body-frame velocity ODOMETRY carries (the daemon's
+        :class:`robotd.autopilot.ResetCounterPolicy` fits it); None or a non-finite value sends
+        zero, since ArduPilot fuses the velocity without a NaN check."""
+        v = np.zeros(3) if vel_R_mps is None else np.asarray(vel_R_mps, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v)):
+            v = np.zeros(3)
         with self._lock:
             if self._pending_pose is not None:
                 self._c["poses_superseded"] += 1
-            self._pending_pose = (pose, int(quality), int(reset_counter))
+            self._pending_pose = (pose, int(quality), int(reset_counter), v)
         self._wake.set()
 
     def set_health(self, state: str | None) -> None:
@@ -101,6 +117,24 @@ class MavlinkAutopilot:
     def stats(self) -> dict[str, Any]:
         return {**{k: self._c[k] for k in POSE_COUNTERS}, "health": self.health()}
 
+    def still_for_s(self) -> float:
+        """How long [s] the vehicle has stood still, by the poses sent (0 when moving or unknown)."""
+        since, last = self._still_since_ns, self._last_pose_t_ns
+        return 0.0 if since is None or last is None else (last - since) * 1e-9
+
+    def _note_motion(self, pose: PoseEstimate, vel: np.ndarray) -> None:
+        yaw = float(pose.rpy_rad[2])
+        turn = math.inf
+        if self._last_yaw is not None and pose.t_ns > self._last_yaw[0]:
+            dyaw = (yaw - self._last_yaw[1] + math.pi) % (2 * math.pi) - math.pi
+            turn = abs(dyaw) / ((pose.t_ns - self._last_yaw[0]) * 1e-9)
+        self._last_yaw = (pose.t_ns, yaw)
+        still = float(np.linalg.norm(vel)) < STILL_SPEED_MPS and turn < STILL_TURN_RADPS
+        if not still:
+            self._still_since_ns = None
+        elif self._still_since_ns is None:
+            self._still_since_ns = pose.t_ns
+
     # -- the link's transmit thread --------------------------------------------------------------
     def system_status(self) -> int:
         """HEARTBEAT.system_status (MAV_STATE) for :meth:`health`."""
@@ -113,13 +147,15 @@ class MavlinkAutopilot:
         if pending is not None:
             self._send_pose_now(mav, *pending)
 
-    def _send_pose_now(self, mav: PoseWire, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+    def _send_pose_now(
+        self, mav: PoseWire, pose: PoseEstimate, quality: int, reset_counter: int, vel: np.ndarray
+    ) -> None:
         if self._last_pose_t_ns is not None and pose.t_ns <= self._last_pose_t_ns:
             self._c["poses_stale"] += 1  # time_usec must be strictly monotonic; never re-send
             return
+        self._note_motion(pose, vel)
         self._last_pose_t_ns = pose.t_ns
         self._last_quality = quality
-        vel = self._velocity.update(pose, reset_counter)
         if self.message == "odometry":
             f = odometry_fields(pose, quality, reset_counter, vel_R_mps=vel, floors=self.floors)
             mav.odometry_send(*f.as_args())

@@ -54,6 +54,11 @@ stall_at   0        when the camera stalls [s] (with stall_s > 0): no frame is c
 stall_s    0        ... for this long [s]; 0 = no stall (the hard case "stall", docs/sim.md)
 stall_odometry 0    0: the vehicle's samples in the stall are lost too (the host stopped);
                     1: only the camera stalled, odometry flows
+follow     (none)   HOST:PORT (loopback): the rover is driven from outside, by the truth states
+                    an external physics program sends there (drivers/simfollow.py; the SITL
+                    loop of bench/sitl.py); the yard stays, the written trajectory is not used
+yaw0       0        with follow: the heading [deg from north] of the loop's start pose in the
+                    physics's NED frame (the start pose is NED's origin)
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -86,6 +91,7 @@ import numpy as np
 from drivers import HEALTH_STATES, AutopilotLink
 from drivers._render import ViewRenderer
 from drivers.base import Driver
+from drivers.simfollow import FollowedTrajectory, parse_follow, truth_push_args
 from drivers.simworld import WORLDS, World, build_world
 from robotd.errors import DriverError
 from robotd.geometry import R_ROBOT_OPTICAL, se3
@@ -129,6 +135,8 @@ class SimParams:
     stall_at: float = 0.0
     stall_s: float = 0.0
     stall_odometry: int = 0
+    follow: str = ""  # HOST:PORT of an external physics's truth stream ("" = the written trajectory)
+    yaw0: float = 0.0  # with follow: heading of the start pose in the physics's NED frame [deg]
 
     def stalled(self, t_s: float) -> bool:
         """Simulated time ``t_s`` falls in the stall (nothing captured)."""
@@ -139,9 +147,9 @@ class SimParams:
         return self.f if self.f > 0 else 430.0 * self.width / 640.0
 
     @property
-    def session_key(self) -> tuple[int, str, float, float, float, float]:
+    def session_key(self) -> tuple[int, str, float, float, float, float, str, float]:
         """What camera and vehicle must agree on to share a world and a clock."""
-        return (self.seed, self.world, self.speed, self.tilt, self.stop_at, self.stop_s)
+        return (self.seed, self.world, self.speed, self.tilt, self.stop_at, self.stop_s, self.follow, self.yaw0)
 
 
 # key -> (parser, lower bound, upper bound); bounds inclusive, None = open
@@ -173,6 +181,8 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "stall_at": (float, 0.0, 1e9),
     "stall_s": (float, 0.0, 1e9),
     "stall_odometry": (int, 0, 1),
+    "follow": (str, None, None),
+    "yaw0": (float, -360.0, 360.0),
 }
 
 
@@ -193,6 +203,8 @@ def _convert(url: str, key: str, raw: Any) -> Any:
         raise DriverError(f"{url!r}: parameter {key}={value!r}: expected {lo:g} ≤ {key} ≤ {hi:g}")
     if key == "world" and value not in WORLDS:
         raise DriverError(f"{url!r}: parameter world={value!r}: unknown world; known: {', '.join(WORLDS)}")
+    if key == "follow" and value:
+        parse_follow(url, value)
     return value
 
 
@@ -223,7 +235,10 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
         if key not in _RANGES:
             raise DriverError(f"{url!r}: unknown option {key!r}; known: {', '.join(sorted(_RANGES))}, t0_ns")
         values[key] = _convert(url, key, raw)
-    return replace(SimParams(), **values)
+    params = replace(SimParams(), **values)
+    if params.follow and params.stop_s > 0:
+        raise DriverError(f"{url!r}: follow and stop_s: a followed rover stops when its physics stops it")
+    return params
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,6 +252,14 @@ class _Session:
         )
         # the clock starts once the world is built, so the first frames are not already late
         self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
+        self.followed: FollowedTrajectory | None = None
+        if params.follow:
+            traj = self.world.trajectory
+            self.followed = FollowedTrajectory(
+                traj.T_world_yard, traj.path_points_yard(), math.radians(params.yaw0), self.t0_ns
+            )
+            self.followed.listen(*parse_follow(params.follow, params.follow), truth_push_args)
+            self.world = replace(self.world, trajectory=self.followed)
         self.refs = 0
         rng = np.random.default_rng([params.seed, 8])
         self._gyro_bias_unit = rng.standard_normal(3)  # scaled by each link's gyro_bias
@@ -249,7 +272,7 @@ class _Session:
         return sigma * self._gravity_bias_unit
 
 
-_SESSIONS: dict[tuple[int, str, float, float, float, float], _Session] = {}
+_SESSIONS: dict[tuple[int, str, float, float, float, float, str, float], _Session] = {}
 _SESSIONS_LOCK = threading.Lock()
 
 
@@ -274,6 +297,8 @@ def _release(params: SimParams, session: _Session) -> None:
         session.refs -= 1
         if session.refs <= 0 and _SESSIONS.get(params.session_key) is session:
             del _SESSIONS[params.session_key]
+            if session.followed is not None:
+                session.followed.close()
 
 
 def _pop_t0(url: str, options: dict[str, Any]) -> int | None:
@@ -476,6 +501,13 @@ class SimCamera(Driver):
         p = self.params
         t0 = self.t0_ns
         k = self._next_k
+        followed = self._session.followed if self._session is not None else None
+        if followed is not None:
+            # an external physics moves the rover: nothing to image before its first state
+            if not followed.wait_first(self._closed):
+                return
+            if p.realtime:
+                k = max(k, math.floor((time.monotonic_ns() - t0) * p.fps / 1e9))
         while not self._closed.is_set():
             if p.realtime:
                 # the newest frame already captured; the ones the consumer missed are dropped
@@ -700,7 +732,9 @@ class SimAutopilot:
         self.last_pose_error_m = float("nan")
         self.health: str | None = None
 
-    def send_pose(self, pose: PoseEstimate, quality: int, reset_counter: int) -> None:
+    def send_pose(
+        self, pose: PoseEstimate, quality: int, reset_counter: int, vel_R_mps: np.ndarray | None = None
+    ) -> None:
         self.poses_received += 1
         truth = self._truth(pose.t_ns)
         self.last_pose_error_m = float(np.linalg.norm(pose.xyz_W_m - truth[:3, 3]))

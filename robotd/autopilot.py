@@ -13,9 +13,9 @@ Also here, as pure functions or thin state over them:
   NaN-first for "unknown";
 - ``quality`` from the RANSAC inlier count, N_eff/N for FastSLAM, the reported position sigma and
   the consistency monitor's state (−1 when tracking is lost);
-- the ``reset_counter`` policy (b) of interfaces.md §1.5: bump on relocalisation, map load,
-  filter restart, and whenever the pose moves more than the motion explains (0.1 m beyond the
-  prediction by default, as in the reference T265 bridge);
+- the ``reset_counter`` policy: the map-frame pose, the counter bumped on relocalisation, map
+  load, filter restart, a stall nothing measured, and a jump no vehicle motion explains (the
+  prediction keeps the vehicle's velocity across bumps); and the body velocity ODOMETRY carries;
 - the TIMESYNC offset filter (mavlink.io timesync service: offset = tc1 − (t0 + t1)/2, keep the
   shortest round trips).
 """
@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.geometry import euler_to_quat, euler_to_R, wrap_angle
-from robotd.msgs import PoseEstimate
+from robotd.geometry import R_to_euler, euler_to_quat, euler_to_R, so3_exp, so3_log, wrap_angle
+from robotd.msgs import MotionIncrement, PoseEstimate
 
 # MAVLink enum values used here, so this module needs no pymavlink (tests check them against it).
 MAV_FRAME_LOCAL_FRD = 20
@@ -309,87 +309,139 @@ class ResetEvent:
 
 @dataclass
 class ResetCounterPolicy:
-    """Policy (b) of interfaces.md §1.5: publish the map-frame pose, bump on discontinuities.
+    """Publish the map-frame pose; bump ``reset_counter`` only at a real discontinuity.
 
-    ``update(pose, event)`` returns the counter to send with ``pose``. It bumps (mod 256) when an
-    ``event`` is given (relocalisation, map load, filter restart, loop closure) and when the
-    position differs from the prediction by more than ``jump_m`` (default 0.1 m, the reference
-    T265 bridge's step) or the yaw by more than ``jump_yaw_rad``. The prediction is
-    ``predicted_xyz`` when the caller has one (e.g. odometry integrated since the last pose),
-    otherwise a constant-velocity extrapolation of the last two published poses.
+    ``update(pose, event, odometry)`` returns the counter (uint8, wraps) to send with ``pose``. It
+    bumps when an ``event`` is given (relocalisation, map load, filter restart, loop closure, a
+    stall nothing measured) and when the pose lands further from its prediction than a moving
+    vehicle can explain. The prediction is, in this order:
+
+    1. the vehicle's odometry integrated from the last pose to this one (``odometry``, a
+       :class:`~robotd.msgs.MotionIncrement` whose interval is exactly last pose → this pose);
+    2. the last pose moved on by the vehicle's twist (body velocity and body rates, fitted by least
+       squares to the poses of the last ``window_s``), which is **kept across a bump**: the pose
+       after a jump starts a new segment, but the motion goes on;
+    3. nothing, before any twist is known (the first poses after start-up): no jump test.
+
+    The tolerance grows with what the prediction cannot know: ``jump_m`` (0.1 m, the reference
+    T265 bridge's step) + ``jump_frac`` of the predicted step (an error of the twist) +
+    ½·``accel_max``·Δt² (a vehicle braking or accelerating since the last pose); the same for yaw.
+    A vehicle moving smoothly at 0.5–10 m/s, published at 5–30 Hz, never bumps; one jump bumps
+    once (docs/mavlink.md §5). A pose more than ``max_gap_s`` after the last one starts a new
+    segment too: the autopilot dead-reckoned across the gap, and robotd's pose after it may lie
+    outside its innovation gate (EKF3 would refuse it, then fall back to DCM after 10 s).
+
+    :attr:`velocity_R` is the body-frame (FRD) velocity [m/s] of the same twist: what ODOMETRY's
+    vx, vy, vz carry. It is zero until two poses are seen (robotd starts at rest) and is kept,
+    not zeroed, across a bump.
     """
 
     jump_m: float = 0.1
     jump_yaw_rad: float = 0.2
+    jump_frac: float = 0.25
+    accel_max_mps2: float = 4.0
+    yaw_accel_max_radps2: float = 6.0
+    window_s: float = 0.2
+    max_gap_s: float = 1.0
     counter: int = 0
     bumps: int = 0
-    _hist: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=2))
+    last_reason: str = ""  # why the last bump happened (an event's name, or "jump 0.42 m")
+    _seg: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=64))
+    _v_R: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _w_R: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _twist_known: bool = False
 
-    def predict(self, t_ns: int) -> tuple[np.ndarray, float] | None:
-        """Constant-velocity prediction (xyz (3,), yaw) at ``t_ns`` from the last two poses."""
-        if not self._hist:
+    @property
+    def velocity_R(self) -> np.ndarray:
+        """Body-frame velocity [m/s] (3,) of the last fitted twist (a copy)."""
+        return self._v_R.copy()
+
+    @property
+    def rates_R(self) -> np.ndarray:
+        """Body rates [rad/s] (3,) of the last fitted twist (a copy)."""
+        return self._w_R.copy()
+
+    def predict(self, t_ns: int, odometry: MotionIncrement | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Predicted (position (3,), R (3, 3)) at ``t_ns`` from the last pose, or None when no
+        prediction can be made (no pose yet, or no twist and no odometry for the interval)."""
+        if not self._seg:
             return None
-        last = self._hist[-1]
-        if len(self._hist) < 2:
-            return np.asarray(last.xyz_W_m, float), float(last.rpy_rad[2])
-        prev = self._hist[0]
-        dt = (last.t_ns - prev.t_ns) * 1e-9
-        if dt <= 0:
-            return np.asarray(last.xyz_W_m, float), float(last.rpy_rad[2])
-        k = (t_ns - last.t_ns) * 1e-9 / dt
-        xyz = last.xyz_W_m + k * (last.xyz_W_m - prev.xyz_W_m)
-        yaw = float(last.rpy_rad[2] + k * wrap_angle(last.rpy_rad[2] - prev.rpy_rad[2]))
-        return np.asarray(xyz, float), yaw
+        last = self._seg[-1]
+        p0 = np.asarray(last.xyz_W_m, float)
+        R0 = euler_to_R(np.asarray(last.rpy_rad, float))
+        if odometry is not None and odometry.t0_ns == last.t_ns and odometry.t1_ns == t_ns:
+            return p0 + R0 @ odometry.dp_R_m, R0 @ so3_exp(odometry.drot_R_rad)
+        if not self._twist_known:
+            return None
+        dt = (t_ns - last.t_ns) * 1e-9
+        R_mid = R0 @ so3_exp(self._w_R * dt / 2.0)
+        return p0 + R_mid @ (self._v_R * dt), R0 @ so3_exp(self._w_R * dt)
 
-    def update(self, pose: PoseEstimate, event: str | None = None, predicted_xyz: np.ndarray | None = None) -> int:
-        jump = False
-        if event is not None:
-            jump = True
-        else:
-            pred = self.predict(pose.t_ns)
-            if pred is not None:
-                xyz_pred = pred[0] if predicted_xyz is None else np.asarray(predicted_xyz, float)
-                d = float(np.linalg.norm(pose.xyz_W_m - xyz_pred))
-                dyaw = abs(float(wrap_angle(pose.rpy_rad[2] - pred[1])))
-                jump = d > self.jump_m or dyaw > self.jump_yaw_rad
-        if jump:
+    def update(self, pose: PoseEstimate, event: str | None = None, odometry: MotionIncrement | None = None) -> int:
+        reason = event
+        last = self._seg[-1] if self._seg else None
+        if reason is None and last is not None and pose.t_ns > last.t_ns:
+            gap_s = (pose.t_ns - last.t_ns) * 1e-9
+            if gap_s > self.max_gap_s:
+                # the autopilot dead-reckoned meanwhile and may have drifted further than its
+                # innovation gate lets the next pose through: a new segment (it snaps to robotd)
+                reason = f"gap {gap_s:.1f} s"
+            else:
+                pred = self.predict(pose.t_ns, odometry)
+                if pred is not None:
+                    reason = self._jump(last, pose, *pred)
+        if reason is not None:
             self.counter = (self.counter + 1) & 0xFF
             self.bumps += 1
-            # a new segment: do not extrapolate across the discontinuity
-            self._hist.clear()
-        self._hist.append(pose)
+            self.last_reason = reason
+            self._seg.clear()  # a new segment: never fit a twist across the discontinuity
+        self._seg.append(pose)
+        self._fit_twist()
         return self.counter
 
+    def _jump(self, last: PoseEstimate, pose: PoseEstimate, p_pred: np.ndarray, R_pred: np.ndarray) -> str | None:
+        """A description of the jump when ``pose`` is beyond the tolerance around the prediction."""
+        dt = (pose.t_ns - last.t_ns) * 1e-9
+        step = float(np.linalg.norm(p_pred - last.xyz_W_m))
+        tol = self.jump_m + self.jump_frac * step + 0.5 * self.accel_max_mps2 * dt * dt
+        d = float(np.linalg.norm(pose.xyz_W_m - p_pred))
+        yaw_pred = float(R_to_euler(R_pred)[2])
+        turn = abs(float(wrap_angle(yaw_pred - last.rpy_rad[2])))
+        tol_yaw = self.jump_yaw_rad + self.jump_frac * turn + 0.5 * self.yaw_accel_max_radps2 * dt * dt
+        dyaw = abs(float(wrap_angle(pose.rpy_rad[2] - yaw_pred)))
+        if d > tol:
+            return f"jump {d:.2f} m (tolerance {tol:.2f} m)"
+        if dyaw > tol_yaw:
+            return f"jump {math.degrees(dyaw):.1f} deg (tolerance {math.degrees(tol_yaw):.1f} deg)"
+        return None
 
-# ---------------------------------------------------------------------------------------------
-# body-frame velocity from successive poses
-
-
-@dataclass
-class VelocityFromPoses:
-    """Body-frame (FRD) velocity [m/s] by differencing successive published poses.
-
-    v_W = (p_k − p_{k−1}) / Δt, v_R = R(rpy_k)ᵀ v_W. ArduPilot fuses ODOMETRY's velocity
-    (GCS_MAVLINK::handle_odometry rotates it with ``q``) and has no NaN check on that path, so a
-    finite value is sent: on the first pose it is zero (robotd starts at rest) and right after a
-    reset the last good value is held, since differencing across a jump is meaningless.
-    """
-
-    max_dt_s: float = 0.5
-    _last: PoseEstimate | None = None
-    _last_reset: int | None = None
-    _vel: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    def update(self, pose: PoseEstimate, reset_counter: int) -> np.ndarray:
-        last = self._last
-        if last is not None and reset_counter == self._last_reset:
-            dt = (pose.t_ns - last.t_ns) * 1e-9
-            if 0 < dt <= self.max_dt_s:
-                v_W = (np.asarray(pose.xyz_W_m) - np.asarray(last.xyz_W_m)) / dt
-                self._vel = euler_to_R(np.asarray(pose.rpy_rad, float)).T @ v_W
-        self._last = pose
-        self._last_reset = reset_counter
-        return self._vel.copy()
+    def _fit_twist(self) -> None:
+        """Least-squares twist over the segment's poses within ``window_s`` of the newest (at least
+        the newest two); unchanged with fewer than two."""
+        seg = self._seg
+        if len(seg) < 2:
+            return
+        t_new = seg[-1].t_ns
+        n = 2
+        while n < len(seg) and (t_new - seg[-n - 1].t_ns) * 1e-9 <= self.window_s + 1e-9:
+            n += 1
+        poses = list(seg)[-n:]
+        t = np.array([(p.t_ns - t_new) * 1e-9 for p in poses])
+        span = t[-1] - t[0]
+        if span <= 0:
+            return
+        P = np.array([p.xyz_W_m for p in poses], float)
+        tc = t - t.mean()
+        v_W = tc @ (P - P.mean(0)) / float(tc @ tc)
+        R_first = euler_to_R(np.asarray(poses[0].rpy_rad, float))
+        R_last = euler_to_R(np.asarray(poses[-1].rpy_rad, float))
+        rot = so3_log(R_first.T @ R_last)
+        R_mid = R_first @ so3_exp(rot / 2.0)
+        if not (np.all(np.isfinite(v_W)) and np.all(np.isfinite(rot))):
+            return
+        self._v_R = R_mid.T @ v_W
+        self._w_R = rot / span
+        self._twist_known = True
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ old or the new map, never a torn one.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import struct
@@ -37,6 +38,43 @@ def default_state_dir(configured: str = "") -> Path:
     if env:
         return Path(env.split(":")[0])
     return Path(os.environ.get("XDG_STATE_HOME", Path.home() / ".local" / "state")) / "robotd"
+
+
+COUNTER_FILENAME = "reset_counter"
+
+
+class CounterFile:
+    """One small integer kept across runs in ``state_dir/reset_counter``: the last MAVLink
+    ``reset_counter`` robotd sent, so the next run starts at a different value and the autopilot
+    takes its first pose as a new segment (docs/mavlink.md §5). Written atomically (a temporary
+    file renamed over it); anything unreadable is None, and a failed write is logged, not raised:
+    the pose stream must never wait on it."""
+
+    def __init__(self, state_dir: Path) -> None:
+        self.path = Path(state_dir) / COUNTER_FILENAME
+        self.failures = 0
+
+    def load(self) -> int | None:
+        try:
+            text = self.path.read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError):
+            return None
+        return int(text) if text.isdigit() and int(text) < 256 else None
+
+    def save(self, value: int) -> bool:
+        tmp = self.path.with_name(f".{COUNTER_FILENAME}.{os.getpid()}.tmp")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(f"{int(value) & 0xFF}\n", encoding="ascii")
+            os.replace(tmp, self.path)
+        except OSError as exc:
+            self.failures += 1
+            if self.failures in (1, 10, 100):
+                logger.warning("%s: reset counter not saved (%d so far): %s", self.path, self.failures, exc)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            return False
+        return True
 
 
 class MapStore:

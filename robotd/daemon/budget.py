@@ -115,6 +115,7 @@ class LatencyBudget:
         self.degrade_events = 0
         self.recover_events = 0
         self._frame_counter = 0
+        self.frames_at_level = [0] * len(ladder)  # processed frames per rung (the time spent at each)
 
     @property
     def state(self) -> BudgetState:
@@ -144,6 +145,7 @@ class LatencyBudget:
         margin.
         """
         self.frames += 1
+        self.frames_at_level[self.level] += 1
         if self.frames <= self.warmup_frames:
             return self.state  # first frames (caches, map start) say nothing about steady load
         self._ewma = frame_ms if self._ewma is None else (1 - EWMA_ALPHA) * self._ewma + EWMA_ALPHA * frame_ms
@@ -212,4 +214,5 @@ class LatencyBudget:
             "degrade_events": self.degrade_events,
             "recover_events": self.recover_events,
             "recent_misses": int(sum(self._misses)),
+            "frames_at_level": list(self.frames_at_level),
         }

@@ -74,6 +74,7 @@ class DaemonStats:
     last_stall_s: float = 0.0
     last_stall_ns: int = 0  # monotonic time the last stall (either kind) was seen
     frames_without_odometry: int = 0  # processed frames whose interval no odometry covered
+    frames_before_odometry: int = 0  # ... before the vehicle's first sample (not counted above)
     last_without_odometry_ns: int = 0
     stalls_without_odometry: int = 0  # of the stalls, those no odometry covered (a pose discontinuity)
     last_step_error_ns: int = 0
@@ -170,6 +171,7 @@ class HealthMonitor:
             "since_stall_s": round((now - st.last_stall_ns) / 1e9, 1) if st.last_stall_ns else None,
             "stalls_without_odometry": st.stalls_without_odometry,
             "frames_without_odometry": st.frames_without_odometry,
+            "frames_before_odometry": st.frames_before_odometry,
             "pose_sigma_m": None if sigma is None or not np.isfinite(sigma) else round(sigma, 4),
             "step_errors": self.stats.step_errors,
             "budget": budget.health(),
@@ -260,10 +262,17 @@ def _position_sigma_m(cov: np.ndarray) -> float:
 
 
 def _safe_stats(dev: HasStats | None) -> dict[str, Any]:
+    """A device's scalar figures, and its lists of them (a link's refused message rates)."""
     if dev is None:
         return {}
     try:
         s = dev.stats()
-        return {k: v for k, v in s.items() if isinstance(v, int | float | str | bool) or v is None}
+        return {k: (list(v) if isinstance(v, list | tuple) else v) for k, v in s.items() if _plain(v)}
     except Exception as exc:
         return {"error": str(exc)}
+
+
+def _plain(v: Any) -> bool:
+    if isinstance(v, list | tuple):
+        return all(isinstance(x, int | float | str | bool) for x in v)
+    return isinstance(v, int | float | str | bool) or v is None

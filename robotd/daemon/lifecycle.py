@@ -39,12 +39,13 @@ from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
 from robotd.errors import ConfigError, RobotdError
-from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
 from robotd.outputs.base import shortest_period
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
+from robotd.persist import CounterFile, default_state_dir
 from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
 
@@ -61,6 +62,7 @@ class _Stepped:
     frame: StereoFrame
     result: StepResult
     event: str | None  # a pose discontinuity in this step (ResetEvent)
+    odometry: MotionIncrement | None  # the vehicle's motion from the previous step's frame to this one
     landmarks: LandmarkMap | None
     state: dict[str, Any] | None
 
@@ -93,6 +95,7 @@ class Daemon:
         self.vehicle: drivers.VehicleLink | None = None
         self.autopilot_link: drivers.VehicleLink | None = None  # a MAVLink link opened only for the pose
         self.reset_policy = ResetCounterPolicy()
+        self.counter_file: CounterFile | None = None
         self._pending_event: str | None = None  # a discontinuity before the first step (map load)
         self.pipeline: Pipeline | None = None
         self.budget: LatencyBudget | None = None
@@ -162,6 +165,14 @@ class Daemon:
             frame_period_ms=1000.0 / fps,
         )
         logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
+        # the autopilot's view of robotd's pose stream: a new run is a new segment (its counter
+        # differs from the last one the previous run sent)
+        self.counter_file = CounterFile(default_state_dir(cfg.persistence.state_dir))
+        last = self.counter_file.load()
+        if last is not None:
+            self.reset_policy.counter = (last + 1) & 0xFF
+            logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
+        self.counter_file.save(self.reset_policy.counter)
         # the map file is an input too: resume before the first step, then save like any output
         self.maps = stack.enter_context(MapFileOutput(cfg.persistence, cfg.robot.id))
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
@@ -179,6 +190,7 @@ class Daemon:
         last_t: int | None = None  # the last frame stepped
         last_in: int | None = None  # the last frame given to the step (it may have failed)
         last_seq: int | None = None
+        first_odo_ns: int | None = None  # the first plausible odometry sample's time
         map_period = shortest_period(self.outputs, "map_period_s")
         state_period = shortest_period(self.outputs, "state_period_s")
         next_map, next_state = 0.0, time.monotonic() + state_period
@@ -195,6 +207,8 @@ class Daemon:
             for odo in odometry:
                 if self.odometry_gate.accept(odo, now_ns):  # an implausible sample is never integrated
                     self.integrator.add(odo)
+                    if first_odo_ns is None:
+                        first_odo_ns = odo.t_ns
             if last_seq is not None and frame.seq > last_seq + 1:
                 self.stats.seq_gaps += 1
             last_seq = frame.seq
@@ -202,8 +216,13 @@ class Daemon:
                 continue
             inc = self.integrator.integrate(last_t, frame.t_ns) if last_t is not None else None
             if last_t is not None and inc is None:
-                self.stats.frames_without_odometry += 1
-                self.stats.last_without_odometry_ns = time.monotonic_ns()
+                if first_odo_ns is None or last_t < first_odo_ns:
+                    # the vehicle has not measured anything yet (an autopilot's EKF sends no
+                    # velocity for its first seconds): counted apart, not a fault of the link
+                    self.stats.frames_before_odometry += 1
+                else:
+                    self.stats.frames_without_odometry += 1
+                    self.stats.last_without_odometry_ns = time.monotonic_ns()
             # a stall: measured between frames that reached the step, whether or not the step worked
             stalled = last_in is not None and self._check_gap(frame.t_ns - last_in, inc is not None, budget)
             last_in = frame.t_ns
@@ -236,7 +255,7 @@ class Daemon:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
                 # the autopilot must not fuse the jump as motion (interfaces.md §1.5)
                 event = event or ResetEvent.STALL
-            self.pub_q.put(_Stepped(frame, result, event, landmarks, snapshot))
+            self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
@@ -250,16 +269,25 @@ class Daemon:
             res = item.result
             seq += 1
             event, self._pending_event = self._pending_event or item.event, None
+            bumps = self.reset_policy.bumps
+            reset_counter = self.reset_policy.update(res.pose, event, item.odometry)
+            if self.reset_policy.bumps != bumps:
+                logger.info(
+                    "reset_counter %d: %s at frame %d", reset_counter, self.reset_policy.last_reason, item.frame.seq
+                )
+                if self.counter_file is not None:
+                    self.counter_file.save(reset_counter)
             report = StepReport(
                 result=res,
                 seq=seq,
                 frame_seq=item.frame.seq,
                 quality=pose_quality(res, self.cfg.frontend.min_inliers, self.cfg.mavlink.quality_good_sigma_m),
-                reset_counter=self.reset_policy.update(res.pose, event),
+                reset_counter=reset_counter,
                 latency_ms=(time.monotonic_ns() - res.t_ns) / 1e6,
                 health=self._health_state(res),
                 landmarks=item.landmarks,
                 state=item.state,
+                vel_R_mps=self.reset_policy.velocity_R,
             )
             self.health.on_published(report, item.frame.truth_T_world_robot)
             for out in self.outputs:

@@ -30,7 +30,7 @@ class AutopilotOutput(Output):
     def publish(self, report: StepReport) -> None:
         try:
             self.link.set_health(report.health)
-            self.link.send_pose(report.result.pose, report.quality, report.reset_counter)
+            self.link.send_pose(report.result.pose, report.quality, report.reset_counter, report.vel_R_mps)
         except RobotdError as exc:
             self.errors += 1
             logger.warning("autopilot pose not sent: %s", exc)

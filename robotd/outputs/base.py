@@ -23,6 +23,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
+import numpy as np
+
 from robotd.autopilot import position_sigma_m, quality_from
 from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
 
@@ -50,6 +52,7 @@ class StepReport:
     health: str
     landmarks: LandmarkMap | None = None
     state: Mapping[str, Any] | None = None
+    vel_R_mps: np.ndarray | None = None  # body-frame (FRD) velocity [m/s] of the published poses (ODOMETRY's)
 
 
 def pose_quality(result: StepResult, min_inliers: int, good_sigma_m: float = 0.2) -> int:

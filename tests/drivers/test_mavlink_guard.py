@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.mavlink_guard import BootClock, RateLimit
+from drivers.mavlink_guard import NO_ACK, BootClock, RateLimit, RateOutcome, RateRequests
 
 S = 1_000_000_000
 MS = 1_000_000
@@ -84,3 +84,56 @@ def test_no_reboot_without_a_heartbeat() -> None:
     for ms, t in autopilot_samples(-100 * S, 0, 10):
         clock.observe(ms, t)
     assert not any(clock.observe(ms, t) for ms, t in autopilot_samples(11 * S, 11 * S, 10))
+
+
+ACCEPTED, DENIED, UNSUPPORTED, FAILED, IN_PROGRESS = 0, 2, 3, 4, 5
+
+
+def test_rate_requests_one_at_a_time_each_ack_to_its_request() -> None:
+    r = RateRequests(ack_timeout_s=1.0)
+    r.start({"ATTITUDE": 50.0, "LOCAL_POSITION_NED": 10.0, "SYSTEM_TIME": 1.0})
+    assert r.next_request(0) == (("ATTITUDE", 50.0), None)
+    assert r.next_request(10 * MS) == (None, None)  # the ACK is awaited before the next request
+    assert r.on_ack(IN_PROGRESS) is None and r.next_request(20 * MS) == (None, None)  # not an answer yet
+    # refused: retried once at half the rate, before the next message
+    assert r.on_ack(DENIED) == RateOutcome("ATTITUDE", 50.0, DENIED, 25.0, False)
+    assert r.next_request(30 * MS) == (("ATTITUDE", 25.0), None)
+    assert r.on_ack(ACCEPTED) == RateOutcome("ATTITUDE", 25.0, ACCEPTED, None, True)
+    assert r.next_request(40 * MS) == (("LOCAL_POSITION_NED", 10.0), None)
+    assert r.on_ack(ACCEPTED) is not None
+    assert r.on_ack(ACCEPTED) is None  # an ACK with nothing outstanding answers nothing
+    assert r.next_request(50 * MS)[0] == ("SYSTEM_TIME", 1.0)
+    assert not r.round_finished()
+    assert r.on_ack(ACCEPTED) is not None
+    assert r.next_request(60 * MS) == (None, None) and r.round_finished() and not r.round_finished()
+    assert r.granted == {"ATTITUDE": 25.0, "LOCAL_POSITION_NED": 10.0, "SYSTEM_TIME": 1.0}
+    assert (r.accepted, r.refused, r.unacknowledged) == (3, 1, 0)
+    assert r.refusals == [RateOutcome("ATTITUDE", 50.0, DENIED, 25.0, False)]
+
+
+def test_rate_requests_retry_once_and_never_for_unsupported_or_a_switch_off() -> None:
+    r = RateRequests()
+    r.start({"WHEEL_DISTANCE": 50.0, "ODOMETRY": 10.0, "VFR_HUD": -1.0})
+    assert r.next_request(0)[0] == ("WHEEL_DISTANCE", 50.0)
+    assert r.on_ack(DENIED) is not None and r.next_request(1)[0] == ("WHEEL_DISTANCE", 25.0)
+    assert r.on_ack(DENIED) == RateOutcome("WHEEL_DISTANCE", 25.0, DENIED, None, True)  # refused twice: given up
+    assert r.next_request(2)[0] == ("ODOMETRY", 10.0)
+    assert r.on_ack(UNSUPPORTED) == RateOutcome("ODOMETRY", 10.0, UNSUPPORTED, None, False)
+    assert r.next_request(3)[0] == ("VFR_HUD", -1.0)
+    assert r.on_ack(FAILED) == RateOutcome("VFR_HUD", -1.0, FAILED, None, False)
+    assert r.next_request(4) == (None, None) and not r.busy
+    assert r.refused == 4 and r.accepted == 0 and r.granted == {}
+
+
+def test_rate_requests_a_missing_ack_times_out_and_a_new_round_starts_afresh() -> None:
+    r = RateRequests(ack_timeout_s=1.0)
+    r.start({"ATTITUDE": 25.0, "SYSTEM_TIME": 1.0})
+    assert r.next_request(0)[0] == ("ATTITUDE", 25.0)
+    assert r.next_request(999 * MS) == (None, None)
+    req, timed_out = r.next_request(S)
+    assert req == ("SYSTEM_TIME", 1.0) and timed_out == RateOutcome("ATTITUDE", 25.0, NO_ACK, None, False)
+    assert r.unacknowledged == 1 and r.refusals == [timed_out]
+    r.start({"ATTITUDE": 25.0})  # the autopilot rebooted: the outstanding request is forgotten
+    assert r.on_ack(ACCEPTED) is None and r.refusals == [] and r.busy
+    assert r.next_request(2 * S)[0] == ("ATTITUDE", 25.0) and r.on_ack(ACCEPTED) is not None
+    assert r.granted == {"ATTITUDE": 25.0} and (r.accepted, r.unacknowledged) == (1, 1)

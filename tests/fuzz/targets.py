@@ -308,6 +308,7 @@ MAVLINK_KINDS = (
     "RC_CHANNELS",
     "EKF_STATUS_REPORT",
     "GPS_GLOBAL_ORIGIN",
+    "COMMAND_ACK",  # the answers to the rate requests
 )
 INT_RANGES = {
     "uint8_t": (0, 255),

@@ -16,7 +16,7 @@ from robotd.codec import decode_map, encode_map
 from robotd.daemon.sdnotify import Notifier
 from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap
-from robotd.persist import MAGIC, STATE_SCHEMA, MapStore
+from robotd.persist import MAGIC, STATE_SCHEMA, CounterFile, MapStore
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
@@ -150,3 +150,17 @@ def test_a_payload_with_a_valid_checksum_and_bad_content_is_moved_aside(tmp_path
         MapStore(tmp_path, "r1").load()
     assert "moved aside to map.robotd.bad-" in str(err.value)
     assert [p.read_bytes() for p in tmp_path.glob("map.robotd.bad-*")] == [blob]
+
+
+def test_the_reset_counter_file_round_trips_and_forgives_what_it_cannot_read(tmp_path: Path) -> None:
+    f = CounterFile(tmp_path / "state")
+    assert f.load() is None  # no file: a first run
+    assert f.save(7) and f.load() == 7
+    assert f.save(256 + 3) and f.load() == 3  # uint8, as on the wire
+    for junk in (b"", b"12x\n", b"-1\n", b"300\n", b"\xff\xfe"):
+        f.path.write_bytes(junk)
+        assert f.load() is None, junk
+    # a state directory that cannot be written: counted, not raised
+    ro = CounterFile(tmp_path / "file-not-dir")
+    (tmp_path / "file-not-dir").write_text("x")
+    assert not ro.save(1) and ro.failures == 1

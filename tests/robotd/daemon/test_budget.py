@@ -28,6 +28,10 @@ def test_budget_degrades_in_the_stated_order_and_recovers() -> None:
         b.record(5.0)
     assert b.state.level == 0 and b.state.max_features == 1000 and b.state.n_particles == 100
     assert b.recover_events == b.max_level
+    # every processed frame is counted on the rung it ran at (health's frames_at_level)
+    at = b.health()["frames_at_level"]
+    assert isinstance(at, list) and sum(at) == b.frames and len(at) == b.max_level + 1
+    assert at[b.max_level] >= 3 and at[0] >= 2  # the walk down ended at the last rung; back at L0
 
 
 def test_frame_skipping_keeps_one_in_k() -> None:

@@ -114,6 +114,26 @@ def test_odometry_two_seconds_behind_the_frames_is_counted(tmp_path, monkeypatch
     assert late[-1]["odometry"]["gaps"] >= late[-1]["frames_processed"] - 2
 
 
+def test_frames_before_the_first_odometry_are_not_frames_without_it(tmp_path, monkeypatch, collect) -> None:
+    # an autopilot's EKF sends no velocity for its first seconds: the frames before the vehicle's
+    # first sample are counted apart, and the link is not blamed for them
+    real_odometry = drivers.sim.SimVehicle.odometry
+
+    def odometry(self, timeout_s: float = 1.0):
+        for odo in real_odometry(self, timeout_s):
+            if odo.t_ns >= self.t0_ns + 1_500_000_000:
+                yield odo
+
+    monkeypatch.setattr(drivers.sim.SimVehicle, "odometry", odometry)
+    d = _daemon(tmp_path, duration_s=4.0)
+    assert d.run() == 0
+    assert d.stats.steps > 20
+    assert d.stats.frames_before_odometry >= 5
+    assert d.stats.frames_without_odometry <= 1  # at most the frame the first sample lands in
+    assert collect.docs and collect.docs[-1]["frames_before_odometry"] == d.stats.frames_before_odometry
+    assert not any(p.startswith("frames without odometry") for p in collect.docs[-1]["problems"])
+
+
 def test_a_silent_serial_vehicle_is_never_ok(tmp_path, collect) -> None:
     master, slave = os.openpty()
     try:

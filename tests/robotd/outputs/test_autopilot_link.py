@@ -46,3 +46,34 @@ def test_daemon_sends_odometry_to_the_autopilot(tmp_path: Path) -> None:
     assert hb and all(h.msg.get_srcComponent() == 197 for h in hb)
     # the rover moved forward: +x in LOCAL_FRD
     assert m.x > 0.5
+    # a smooth drive is one segment for the autopilot: no reset, and ODOMETRY's velocity is the
+    # rover's (sim:// drives at 1 m/s; the body frame is FRD, so forward is +vx)
+    assert {r.msg.reset_counter for r in odo} == {0}, d.reset_policy.last_reason
+    moving = [r.msg for r in odo if r.msg.x > 0.5]
+    assert moving and all(0.6 < o.vx < 1.4 and abs(o.vy) < 0.3 and abs(o.vz) < 0.3 for o in moving)
+
+
+def test_a_restarted_daemon_starts_a_new_segment_for_the_autopilot(tmp_path: Path) -> None:
+    # the second run's counter differs from the last one the first run sent, so the autopilot
+    # takes its first pose (a new map's origin, or a resumed map's relocalised pose) as a reset
+    counters = []
+    for _run in range(2):
+        with MockAutopilot(sysid=7) as ap:
+            cfg = load_config(
+                None,
+                {
+                    "camera": {"url": "sim://?fps=10"},
+                    "vehicle": {"url": "sim://?fps=10"},
+                    "zenoh": {"enabled": False},
+                    "mavlink": {"enabled": True, "url": ap.url, "system_id": 7},
+                    "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
+                },
+            )
+            d = Daemon(cfg, duration_s=3.0, environ={})
+            th = threading.Thread(target=d.run)
+            th.start()
+            th.join(30)
+            assert not th.is_alive()
+            counters.append({r.msg.reset_counter for r in ap.messages("ODOMETRY")})
+    assert counters[0] == {0} and counters[1] == {1}
+    assert (tmp_path / "reset_counter").read_text().strip() == "1"
