@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ from drivers.serial_protocol import U32, WheelGeometry, encode_frame
 from robotd.errors import DriverError
 from robotd.msgs import PoseEstimate
 from tests.support.tolerances import FLOAT32_ARITH_TOL, FLOAT32_ROUNDING_TOL
+from tests.support.waiting import wait_for
 
 GEOM = WheelGeometry(0.05, 1024, 0.30)
 QUERY = "baud=115200&wheel_radius_m=0.05&ticks_per_rev=1024&track_width_m=0.3"
@@ -35,15 +36,6 @@ def mcu(**kw) -> Iterator[tuple[McuSimulator, str, int]]:
         with contextlib.suppress(OSError):
             os.close(master)
         os.close(slave)
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def collect(link: SerialVehicle, duration_s: float) -> list:
