@@ -59,6 +59,9 @@ follow     (none)   HOST:PORT (loopback): the rover is driven from outside, by t
                     loop of bench/sitl.py); the yard stays, the written trajectory is not used
 yaw0       0        with follow: the heading [deg from north] of the loop's start pose in the
                     physics's NED frame (the start pose is NED's origin)
+prerender  0        1: render every frame of ``duration`` before the clock starts and deliver them
+                    from memory, so the camera costs what a real driver costs (bench/daemon.py;
+                    2 × 256 kB a frame at 640×400)
 ========== ======== ===================================================================
 
 Timing. Camera and vehicle opened separately share one simulated clock and world when their URLs
@@ -137,6 +140,7 @@ class SimParams:
     stall_odometry: int = 0
     follow: str = ""  # HOST:PORT of an external physics's truth stream ("" = the written trajectory)
     yaw0: float = 0.0  # with follow: heading of the start pose in the physics's NED frame [deg]
+    prerender: int = 0  # 1: every frame of `duration` rendered before the clock starts, served from memory
 
     def stalled(self, t_s: float) -> bool:
         """Simulated time ``t_s`` falls in the stall (nothing captured)."""
@@ -183,6 +187,7 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "stall_odometry": (int, 0, 1),
     "follow": (str, None, None),
     "yaw0": (float, -360.0, 360.0),
+    "prerender": (int, 0, 1),
 }
 
 
@@ -238,6 +243,8 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
     params = replace(SimParams(), **values)
     if params.follow and params.stop_s > 0:
         raise DriverError(f"{url!r}: follow and stop_s: a followed rover stops when its physics stops it")
+    if params.prerender and (params.duration <= 0 or params.follow):
+        raise DriverError(f"{url!r}: prerender needs a duration (the frames to render) and no follow")
     return params
 
 
@@ -250,6 +257,15 @@ class _Session:
         self.world: World = build_world(
             params.seed, params.world, params.speed, params.tilt, (params.stop_at, params.stop_s)
         )
+        # prerender: the whole drive rendered now, before the clock starts
+        self.prerendered: list[StereoFrame] | None = None
+        if params.prerender:
+            rig = SimRig(self.world, params)
+            n = math.ceil(params.duration * params.fps - 1e-9)
+            t_start = time.perf_counter()
+            self.prerendered = [rig.render(k, 0, depth=False)[0] for k in range(n)]
+            self.prerender_s = time.perf_counter() - t_start
+            logger.info("sim: %d frames prerendered in %.1f s", n, self.prerender_s)
         # the clock starts once the world is built, so the first frames are not already late
         self.t0_ns = time.monotonic_ns() if t0_ns is None else int(t0_ns)
         self.followed: FollowedTrajectory | None = None
@@ -540,7 +556,11 @@ class SimCamera(Driver):
                 if wait_s > 0 and self._closed.wait(wait_s):
                     return
             start = time.perf_counter()
-            frame, _ = self._rig.render(k, t_ns, depth=False)
+            pre = self._session.prerendered if self._session is not None else None
+            if pre is not None and k < len(pre):
+                frame = replace(pre[k], t_ns=t_ns)  # rendered before the clock started
+            else:
+                frame, _ = self._rig.render(k, t_ns, depth=False)
             self._render_ms.append((time.perf_counter() - start) * 1e3)
             self._rendered += 1
             if p.realtime:

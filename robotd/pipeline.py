@@ -567,13 +567,14 @@ class Pipeline:
         import time
 
         from robotd import outliers
-        from robotd.frontend import detectors, stereo_match
+        from robotd.frontend import detectors, pnp, stereo_match
         from robotd.slam.factory import warmup as warmup_filters
 
         t0 = time.perf_counter()
         warmup_filters(measurements)
         detectors.warmup()
         stereo_match.warmup()
+        pnp.warmup()
         outliers.warmup()
         return time.perf_counter() - t0
 

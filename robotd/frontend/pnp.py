@@ -31,7 +31,8 @@ no plausible consensus is substantial (a bump, a collision, a wrong prediction),
 hypothesis wins as before: the prediction decides between consensus sets, it never vetoes the
 images.
 
-Pure numpy, vectorised over hypotheses and pairs.
+Numpy, vectorised over hypotheses and pairs; the Gauss–Newton passes are a numba kernel
+(robotd.frontend._pnp_kernels).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from robotd.errors import ConfigError
-from robotd.geometry import skew, so3_exp, so3_log, umeyama_batch
+from robotd.frontend import _pnp_kernels as _k
+from robotd.geometry import so3_exp, so3_log, umeyama_batch
 from robotd.outliers import iteration_budget, sample_indices
 from robotd.stereo import RectifiedStereo
 
@@ -222,38 +224,19 @@ def _coverage(inl: np.ndarray, cell: np.ndarray, n_cells: int) -> np.ndarray:
     return occ.sum(axis=1)
 
 
-def _residuals_jacobian(
-    R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, Q: np.ndarray, zp: np.ndarray, rig: RectifiedStereo
-) -> tuple[np.ndarray, np.ndarray]:
-    """Stacked residuals (n, 6) and their Jacobian (n, 6, 6) wrt the right perturbation (δp, δθ).
-
-    Both directions: the previous points into the current pair, z − π(Rᵀ(P − t)), and the current
-    points into the previous pair, z_prev − π(R Q + t). Each direction alone is biased by the depth
-    errors of the points it moves (a far point triangulated 1 % too far stretches the motion by
-    1 % of its depth); the two biases have opposite signs and cancel to first order.
-    """
-    q = (P - t) @ R  # Rᵀ (P − t) row-wise
-    b = Q @ R.T + t  # R Q + t
-    r = np.concatenate([z - project_stereo(q, rig), zp - project_stereo(b, rig)], axis=1)
-    Jq = projection_jacobian(q, rig)
-    Jb = projection_jacobian(b, rig)
-    J = np.empty((P.shape[0], 6, 6))
-    # q = Exp(−δθ) Rᵀ (P − t − R δp): ∂q/∂δp = −I, ∂q/∂δθ = [q]×
-    J[:, :3, :3] = -Jq
-    J[:, :3, 3:] = Jq @ skew(q)
-    # b = R Exp(δθ) Q + t + R δp: ∂b/∂δp = R, ∂b/∂δθ = −R [Q]×
-    J[:, 3:, :3] = Jb @ R
-    J[:, 3:, 3:] = -(Jb @ R) @ skew(Q)
-    return r, J
-
-
 def _sq_errors(
     R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, Q: np.ndarray, zp: np.ndarray, rig: RectifiedStereo
 ) -> np.ndarray:
-    """(N,) the larger of the two directions' squared reprojection errors (NaN behind the rig)."""
-    r1 = z - project_stereo((P - t) @ R, rig)
-    r2 = zp - project_stereo(Q @ R.T + t, rig)
-    return np.maximum(np.einsum("ni,ni->n", r1, r1), np.einsum("ni,ni->n", r2, r2))
+    """(N,) the larger of the two directions' squared reprojection errors (NaN behind the rig):
+    z − π(Rᵀ(P − t)) for the previous points in the current pair, zp − π(R Q + t) for the
+    current points in the previous pair."""
+    return _k.sq_errors_kernel(  # type: ignore[no-any-return]
+        _f64(R), _f64(t), _f64(P), _f64(z), _f64(Q), _f64(zp), rig.f_px, rig.px, rig.py, rig.baseline_m / 2.0
+    )
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 def refine(
@@ -267,41 +250,34 @@ def refine(
     p: PnpParams,
     inliers: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """Gauss–Newton on the pixel residuals of the inliers (both directions), the inliers re-chosen
-    after each pass. Returns R, t, inliers, cov (6, 6) over (t, rotation vector), rms [px]."""
-    thr2 = p.inlier_px**2
-    H = np.eye(6)
-    for _ in range(p.gn_iterations):
-        idx = np.flatnonzero(inliers)
-        if idx.size < 3:
-            break
-        r, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
-        ok = np.all(np.isfinite(r), axis=1)
-        r, J = r[ok], J[ok]
-        Jf = J.reshape(-1, 6)
-        H = Jf.T @ Jf
-        g = Jf.T @ r.ravel()
-        try:
-            # ẑ(δ) ≈ ẑ + J δ and r = z − ẑ: least squares J δ = r
-            d = np.linalg.solve(H + 1e-9 * np.eye(6), g)
-        except np.linalg.LinAlgError:
-            break
-        t = t + R @ d[:3]
-        R = R @ so3_exp(d[3:])
-        e2 = _sq_errors(R, t, P, z, Q, zp, rig)
-        inliers = np.isfinite(e2) & (e2 < thr2)
-        if float(np.linalg.norm(d)) < 1e-9:
-            break
-    idx = np.flatnonzero(inliers)
-    r_in, J = _residuals_jacobian(R, t, P[idx], z[idx], Q[idx], zp[idx], rig)
-    Jf = J.reshape(-1, 6)
-    H = Jf.T @ Jf
-    rss = float(np.sum(r_in * r_in))
-    rms = math.sqrt(rss / max(r_in.size, 1)) if idx.size else math.inf
+    """Gauss–Newton on the pixel residuals of the inliers, both directions (the previous points
+    into the current pair, z − π(Rᵀ(P − t)), and the current points into the previous pair,
+    zp − π(R Q + t): each direction alone is biased by the depth errors of the points it moves,
+    a far point triangulated 1 % too far stretching the motion by 1 % of its depth, and the two
+    biases cancel to first order), over a right perturbation of the pose (δp in R(t), δθ); the
+    inliers are chosen again after each pass. Returns R, t, inliers, cov (6, 6) over (t, rotation
+    vector), rms [px]. The passes run in a numba kernel (robotd.frontend._pnp_kernels; its numpy
+    twin is tests/support/reference_pnp.py)."""
+    R, t, inliers, H, rss, count = _k.gauss_newton_kernel(
+        _f64(R),
+        _f64(t),
+        _f64(P),
+        _f64(z),
+        _f64(Q),
+        _f64(zp),
+        np.asarray(inliers, dtype=np.bool_),
+        rig.f_px,
+        rig.px,
+        rig.py,
+        rig.baseline_m / 2.0,
+        int(p.gn_iterations),
+        float(p.inlier_px**2),
+    )
+    rms = math.sqrt(rss / max(count, 1)) if np.any(inliers) else math.inf
     # a residual carries the noise of both frames' pixels (2σ² per coordinate); the inliers' own
     # spread underestimates it (the gate truncates the tails), so it is only used when larger.
     # Each pair is counted twice (both directions share its noise): information halved.
-    s2 = max(rss / max(r_in.size - 6, 1), 2.0 * p.sigma_px**2)
+    s2 = max(rss / max(count - 6, 1), 2.0 * p.sigma_px**2)
     try:
         cov_d = 2.0 * p.cov_scale * s2 * np.linalg.inv(H)
     except np.linalg.LinAlgError:
@@ -311,6 +287,14 @@ def refine(
     A[:3, :3] = R
     A[3:, 3:] = np.eye(3)
     return R, t, inliers, A @ cov_d @ A.T, rms
+
+
+def warmup() -> None:
+    """Compile or load the refinement's numba kernels now (tiny inputs, the daemon's dtypes)."""
+    rig = RectifiedStereo(400.0, 320.0, 200.0, 0.075, 640, 400)
+    P = np.array([[5.0, 0.0, 0.0], [6.0, 1.0, 0.5], [7.0, -1.0, -0.5], [8.0, 0.5, 0.2]])
+    z = project_stereo(P, rig)
+    refine(np.eye(3), np.zeros(3), P, z, P, z, rig, PnpParams(), np.ones(4, bool))
 
 
 def stereo_pnp(

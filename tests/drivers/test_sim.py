@@ -307,3 +307,19 @@ def test_a_stall_in_real_time_is_silent_for_its_length():
             seqs.append(f.seq)
     k = seqs.index(18)
     assert seqs[k - 1] == 5 and t_arrive[k] - t_arrive[k - 1] > 0.55
+
+
+def test_prerendered_frames_are_the_rendered_ones_served_from_memory() -> None:
+    url = "sim://?realtime=0&fps=10&duration=1.0"
+    with open_sim_camera(url) as live:
+        a = list(live.frames())
+    with open_sim_camera(url + "&prerender=1") as pre:
+        b = list(pre.frames())
+    assert len(a) == len(b) == 10
+    for fa, fb in zip(a, b, strict=True):
+        assert fa.t_ns - a[0].t_ns == fb.t_ns - b[0].t_ns and fa.seq == fb.seq  # each session its own clock
+        np.testing.assert_array_equal(fa.left, fb.left)
+        np.testing.assert_array_equal(fa.right, fb.right)
+        np.testing.assert_array_equal(fa.truth_T_world_robot, fb.truth_T_world_robot)
+    with pytest.raises(DriverError, match="prerender needs a duration"):
+        parse_sim_url("sim://?prerender=1")

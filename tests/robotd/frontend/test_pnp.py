@@ -9,7 +9,6 @@ from robotd.errors import ConfigError
 from robotd.frontend.pnp import (
     MotionPrior,
     PnpParams,
-    _residuals_jacobian,
     motion_prior,
     project_stereo,
     projection_jacobian,
@@ -17,6 +16,8 @@ from robotd.frontend.pnp import (
 )
 from robotd.geometry import numerical_jacobian, so3_exp, so3_log
 from robotd.stereo import RectifiedStereo, triangulate
+from tests.support import reference_pnp
+from tests.support.reference_pnp import residuals_jacobian
 
 RIG = RectifiedStereo(f_px=700.0, px=620.0, py=180.0, baseline_m=0.54, width=1240, height=370)
 
@@ -51,11 +52,11 @@ def test_residual_jacobian_matches_central_differences_of_the_perturbation():
     P = _scene(rng, 4)
     R, t = so3_exp(np.array([0.01, -0.05, 0.02])), np.array([1.0, 0.1, -0.05])
     Pp, z, Q, zp = _observe(P, R, t, rng, 0.3)
-    _, J = _residuals_jacobian(R, t, Pp, z, Q, zp, RIG)
+    _, J = residuals_jacobian(R, t, Pp, z, Q, zp, RIG)
 
     def res(d: np.ndarray) -> np.ndarray:
         R2, t2 = R @ so3_exp(d[3:]), t + R @ d[:3]
-        r, _ = _residuals_jacobian(R2, t2, Pp, z, Q, zp, RIG)
+        r, _ = residuals_jacobian(R2, t2, Pp, z, Q, zp, RIG)
         return r.ravel()
 
     Jn = numerical_jacobian(res, np.zeros(6))
@@ -179,3 +180,42 @@ def test_a_weak_jump_the_vehicle_cannot_make_is_not_taken():
     assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng) is not None
     prior = motion_prior(np.eye(3), np.array([0.04, 0.0, 0.0]), 1 / 30, 1 / 30, PnpParams())
     assert stereo_pnp(Pp, z, Q, zp, RIG, PnpParams(), rng, prior) is None
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_compiled_refinement_is_its_numpy_twin(seed: int) -> None:
+    # robotd.frontend._pnp_kernels against tests/support/reference_pnp.py: the same passes, the
+    # same inliers, the same pose and information to rounding, with outliers and points behind
+    from robotd.frontend import _pnp_kernels as k
+    from robotd.frontend.pnp import _sq_errors, refine
+
+    rng = np.random.default_rng(seed)
+    P = _scene(rng, 120)
+    R, t = so3_exp(rng.normal(0, 0.03, 3)), np.array([1.0, 0.05, -0.02]) * rng.uniform(0.2, 1.5)
+    Pp, z, Q, zp = _observe(P, R, t, rng, 0.5)
+    bad = rng.choice(120, 25, replace=False)
+    z[bad] += rng.normal(0, 30.0, (25, 3))  # mismatches
+    Q[:3, 0] = -1.0  # behind the rig: NaN residuals, never inliers
+    R0, t0 = R @ so3_exp(rng.normal(0, 0.002, 3)), t + rng.normal(0, 0.01, 3)  # a RANSAC hypothesis
+    p = PnpParams()
+    e0 = reference_pnp.sq_errors(R0, t0, Pp, z, Q, zp, RIG)
+    np.testing.assert_allclose(_sq_errors(R0, t0, Pp, z, Q, zp, RIG), e0, rtol=1e-12, equal_nan=True)
+    inl0 = np.isfinite(e0) & (e0 < 100.0)
+    assert inl0.sum() > 20
+    got = refine(R0, t0, Pp, z, Q, zp, RIG, p, inl0)
+    want = reference_pnp.refine(R0, t0, Pp, z, Q, zp, RIG, p, inl0)
+    np.testing.assert_allclose(got[0], want[0], atol=1e-9)
+    np.testing.assert_allclose(got[1], want[1], atol=1e-9)
+    np.testing.assert_array_equal(got[2], want[2])
+    np.testing.assert_allclose(got[3], want[3], rtol=1e-6, atol=1e-15)
+    assert got[4] == pytest.approx(want[4], rel=1e-9)
+    # the normal equations themselves
+    idx = np.flatnonzero(got[2])
+    r, J = residuals_jacobian(got[0], got[1], Pp[idx], z[idx], Q[idx], zp[idx], RIG)
+    H, g, rss, count = k.normal_equations_kernel(
+        got[0], got[1], Pp, z, Q, zp, idx, RIG.f_px, RIG.px, RIG.py, RIG.baseline_m / 2.0
+    )
+    Jf = J.reshape(-1, 6)
+    np.testing.assert_allclose(H, Jf.T @ Jf, rtol=1e-10)
+    np.testing.assert_allclose(g, Jf.T @ r.ravel(), rtol=1e-8, atol=1e-9)
+    assert count == r.size and rss == pytest.approx(float(np.sum(r * r)))
