@@ -130,15 +130,19 @@ def run_once(
     particles: int,
     fixed: bool = False,
     extra: dict[str, dict[str, object]] | None = None,
+    prerender: bool = True,
 ) -> dict:
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"robotd-bench-{os.getpid()}"
     budget: dict[str, float] = {"deadline_ms": deadline_ms}
     if fixed:
         # floors at the full settings: the budget may only skip frames (the full-settings cost)
         budget.update(min_features=load_config(None, {}).frontend.max_features, min_particles=particles)
+    # prerendered: the whole drive rendered before the clock starts, so the camera thread costs
+    # what a real driver's hand-off costs and the renderer's own cost is reported apart
+    url = f"sim://?fps={fps:g}&duration={seconds + 5:g}&prerender=1" if prerender else f"sim://?fps={fps:g}"
     tree: dict[str, dict[str, object]] = {
-        "camera": {"url": f"sim://?fps={fps:g}"},
-        "vehicle": {"url": f"sim://?fps={fps:g}"},
+        "camera": {"url": url},
+        "vehicle": {"url": url},
         "frontend": {"detector": detector},
         "slam": {"n_particles": particles},
         "budget": budget,
@@ -188,6 +192,7 @@ def run_once(
     th_cpu.join(1)
     rss["end"] = rss_mb()
     cpu_s = time.process_time() - marks.get("cpu_s", 0.0)
+    cam_stats = d.camera.stats() if d.camera is not None else {}
     lat = np.asarray(d.stats.latencies_ms[marks.get("latencies", 0) :])
     b = d.budget
     by_thread = _cpu_by_thread(threads_cpu.get("start", {}), threads_cpu.get("end", {}))
@@ -215,6 +220,14 @@ def run_once(
         "rss_mb_start": round(rss.get("start", float("nan")), 1),
         "rss_mb_end": round(rss["end"], 1),
         "error_vs_truth_m": None if not np.isfinite(d.stats.last_error_m) else round(d.stats.last_error_m, 3),
+        # the frames processed on each rung of the budget (L0 = full settings), warm-up included
+        "frames_at_level": list(b.frames_at_level) if b else [],
+        "l0_pct": round(100.0 * b.frames_at_level[0] / max(1, sum(b.frames_at_level)), 1) if b else None,
+        "prerendered": prerender,
+        # the renderer's own cost per frame: before the run when prerendered, else in the camera thread
+        "render_ms_per_frame": round(
+            float(cam_stats.get("prerender_ms_per_frame") or cam_stats.get("render_ms_p50") or 0), 2
+        ),
         # the whole process (camera rendering, SLAM, publishing) after the warm-up, per processed frame
         "cpu_ms_per_frame": round(1e3 * cpu_s / processed, 2) if processed else None,
         # the machine is shared: the 1-minute load average at the end of the warm-up and at the end
@@ -279,8 +292,20 @@ def main(argv: list[str] | None = None) -> int:
         default=2.0,
         help="host CPU steadiness probe before and after each case (see host_jitter; 0 = off)",
     )
+    ap.add_argument(
+        "--live-render",
+        action="store_true",
+        help="render the simulated camera live in its thread (default: every frame rendered before the run)",
+    )
+    ap.add_argument(
+        "--cpus",
+        default="",
+        help="pin the process to these CPUs, e.g. 0 (a rover-class single core; as taskset -c 0)",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.cpus:
+        os.sched_setaffinity(0, {int(c) for c in args.cpus.split(",")})
     extra = _overrides(args.set)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     results = []
@@ -311,7 +336,17 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
         before = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
-        r = run_once(det, fps, nominal_deadline, args.seconds, args.warmup, args.particles, args.fixed, extra)
+        r = run_once(
+            det,
+            fps,
+            nominal_deadline,
+            args.seconds,
+            args.warmup,
+            args.particles,
+            args.fixed,
+            extra,
+            not args.live_render,
+        )
         after = host_jitter(args.probe_seconds) if args.probe_seconds > 0 else None
         r["case"] = label
         if r.get("latency_p50_ms") is None:
@@ -328,14 +363,16 @@ def main(argv: list[str] | None = None) -> int:
         )
     if show:
         print(f"done: {len(plan)} runs in {time.monotonic() - t_start:.0f} s", file=sys.stderr, flush=True)
-    machine = {"cpus": os.cpu_count(), "python": sys.version.split()[0]}
+    machine = {"cpus": os.cpu_count(), "pinned_to": sorted(os.sched_getaffinity(0)), "python": sys.version.split()[0]}
     summary = _summary(results, nominal_deadline)
     if args.json:
         print(json.dumps({"machine": machine, "results": results, "summary": summary}))
         return 0
     print(
         f"Daemon on sim:// (640×400), {args.particles} particles, deadline {nominal_deadline:.1f} ms, "
-        f"{args.seconds:g} s per case ({args.warmup:g} s warm-up excluded), {os.cpu_count()} CPUs\n"
+        f"{args.seconds:g} s per case ({args.warmup:g} s warm-up excluded), {os.cpu_count()} CPUs"
+        f"{' (pinned to CPU ' + args.cpus + ')' if args.cpus else ''}, camera "
+        f"{'rendered live' if args.live_render else 'prerendered'}\n"
     )
     cols = [
         "detector",
@@ -347,12 +384,14 @@ def main(argv: list[str] | None = None) -> int:
         "dropped",
         "skipped",
         "budget_level_end",
+        "l0_pct",
         "max_features_end",
         "particles_end",
         "rss_mb_start",
         "rss_mb_end",
         "error_vs_truth_m",
         "cpu_ms_per_frame",
+        "render_ms_per_frame",
         "load1_start",
         "load1_end",
         "host_jitter_before",

@@ -259,6 +259,7 @@ class _Session:
         )
         # prerender: the whole drive rendered now, before the clock starts
         self.prerendered: list[StereoFrame] | None = None
+        self.prerender_s = 0.0
         if params.prerender:
             rig = SimRig(self.world, params)
             n = math.ceil(params.duration * params.fps - 1e-9)
@@ -438,6 +439,7 @@ class SimCamera(Driver):
         self._rendered = 0
         self._dropped = 0
         self._render_ms: deque[float] = deque(maxlen=1000)
+        self._prerender_ms: float | None = None  # kept once seen: the session goes with the camera
 
     # lifecycle
     def __exit__(self, *exc: object) -> None:
@@ -518,6 +520,7 @@ class SimCamera(Driver):
         t0 = self.t0_ns
         k = self._next_k
         followed = self._session.followed if self._session is not None else None
+        self._prerender_ms_per_frame()
         if followed is not None:
             # an external physics moves the rover: nothing to image before its first state
             if not followed.wait_first(self._closed):
@@ -571,6 +574,13 @@ class SimCamera(Driver):
             self._next_k = k
             yield frame
 
+    def _prerender_ms_per_frame(self) -> float | None:
+        """Rendering time per frame before the clock started (prerender=1), else None."""
+        s = self._session
+        if s is not None and s.prerendered:
+            self._prerender_ms = 1e3 * s.prerender_s / len(s.prerendered)
+        return self._prerender_ms
+
     def stats(self) -> dict[str, Any]:
         p50, p99 = _percentiles(self._render_ms)
         return {
@@ -579,6 +589,7 @@ class SimCamera(Driver):
             "render_ms_p50": p50,
             "render_ms_p99": p99,
             "next_seq": self._next_k,
+            "prerender_ms_per_frame": self._prerender_ms_per_frame(),
             "fps": self.params.fps,
             "errors": 0,
             "reconnects": 0,
