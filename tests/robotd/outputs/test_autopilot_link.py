@@ -13,23 +13,29 @@ from robotd.daemon import Daemon
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
+def _run_daemon(ap: MockAutopilot, state_dir: Path, seconds: float) -> Daemon:
+    """The daemon on sim:// at 10 Hz for ``seconds``, its pose going to ``ap`` over MAVLink."""
+    cfg = load_config(
+        None,
+        {
+            "camera": {"url": "sim://?fps=10"},
+            "vehicle": {"url": "sim://?fps=10"},
+            "zenoh": {"enabled": False},
+            "mavlink": {"enabled": True, "url": ap.url, "system_id": 7},
+            "persistence": {"state_dir": str(state_dir), "save_period_s": 0.0},
+        },
+    )
+    d = Daemon(cfg, duration_s=seconds, environ={})
+    th = threading.Thread(target=d.run)
+    th.start()
+    th.join(30 + seconds)
+    assert not th.is_alive()
+    return d
+
+
 def test_daemon_sends_odometry_to_the_autopilot(tmp_path: Path) -> None:
     with MockAutopilot(sysid=7) as ap:
-        cfg = load_config(
-            None,
-            {
-                "camera": {"url": "sim://?fps=10"},
-                "vehicle": {"url": "sim://?fps=10"},
-                "zenoh": {"enabled": False},
-                "mavlink": {"enabled": True, "url": ap.url, "system_id": 7},
-                "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
-            },
-        )
-        d = Daemon(cfg, duration_s=6.0, environ={})
-        th = threading.Thread(target=d.run)
-        th.start()
-        th.join(30)
-        assert not th.is_alive()
+        d = _run_daemon(ap, tmp_path, 6.0)
         odo = [r for r in ap.messages("ODOMETRY")]
         hb = [r for r in ap.messages("HEARTBEAT")]
     assert d.stats.steps > 10
@@ -59,21 +65,7 @@ def test_a_restarted_daemon_starts_a_new_segment_for_the_autopilot(tmp_path: Pat
     counters = []
     for _run in range(2):
         with MockAutopilot(sysid=7) as ap:
-            cfg = load_config(
-                None,
-                {
-                    "camera": {"url": "sim://?fps=10"},
-                    "vehicle": {"url": "sim://?fps=10"},
-                    "zenoh": {"enabled": False},
-                    "mavlink": {"enabled": True, "url": ap.url, "system_id": 7},
-                    "persistence": {"state_dir": str(tmp_path), "save_period_s": 0.0},
-                },
-            )
-            d = Daemon(cfg, duration_s=3.0, environ={})
-            th = threading.Thread(target=d.run)
-            th.start()
-            th.join(30)
-            assert not th.is_alive()
+            _run_daemon(ap, tmp_path, 3.0)
             counters.append({r.msg.reset_counter for r in ap.messages("ODOMETRY")})
     assert counters[0] == {0} and counters[1] == {1}
     assert (tmp_path / "reset_counter").read_text().strip() == "1"
