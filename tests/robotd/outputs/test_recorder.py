@@ -1,21 +1,33 @@
-"""The recording output under a crash: a ``robotd record`` killed with SIGKILL (no handler, no
+"""The recording output: under a crash, a ``robotd record`` killed with SIGKILL (no handler, no
 close, no summary) leaves ``OUT.mcap.tmp`` that replays up to its last whole chunk, and the next
-``robotd record`` to the same path keeps it instead of overwriting it."""
+``robotd record`` to the same path keeps it instead of overwriting it. A writer that falls behind
+loses samples, counted per stream, and never blocks the threads that hand them over; one that
+fails stops the recording with its reason (issue 27, item 1)."""
 
 from __future__ import annotations
 
+import errno
+import io
 import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from robotd.cli import main
-from robotd.record import SessionReader
+from robotd.daemon.health import HealthMonitor
+from robotd.msgs import Odometry, PoseEstimate, StepResult, StereoFrame, UpdateReport
+from robotd.outputs.base import StepReport
+from robotd.outputs.recorder import RecorderOutput, SampleQueue, summary_line
+from robotd.record import SessionReader, SessionWriter
+from robotd.stereo import RectifiedStereo
 from tests.support.mcap_decode import decode_all
 from tests.support.paths import REPO
 
@@ -96,3 +108,101 @@ def test_a_sigkilled_record_leaves_a_replayable_recording(tmp_path: Path, capsys
     assert {("world", "robot"), ("robot", "camera_left"), ("robot", "camera_right")} <= frames
     # wall-clock log times: the recording is dated today, not 1970
     assert abs(msgs["/camera/left/image"][0][0] / 1e9 - time.time()) < 3600
+
+
+# --------------------------------------------------------------------------------------------
+# a writer that falls behind, or fails
+
+RIG = RectifiedStereo(100.0, 31.5, 19.5, 0.1, 64, 40)
+
+
+def _frames(n: int) -> list[StereoFrame]:
+    rng = np.random.default_rng(5)
+    img = lambda: rng.integers(0, 256, (40, 64), dtype=np.uint8)  # noqa: E731
+    return [StereoFrame(10**9 + k * 50_000_000, k, img(), img(), True) for k in range(n)]
+
+
+def _odometry(n: int) -> list[Odometry]:
+    return [Odometry(10**9 + k * 20_000_000, np.array([1.0, 0, 0]), np.zeros(3), "wheels") for k in range(n)]
+
+
+def test_the_queue_refuses_what_does_not_fit_and_counts_it_per_stream() -> None:
+    q = SampleQueue(max_bytes=100, max_items=5)
+    assert q.put("frames", "a", 60) and not q.put("frames", "b", 60)  # 120 bytes > 100
+    assert q.put("odometry", 1) and q.put("odometry", 2) and q.put("poses", "p", 40)
+    assert q.put("odometry", 3) and not q.put("odometry", 4)  # 5 items
+    assert q.lost == {"frames": 1, "odometry": 1, "poses": 0} and q.last_loss_ns > 0
+    assert q.get() == ("frames", "a") and q.bytes == 40
+    q.close()
+    assert not q.put("odometry", 5) and q.lost["odometry"] == 2  # refused after close, counted
+    assert [q.get() for _ in range(5)] == [("odometry", 1), ("odometry", 2), ("poses", "p"), ("odometry", 3), None]
+    big = SampleQueue(max_bytes=10)
+    assert big.put("frames", "x", 1000)  # an empty queue takes any one sample
+
+
+def test_a_writer_that_falls_behind_loses_samples_counted_and_never_blocks_the_producers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    release = threading.Event()
+    write_frame = SessionWriter.write_frame
+
+    def stuck(self: SessionWriter, frame: StereoFrame) -> None:
+        release.wait(60.0)  # the disk hangs until the producers are done
+        write_frame(self, frame)
+
+    monkeypatch.setattr(SessionWriter, "write_frame", stuck)
+    frames, odometry = _frames(20), _odometry(30)
+    per_frame = frames[0].left.nbytes * 2
+    rec = RecorderOutput(str(tmp_path / "s.mcap"), RIG, {}, buffer_mb=3.5 * per_frame / 1e6)
+    for k, f in enumerate(frames):  # the camera thread: every call returns while the writer hangs
+        rec.tee_frame(f)
+        rec.tee_odometry(odometry[k])
+    pose = PoseEstimate(frames[0].t_ns, np.zeros(3), np.zeros(3), np.eye(6) * 0.01)
+    result = StepResult(pose.t_ns, pose, UpdateReport())
+    rec.publish(StepReport(result=result, seq=1, frame_seq=0, quality=50, reset_counter=0, latency_ms=1.0,
+                           health="tracking"))  # fmt: skip
+    st = rec.stats()
+    assert 16 <= st["frames_lost"] <= 17 and st["odometry_lost"] == 0 and st["poses_lost"] == 0
+    # the health document says so, and the summary line
+    h = {"recording": st, "budget": {"level": 0}, "tracking": True, "pose_sigma_m": None}
+    problems = HealthMonitor().assess(h, needs_vehicle=False)["problems"]
+    assert f"recording lost {st['frames_lost']} frames, 0 odometry" in problems
+    release.set()
+    rec.close()  # what was queued is written
+    st = rec.stats()
+    assert st["frames"] + st["frames_lost"] == 20 and st["odometry"] == 20 and st["poses"] == 1
+    summary = {**st, "frames_delivered": 20, "odometry_delivered": 20, "slam_steps": 1}
+    assert f"LOST {st['frames_lost']} frames, 0 odometry samples, 0 poses: the writer fell behind" in summary_line(
+        summary
+    )
+    # the file holds the frames that were written, and says what it lost
+    r = SessionReader(tmp_path / "s.mcap")
+    assert [f.seq for f in r.frames()] == [f.seq for f in frames[: st["frames"]]]
+    with open(tmp_path / "s.mcap", "rb") as fh:
+        recs = {m.name: m.metadata for m in make_reader(fh, validate_crcs=True).iter_metadata()}
+    assert "robotd.session" in recs and recs["robotd.recording"]["frames_lost"] == str(st["frames_lost"])
+
+
+class _FullDisk(io.FileIO):
+    def __init__(self, path: Path, limit: int) -> None:
+        super().__init__(path, "wb")
+        self.limit = limit
+
+    def write(self, b: bytes) -> int:  # type: ignore[override]
+        if self.tell() + len(b) > self.limit:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return super().write(b)
+
+
+def test_a_write_error_stops_the_recording_with_its_reason(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    writer = SessionWriter(path, RIG, {}, chunk_size=4096, opener=lambda p: _FullDisk(p, 20_000))
+    rec = RecorderOutput(str(path), RIG, {}, writer=writer)
+    for f in _frames(20):
+        rec.tee_frame(f)
+    rec.close()
+    assert rec.error is not None and "No space left on device" in rec.error
+    assert not path.exists() and not path.with_name("s.mcap.tmp").exists()
+    st = rec.stats()
+    assert st["frames"] + st["frames_lost"] == 20 and st["frames_lost"] > 0
+    assert summary_line(st).startswith("recording failed: ")
