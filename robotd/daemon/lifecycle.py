@@ -75,13 +75,18 @@ class Daemon:
         duration_s: float = 0.0,
         environ: dict[str, str] | None = None,
         record_path: str | None = None,
+        keep_state: bool | None = None,
         buffer_mb: float | None = None,
     ) -> None:
-        """``buffer_mb``: images that may wait for the recorder's writer (None: its default)."""
+        """``keep_state`` False: no map file (no resume, no save) and no reset counter file, nothing
+        read or written under the state directory (``robotd record`` beside a running daemon);
+        None: False when recording (``record_path``), else True. ``buffer_mb``: images that may
+        wait for the recorder's writer (None: its default)."""
         if not (duration_s >= 0 and math.isfinite(duration_s)):
             raise ConfigError(f"--duration: expected seconds >= 0 (0: until stopped), got {duration_s}")
         self.cfg = cfg
         self.record_path = record_path
+        self.keep_state = record_path is None if keep_state is None else keep_state
         self.buffer_mb = buffer_mb
         self.duration_s = duration_s
         self._t_created = time.monotonic()
@@ -170,7 +175,10 @@ class Daemon:
             frame_period_ms=1000.0 / fps,
         )
         logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
-        self._open_state(stack)
+        if self.keep_state:
+            self._open_state(stack)
+        else:
+            logger.info("state: none (no map, no reset counter file; the state directory is not touched)")
         meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
         meta["inputs"] = "delivered"  # a recording holds every sample the devices delivered (not what SLAM took)
         ctx = OutputContext(cfg, rig, dev.autopilot, self.record_path, meta, dev.camera.raw_calibration, self.buffer_mb)

@@ -2,7 +2,8 @@
 close, no summary) leaves ``OUT.mcap.tmp`` that replays up to its last whole chunk, and the next
 ``robotd record`` to the same path keeps it instead of overwriting it. A writer that falls behind
 loses samples, counted per stream, and never blocks the threads that hand them over; one that
-fails stops the recording with its reason (issue 27, item 1)."""
+fails stops the recording with its reason. A ``robotd record`` leaves every state directory as it
+found it (issue 27, items 1 and 2)."""
 
 from __future__ import annotations
 
@@ -206,3 +207,42 @@ def test_a_write_error_stops_the_recording_with_its_reason(tmp_path: Path) -> No
     st = rec.stats()
     assert st["frames"] + st["frames_lost"] == 20 and st["frames_lost"] > 0
     assert summary_line(st).startswith("recording failed: ")
+
+
+# --------------------------------------------------------------------------------------------
+# a recording beside a running daemon leaves the daemon's state alone
+
+
+def _snapshot(d: Path) -> dict[str, tuple[bytes, int]]:
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(d.iterdir())}
+
+
+def test_a_record_run_leaves_the_state_directory_byte_identical(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The daemon's state directory, named both ways a ``robotd record`` beside it would find it:
+    $STATE_DIRECTORY (systemd) and the shared config's ``persistence.state_dir``."""
+    state = tmp_path / "daemon-state"
+    state.mkdir()
+    (state / "map.robotd").write_bytes(b"RBTDMAP\x01 the running daemon's map")
+    (state / "map.20250101-000000.robotd").write_bytes(b"an earlier map")
+    (state / "reset_counter").write_text("41\n")
+    before = _snapshot(state)
+    monkeypatch.setenv("STATE_DIRECTORY", str(state))
+    cam = '[camera]\nurl = "sim://?fps=10&width=160&height=100"\n[vehicle]\nurl = "sim://?fps=10"\n'
+    shared = tmp_path / "shared.toml"  # the daemon's own config, with its state_dir
+    shared.write_text(cam + f'[zenoh]\nenabled = false\n[persistence]\nstate_dir = "{state}"\nresume = true\n')
+    env_only = tmp_path / "env.toml"  # the state directory from the environment
+    env_only.write_text(cam + "[zenoh]\nenabled = false\n")
+    for cfg in (shared, env_only):
+        out = tmp_path / f"{cfg.stem}.mcap"
+        assert main(["record", str(out), "--config", str(cfg), "--duration", "1.5", "--log-level", "WARNING"]) == 0
+        assert out.exists()
+        assert _snapshot(state) == before, f"record --config {cfg.name} changed the state directory"
+    assert "recorded " in capsys.readouterr().err
+    # a state directory of its own, when asked for: the map and the counter go there
+    own = tmp_path / "record-state"
+    args = ["record", str(tmp_path / "own.mcap"), "--config", str(shared), "--duration", "1.5", "--state-dir", str(own)]
+    assert main([*args, "--log-level", "WARNING"]) == 0
+    assert {p.name for p in own.iterdir()} >= {"map.robotd", "reset_counter"}
+    assert _snapshot(state) == before
