@@ -577,7 +577,7 @@ class FoxgloveScene:
 
 class SessionWriter:
     """Write one session to ``path`` (MCAP format 2; crash-safe, atomic finish). Not thread-safe:
-    one writer thread (or a lock, as :class:`robotd.outputs.recorder.RecorderOutput` does).
+    one writer thread (as :class:`robotd.outputs.recorder.RecorderOutput` has), or a lock.
 
     ``calibration``: the rectified rig the frames are in (:class:`RectifiedStereo`); ``meta``:
     JSON-able facts about the session (source URL, config, robotd version, seed...). Options:

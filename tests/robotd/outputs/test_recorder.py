@@ -209,6 +209,23 @@ def test_a_write_error_stops_the_recording_with_its_reason(tmp_path: Path) -> No
     assert summary_line(st).startswith("recording failed: ")
 
 
+def test_a_write_error_stops_robotd_record_with_exit_status_1(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from robotd.config import load_config
+    from robotd.daemon import Daemon
+    from robotd.errors import PersistenceError
+
+    def full(self: SessionWriter, frame: StereoFrame) -> None:
+        raise PersistenceError(f"{self.path}: No space left on device (simulated)")
+
+    monkeypatch.setattr(SessionWriter, "write_frame", full)
+    cam = "sim://?fps=10&realtime=0&width=160&height=100"
+    cfg = load_config(None, {"camera": {"url": cam}, "vehicle": {"url": cam}, "zenoh": {"enabled": False}})
+    d = Daemon(cfg, duration_s=0.0, environ={}, record_path=str(tmp_path / "s.mcap"))
+    assert d.run() == 1
+    assert d.stop_reason.startswith("recording failed: ") and "No space left on device" in d.stop_reason
+    assert d.failed == ["recorder"] and not (tmp_path / "s.mcap").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # a recording beside a running daemon leaves the daemon's state alone
 
