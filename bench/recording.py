@@ -7,16 +7,22 @@ Two runs:
   (with the truth as the pose), so every frame of the 30 Hz stream is in the file; gives MB/s at
   30 Hz and the writer's time per frame (PNG encoding dominates);
 - ``daemon``: a real ``robotd record`` for ``--seconds``: the file as the daemon writes it, with
-  the SLAM channels (features, map, trajectory); MB/s is its size per recorded frame × 30 (frames
-  SLAM did not take are not recorded).
+  the SLAM channels (features, map, trajectory); MB/s is its size per recorded frame × 30, and
+  over the recording's span. With ``--hogs N``, N CPU-bound processes run beside it (issue 27's
+  evidence: ``--hogs 2 --seconds 10`` on a 2-core host): the row gives the frames the camera
+  delivered (the daemon's count and the driver's own), the frames in the file and those lost
+  (the recorder's writer fell behind), what SLAM processed, the recorder queue's peak, the
+  messages the ``mcap`` library reads with CRC checks on, and the frames a replay processes.
 
-    python bench/recording.py [--seconds 5] [--json] [--no-daemon]
+    python bench/recording.py [--seconds 5] [--hogs N] [--json] [--no-daemon]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -83,30 +89,68 @@ def writer_run(seconds: float, image_format: str, tmp: Path) -> dict[str, Any]:
     }
 
 
-def daemon_run(seconds: float, tmp: Path) -> dict[str, Any]:
+@contextlib.contextmanager
+def _hogs(n: int) -> Any:
+    """``n`` CPU-bound processes for the duration of the block (each stopped by its own id)."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def _crc_read(path: Path) -> int:
+    """Messages the ``mcap`` library reads, every chunk's CRC checked (raises on a bad one)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return sum(1 for _ in make_reader(f, validate_crcs=True).iter_messages(log_time_order=False))
+
+
+def daemon_run(seconds: float, tmp: Path, hogs: int = 0, replay: bool = True) -> dict[str, Any]:
     from robotd.config import load_config
     from robotd.daemon import Daemon
     from robotd.record import SessionReader
 
     cfg_file = tmp / "c.toml"
-    cfg_file.write_text(
-        f'[camera]\nurl = "{SIM}"\n[vehicle]\nurl = "{SIM}"\n[zenoh]\nenabled = false\n'
-        f'[persistence]\nstate_dir = "{tmp / "state"}"\nsave_period_s = 0.0\n'
-    )
+    cfg_file.write_text(f'[camera]\nurl = "{SIM}"\n[vehicle]\nurl = "{SIM}"\n[zenoh]\nenabled = false\n')
     path = tmp / "daemon.mcap"
-    d = Daemon(load_config(str(cfg_file)), duration_s=seconds, record_path=str(path))
-    if d.run() != 0:
-        return {"run": "daemon", "error": "robotd record failed"}
+    cfg = load_config(str(cfg_file))
+    d = Daemon(cfg, duration_s=seconds, record_path=str(path))
+    with _hogs(hogs):
+        if d.run() != 0:
+            return {"run": "daemon", "error": "robotd record failed"}
+    s = d.record_summary()
     frames = SessionReader(path).frame_count() or 0
     size = path.stat().st_size
-    return {
-        "run": "daemon (robotd record)",
+    row = {
+        "run": f"daemon (robotd record{f', {hogs} CPU hogs' if hogs else ''})",
         "frames": frames,
+        "frames_delivered": s["frames_delivered"],
+        "camera_frames": s["camera"].get("frames"),  # the driver's own count of what it delivered
+        "frames_lost": s["frames_lost"],
+        "odometry": s["odometry"],
+        "odometry_delivered": s["odometry_delivered"],
+        "odometry_lost": s["odometry_lost"],
+        "slam_steps": s["slam_steps"],
+        "slam_dropped": s["slam_dropped"],
+        "slam_skipped": s["slam_skipped"],
+        "queue_high_water_MB": s["queue_high_water_mb"],
         "file_MB": size / 1e6,
+        "span_s": s["span_s"],
+        "MB_per_s": size / 1e6 / max(s["span_s"], 1e-9),
         "MB_per_s_at_30Hz": size / max(frames, 1) * FPS / 1e6,
         "recorded_fps": frames / seconds,
+        "mcap_crc_messages": _crc_read(path),
         "payload_MB_per_s_by_topic": {k: v / max(frames, 1) * FPS / 1e6 for k, v in sorted(_per_topic(path).items())},
     }
+    if replay:
+        from robotd.replay import replay as run_replay
+
+        row["replayed_frames"] = run_replay(cfg, str(path), progress=False)["frames"]
+    return row
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,15 +158,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--no-daemon", action="store_true")
+    ap.add_argument("--hogs", type=int, default=0, help="CPU-bound processes beside the daemon run")
+    ap.add_argument("--no-replay", action="store_true", help="do not replay the daemon's recording")
+    ap.add_argument("--no-writer", action="store_true", help="only the daemon run")
     args = ap.parse_args(argv)
     import logging
 
     logging.basicConfig(level=logging.WARNING)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        rows = [writer_run(args.seconds, "png", tmp), writer_run(args.seconds, "raw", tmp)]
+        rows = [] if args.no_writer else [writer_run(args.seconds, "png", tmp), writer_run(args.seconds, "raw", tmp)]
         if not args.no_daemon:
-            rows.append(daemon_run(args.seconds, tmp))
+            rows.append(daemon_run(args.seconds, tmp, args.hogs, not args.no_replay))
     if args.json:
         print(json.dumps({"rows": rows}, sort_keys=True))
         return 0
@@ -131,6 +178,16 @@ def main(argv: list[str] | None = None) -> int:
         ms = r.get("write_ms_per_frame")
         print(f"| {r['run']} | {r.get('frames')} | {r.get('MB_per_s_at_30Hz', float('nan')):.2f} | "
               f"{'' if ms is None else f'{ms:.1f}'} |")  # fmt: skip
+    for r in rows:
+        if "frames_delivered" in r:
+            print(
+                f"\n{r['run']}: camera delivered {r['frames_delivered']} frames (driver: {r['camera_frames']}), "
+                f"file holds {r['frames']}, lost {r['frames_lost']}; odometry {r['odometry']} of "
+                f"{r['odometry_delivered']}; SLAM processed {r['slam_steps']} (dropped {r['slam_dropped']}, "
+                f"skipped {r['slam_skipped']}); {r['file_MB']:.1f} MB over {r['span_s']:.1f} s = "
+                f"{r['MB_per_s']:.1f} MB/s; queue peak {r['queue_high_water_MB']} MB; mcap (CRC on) read "
+                f"{r['mcap_crc_messages']} messages; replay processed {r.get('replayed_frames', '-')} frames"
+            )
     print("\nPayload by topic, MB/s at 30 Hz (before chunk compression):\n")
     for r in rows:
         top = ", ".join(f"{k} {v:.3f}" for k, v in r.get("payload_MB_per_s_by_topic", {}).items() if v >= 0.001)

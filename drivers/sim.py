@@ -565,13 +565,13 @@ class SimCamera(Driver):
             else:
                 frame, _ = self._rig.render(k, t_ns, depth=False)
             self._render_ms.append((time.perf_counter() - start) * 1e3)
-            self._rendered += 1
             if p.realtime:
                 wait_s = (t_ns - time.monotonic_ns()) / 1e9
                 if wait_s > 0 and self._closed.wait(wait_s):
                     return
             k += 1
             self._next_k = k
+            self._rendered += 1  # counted as delivered, as a device driver counts what it hands over
             yield frame
 
     def _prerender_ms_per_frame(self) -> float | None:

@@ -124,13 +124,23 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_record(args: argparse.Namespace) -> int:
     from robotd.daemon import Daemon
+    from robotd.outputs.recorder import summary_line
 
     cfg = _load(args)
+    if args.state_dir:
+        cfg = load_config(getattr(args, "config", None), {"persistence": {"state_dir": args.state_dir}})
+    if not args.buffer_mb > 0:
+        raise InputError(f"--buffer-mb: expected MB > 0, got {args.buffer_mb}")
     configure_logging(args.log_level or cfg.log.level)
-    daemon = Daemon(cfg, duration_s=args.duration, record_path=args.out)
+    daemon = Daemon(
+        cfg, duration_s=args.duration, record_path=args.out, keep_state=bool(args.state_dir), buffer_mb=args.buffer_mb
+    )
     code = daemon.run()
+    summary = daemon.record_summary()
+    if daemon.recorder is not None:  # a start-up that failed has said so in its one line
+        print(summary_line(summary), file=sys.stderr, flush=True)
     if args.json:
-        print(json.dumps(daemon.record_summary(), sort_keys=True))
+        print(json.dumps(summary, sort_keys=True))
     return code
 
 
@@ -288,9 +298,20 @@ truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m."""
     sp.add_argument("--quiet", action="store_true", help="no progress bar (the final summary line stays)")
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
+    sp.epilog = """\
+Every frame the camera delivers and every odometry sample is recorded, whatever SLAM keeps up
+with; SLAM's poses, features and map go beside them. Samples the writer could not keep up with
+(a full --buffer-mb) are counted, in the health line and in the summary line at the end.
+A recording keeps no map and no reset counter, and touches no state directory, unless
+--state-dir names one (of its own, never a running daemon's)."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("out", help="OUT.mcap")
     sp.add_argument("--duration", type=_seconds, default=10.0, help="seconds to record (0: until SIGTERM)")
-    sp.add_argument("--json", action="store_true")
+    sp.add_argument("--state-dir", metavar="DIR", help="keep a map and the reset counter in DIR (default: none)")
+    sp.add_argument(
+        "--buffer-mb", type=float, default=128.0, help="images that may wait for the writer, MB (default 128)"
+    )
+    sp.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
 
     sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)
     sp.epilog = """\

@@ -577,7 +577,7 @@ class FoxgloveScene:
 
 class SessionWriter:
     """Write one session to ``path`` (MCAP format 2; crash-safe, atomic finish). Not thread-safe:
-    one writer thread (or a lock, as :class:`robotd.outputs.recorder.RecorderOutput` does).
+    one writer thread (as :class:`robotd.outputs.recorder.RecorderOutput` has), or a lock.
 
     ``calibration``: the rectified rig the frames are in (:class:`RectifiedStereo`); ``meta``:
     JSON-able facts about the session (source URL, config, robotd version, seed...). Options:
@@ -737,6 +737,26 @@ class SessionWriter:
         self._check_open()
         self._write(self.scene.map(t_ns, landmarks) if isinstance(landmarks, LandmarkMap) else landmarks)
         self.counts["maps"] += 1
+
+    def flush_if_due(self) -> None:
+        """Hand the open chunk to the operating system when it waited ``flush_period_s`` (a writer
+        with nothing new to write calls this, so a quiet source does not hold data back)."""
+        if self._closed or time.monotonic() - self._last_flush < self.flush_period_s:
+            return
+        try:
+            self._writer.flush()
+        except (OSError, ValueError) as exc:
+            self._fail(exc, "flushing")
+        self._last_flush = time.monotonic()
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """A metadata record (string → string), written where the file is now: Foxglove and
+        ``mcap`` list them; robotd writes its recording figures this way just before closing."""
+        self._check_open()
+        try:
+            self._writer.add_metadata(name, dict(data))
+        except (OSError, ValueError) as exc:
+            self._fail(exc, f"writing metadata {name}")
 
     def close(self) -> None:
         """Write the last trajectories and the MCAP summary, fsync, and rename ``PATH.tmp`` to

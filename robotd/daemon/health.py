@@ -5,8 +5,9 @@ The document's ``state`` is ``ok`` only when nothing is wrong now: ``starting`` 
 step, ``failed`` while tracking is lost or no step completed for ``RECENT_S``, ``degraded`` with
 the reasons in ``problems`` when a vehicle link is not ``ok``, a stall happened in the last
 ``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, frames lately had no
-odometry while odometry flows, the last map save failed, the pose's position σ exceeds
-``MAX_POSE_SIGMA_M``, or the latency budget runs below full settings (docs/reliability.md).
+odometry while odometry flows, the last map save failed, the recording lost samples in that time
+(its writer fell behind) or failed, the pose's position σ exceeds ``MAX_POSE_SIGMA_M``, or the
+latency budget runs below full settings (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -207,6 +208,12 @@ class HealthMonitor:
         saves = h.get("map_file") or {}
         if saves.get("last_failed"):
             problems.append(f"map save failed ({saves.get('failures')})")
+        rec = h.get("recording") or {}
+        if rec.get("error"):
+            problems.append("recording failed")
+        elif rec.get("last_loss_ns") and now - rec["last_loss_ns"] < RECENT_S * 1e9:
+            # the recorder's writer (disk, PNG encoding) fell behind and its queue was full
+            problems.append(f"recording lost {rec['frames_lost']} frames, {rec['odometry_lost']} odometry")
         sigma = h.get("pose_sigma_m")
         if sigma is None and self.last is not None:
             sigma = math.inf  # a covariance that is no longer finite

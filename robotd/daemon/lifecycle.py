@@ -2,8 +2,9 @@
 
 Threads:
 
-- camera: ``camera.frames()`` → frame queue (bounded, drop-oldest, counted)
-- vehicle: ``vehicle.odometry()`` → odometry queue (bounded, drop-oldest, counted)
+- camera: ``camera.frames()`` → the outputs' tees (the recorder's sensor log: every frame) → frame
+  queue (bounded, drop-oldest, counted)
+- vehicle: ``vehicle.odometry()`` → the tees (every sample) → odometry queue (bounded, drop-oldest, counted)
 - slam: frame queue → odometry integrated to the frame's capture time → ``Pipeline.step`` →
   publish queue; the latency budget degrades (features, particles, frame skipping) and recovers.
   It is the only thread that touches the pipeline: the map and state snapshots the outputs ask
@@ -74,11 +75,19 @@ class Daemon:
         duration_s: float = 0.0,
         environ: dict[str, str] | None = None,
         record_path: str | None = None,
+        keep_state: bool | None = None,
+        buffer_mb: float | None = None,
     ) -> None:
+        """``keep_state`` False: no map file (no resume, no save) and no reset counter file, nothing
+        read or written under the state directory (``robotd record`` beside a running daemon);
+        None: False when recording (``record_path``), else True. ``buffer_mb``: images that may
+        wait for the recorder's writer (None: its default)."""
         if not (duration_s >= 0 and math.isfinite(duration_s)):
             raise ConfigError(f"--duration: expected seconds >= 0 (0: until stopped), got {duration_s}")
         self.cfg = cfg
         self.record_path = record_path
+        self.keep_state = record_path is None if keep_state is None else keep_state
+        self.buffer_mb = buffer_mb
         self.duration_s = duration_s
         self._t_created = time.monotonic()
         self.stop_event = threading.Event()
@@ -100,6 +109,7 @@ class Daemon:
         self.pipeline: Pipeline | None = None
         self.budget: LatencyBudget | None = None
         self.maps: MapFileOutput | None = None
+        self.recorder: RecorderOutput | None = None
         self.outputs: list[Output] = []
         self.threads: list[threading.Thread] = []
         self._ready = False
@@ -165,6 +175,21 @@ class Daemon:
             frame_period_ms=1000.0 / fps,
         )
         logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
+        if self.keep_state:
+            self._open_state(stack)
+        else:
+            logger.info("state: none (no map, no reset counter file; the state directory is not touched)")
+        meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
+        meta["inputs"] = "delivered"  # a recording holds every sample the devices delivered (not what SLAM took)
+        ctx = OutputContext(cfg, rig, dev.autopilot, self.record_path, meta, dev.camera.raw_calibration, self.buffer_mb)
+        self.outputs = [*([self.maps] if self.maps is not None else []), *build_outputs(ctx, stack)]
+        self.recorder = next((o for o in self.outputs if isinstance(o, RecorderOutput)), None)
+        logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
+
+    def _open_state(self, stack: contextlib.ExitStack) -> None:
+        """The reset counter and the map file under the state directory."""
+        cfg = self.cfg
+        assert self.pipeline is not None
         # the autopilot's view of robotd's pose stream: a new run is a new segment (its counter
         # differs from the last one the previous run sent)
         self.counter_file = CounterFile(default_state_dir(cfg.persistence.state_dir))
@@ -178,10 +203,6 @@ class Daemon:
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
             self.resumed = True
             self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
-        meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
-        ctx = OutputContext(cfg, rig, dev.autopilot, self.record_path, meta, dev.camera.raw_calibration)
-        self.outputs = [self.maps, *build_outputs(ctx, stack)]
-        logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
 
     # ------------------------------------------------------------------ threads
     def _slam_loop(self) -> None:
@@ -201,7 +222,7 @@ class Daemon:
                     break
                 continue
             odometry = self.odo_q.drain()
-            for out in self.outputs:  # what is recorded is exactly what SLAM consumes
+            for out in self.outputs:  # what SLAM consumes (the recorder got every sample at the pumps)
                 out.record_inputs(frame, odometry)
             now_ns = time.monotonic_ns()
             for odo in odometry:
@@ -325,9 +346,21 @@ class Daemon:
 
     # ------------------------------------------------------------------ health
     def record_summary(self) -> dict[str, Any]:
-        rec = next((o for o in self.outputs if isinstance(o, RecorderOutput)), None)
+        """``robotd record``'s figures: what the devices delivered, what the file holds and what it
+        lost (the writer fell behind), and what SLAM processed of it."""
+        rec = self.recorder
         counts = rec.stats() if rec is not None else {"out": self.record_path, "frames": 0, "odometry": 0, "poses": 0}
-        return {**counts, "frames_dropped": self.frame_q.dropped}
+        counts.pop("last_loss_ns", None)
+        return {
+            **counts,
+            "frames_delivered": self.stats.frames_in,
+            "odometry_delivered": self.stats.odometry_in,
+            "frames_missed": self.stats.frames_missed,  # never delivered by the camera (sequence gaps)
+            "slam_steps": self.stats.steps,
+            "slam_dropped": self.frame_q.dropped,
+            "slam_skipped": self.budget.skipped if self.budget is not None else 0,
+            "camera": _plain_stats(self.camera),  # the driver's own counts ("frames": what it delivered)
+        }
 
     def health_doc(self) -> dict[str, Any]:
         assert self.budget is not None
@@ -344,6 +377,8 @@ class Daemon:
             )
         if self.maps is not None:
             doc["map_file"] = self.maps.stats()
+        if self.recorder is not None:
+            doc["recording"] = self.recorder.stats()
         return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))
 
     # ------------------------------------------------------------------ main loop
@@ -372,9 +407,10 @@ class Daemon:
     def _start_threads(self) -> None:
         assert self.camera is not None and self.vehicle is not None
         vehicle, stop, stats = self.vehicle, self.stop_event, self.stats
+        tees = [o.tee_odometry for o in self.outputs if type(o).tee_odometry is not Output.tee_odometry]
         for name, fn in (
             ("camera", self._pump_frames),
-            ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats)),
+            ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats, tees)),
             ("slam", self._slam_loop),
             ("publisher", self._publisher_loop),
         ):
@@ -394,6 +430,7 @@ class Daemon:
             self.duration_s == 0.0,
             stall_s,
             lambda gap_s: self.health.on_stall(gap_s, camera=True),
+            [o.tee_frame for o in self.outputs if type(o).tee_frame is not Output.tee_frame],
         )
 
     def _guarded(self, name: str, loop: Callable[[], None]) -> None:
@@ -431,6 +468,9 @@ class Daemon:
                 break
             if not self.threads[2].is_alive():
                 self.stop_reason = "source ended"
+                break
+            if self.recorder is not None and self.recorder.error is not None:
+                self._fail("recorder", f"recording failed: {self.recorder.error}")
                 break
             if not self._ready and self.stats.steps > 0 and (self.stats.odometry_in > 0 or not needs_vehicle):
                 self._ready = True
@@ -498,6 +538,14 @@ class Daemon:
             time.monotonic() - t0,
         )
         self.notifier.close()
+
+
+def _plain_stats(dev: Any) -> dict[str, Any]:
+    try:
+        stats = dev.stats() if dev is not None else {}
+    except Exception as exc:  # a driver's counters must not cost the summary
+        return {"error": str(exc)}
+    return {k: v for k, v in stats.items() if v is None or isinstance(v, int | float | str | bool)}
 
 
 def run_daemon(cfg: Config, duration_s: float = 0.0) -> int:

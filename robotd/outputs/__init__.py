@@ -32,6 +32,7 @@ class OutputContext:
     record_path: str | None = None  # robotd record OUT.mcap
     session_meta: dict[str, Any] = field(default_factory=dict)  # facts about the run for recordings
     raw_calibration: Any = None  # the camera's own calibration dump (OAK EEPROM), for recordings
+    record_buffer_mb: float | None = None  # images that may wait for the recorder's writer (None: its default)
 
 
 def _recorder(ctx: OutputContext) -> Output | None:
@@ -39,7 +40,9 @@ def _recorder(ctx: OutputContext) -> Output | None:
         return None
     from robotd.outputs.recorder import RecorderOutput
 
-    return RecorderOutput(ctx.record_path, ctx.rig, ctx.session_meta, ctx.raw_calibration)
+    if ctx.record_buffer_mb is None:
+        return RecorderOutput(ctx.record_path, ctx.rig, ctx.session_meta, ctx.raw_calibration)
+    return RecorderOutput(ctx.record_path, ctx.rig, ctx.session_meta, ctx.raw_calibration, ctx.record_buffer_mb)
 
 
 def _zenoh(ctx: OutputContext) -> Output | None:

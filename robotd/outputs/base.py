@@ -4,8 +4,12 @@ An output is one destination for what SLAM produces: the Zenoh topics, the autop
 MCAP recording, the map file. The daemon calls every output's hooks the same way, each on a
 known thread:
 
+- :meth:`Output.tee_frame` (camera thread) and :meth:`Output.tee_odometry` (vehicle thread):
+  every frame and every odometry sample the devices delivered, before the SLAM queues and the
+  latency budget (the recording's sensor log). They must return at once: an output hands the
+  sample to a bounded queue of its own and does its work on its own thread;
 - :meth:`Output.record_inputs` (SLAM thread, before each step): the frame and the odometry that
-  step consumes, exactly (a recording replays bit for bit);
+  step consumes, exactly (the live view shows these);
 - :meth:`Output.publish` (publisher thread, after each step): the step's :class:`StepReport`;
 - :meth:`Output.publish_health` (supervisor thread, every ``health_period_s``): the health document;
 - :meth:`Output.finish` (shutdown, after the SLAM thread stopped): the final pipeline state;
@@ -82,6 +86,13 @@ class Output:
     map_period_s: float | None = None  # a LandmarkMap snapshot in the report this often
     state_period_s: float | None = None  # a pipeline state snapshot (Pipeline.state_dict) this often
     health_period_s: float | None = None  # publish_health this often
+
+    def tee_frame(self, frame: StereoFrame) -> None:
+        """Camera thread: every frame the camera delivered, whatever SLAM later drops or skips.
+        Must never block or do work (encoding, I/O): queue it and return."""
+
+    def tee_odometry(self, odometry: Odometry) -> None:
+        """Vehicle thread: every odometry sample the vehicle link delivered; as :meth:`tee_frame`."""
 
     def record_inputs(self, frame: StereoFrame, odometry: Sequence[Odometry]) -> None:
         """SLAM thread: the inputs of the next step, in the order it consumes them."""
