@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 import time
@@ -13,6 +14,9 @@ import time
 import zenoh
 
 from robotd.codec import decode_map
+from robotd.errors import DriverError
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # the daemon's default [zenoh] listen
 
 
 def _client_config(connect: list[str]) -> zenoh.Config:
@@ -26,6 +30,37 @@ def _client_config(connect: list[str]) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
+
+
+def _reason(exc: Exception) -> str:
+    """Zenoh's message without the Rust source locations it appends (`` at /root/.cargo/…rs:447.``)
+    and, for a config error, without the JSON5 wrapper around it."""
+    text = str(exc)
+    inner = re.search(r'msg: "(.*?)"', text)
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", inner.group(1) if inner else text).strip()
+
+
+def open_session(connect: list[str]) -> zenoh.Session:
+    """A Zenoh session to ``connect`` (the daemon's default endpoint when empty). Nothing listening
+    there, or an endpoint Zenoh cannot parse, is a DriverError of one line saying what to change."""
+    endpoints = connect or [DEFAULT_ENDPOINT]
+    where = ", ".join(endpoints)
+    try:
+        conf = _client_config(endpoints)
+    except zenoh.ZError as exc:
+        raise DriverError(
+            f"echo: --connect {where}: not a Zenoh endpoint ({_reason(exc)}); e.g. --connect {DEFAULT_ENDPOINT}"
+        ) from None
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        if "Unable to connect" not in str(exc):
+            raise DriverError(f"echo: cannot open a Zenoh session to {where}: {_reason(exc)}") from None
+        raise DriverError(
+            f"echo: nothing listens at {where}{'' if connect else ' (the default)'}: is robotd running there, "
+            "with [zenoh] enabled? Point echo at it with --connect tcp/HOST:PORT, an endpoint of the daemon's "
+            "[zenoh] listen"
+        ) from None
 
 
 def format_sample(key: str, payload: bytes) -> str:
@@ -58,7 +93,7 @@ def echo(key: str, connect: list[str], count: int = 0, timeout_s: float = 0.0) -
             if count and n >= count:
                 done.set()
 
-    with zenoh.open(_client_config(connect or ["tcp/127.0.0.1:7447"])) as session:
+    with open_session(connect) as session:
         if key.endswith("/map") and "*" not in key:
             for reply in session.get(key, timeout=timeout_s or 5.0):
                 if reply.ok is not None:

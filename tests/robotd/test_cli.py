@@ -144,6 +144,31 @@ def test_echo_prints_published_samples(capsys: pytest.CaptureFixture[str]) -> No
     assert lines[0]["value"]["schema"] == "robotd.pose/1"
 
 
+def test_echo_with_nothing_listening_is_one_line_exit_2_naming_the_endpoint_and_the_option(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 27, item 3: it was a 14-line traceback ending in a Rust source path, exit 1."""
+    from tests.support.net import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    assert main(["echo", "robotd/r1/pose", "--connect", endpoint, "--timeout", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"robotd: error: echo: nothing listens at {endpoint}:") and "--connect" in err[0]
+    assert "[zenoh] listen" in err[0] and ".rs" not in err[0]
+    # without --connect: the daemon's default endpoint, said to be the default
+    import robotd.echo
+
+    monkeypatch.setattr(robotd.echo, "DEFAULT_ENDPOINT", endpoint)
+    assert main(["echo", "robotd/r1/map"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"nothing listens at {endpoint} (the default)" in err[0], err
+    # an endpoint Zenoh cannot parse: one line too, without the Rust location
+    assert main(["echo", "robotd/r1/pose", "--connect", "localhost:7447"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a Zenoh endpoint" in err[0] and ".rs" not in err[0], err
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
