@@ -321,6 +321,21 @@ def kitti_times_ns(path: str | Path, n: int) -> np.ndarray:
     return t_ns
 
 
+def kitti_pose_rows(rows: np.ndarray) -> np.ndarray:
+    """Rows of 12 numbers (a KITTI pose file: row-major 3×4 [R|t]) -> (N, 4, 4) poses, each R
+    projected to the nearest rotation (SVD). KITTI prints 7 significant digits, so its R are
+    orthonormal to ~1e-7 only, and the trace-based angle of a frame-to-frame rotation of 0.05°
+    read 0.03° more from that alone (rpe_rot_deg 0.0706° instead of evo's 0.0697° on kitti-seq1)."""
+    a = np.asarray(rows, dtype=float).reshape(-1, 3, 4)
+    U, _, Vt = np.linalg.svd(a[:, :, :3])
+    D = np.ones((len(a), 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    T = np.tile(np.eye(4), (len(a), 1, 1))
+    T[:, :3, :3] = (U * D[:, None, :]) @ Vt
+    T[:, :3, 3] = a[:, :, 3]
+    return T
+
+
 def kitti_truth_to_robot(T_C0_C: np.ndarray, baseline_m: float) -> np.ndarray:
     """KITTI left-camera poses (..., 4, 4), optical frame -> robot-frame poses T_R0_R (FRD, baseline centre).
 
@@ -384,8 +399,7 @@ class KittiCamera(_ImageDatasetCamera):
         rows = np.loadtxt(path, dtype=float, ndmin=2)
         if rows.shape[1] != 12 or rows.shape[0] < n:
             raise DatasetError(f"{path}: expected {n} rows of 12 numbers (3x4 [R|t]), got {rows.shape}")
-        T = np.tile(np.eye(4), (n, 1, 1))
-        T[:, :3, :] = rows[:n].reshape(n, 3, 4)
+        T = kitti_pose_rows(rows[:n])
         # KITTI's frame 0 is the identity already; re-anchor anyway so world = robot at frame 0
         T = se3_inverse(T[0]) @ T
         return kitti_truth_to_robot(T, b)

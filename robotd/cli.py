@@ -105,6 +105,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     cfg = _load(args)
     configure_logging(args.log_level or cfg.log.level)
+    if (args.format != "tum") and not args.out:
+        raise InputError(f"replay --format {args.format}: give the trajectory file with --out")
     summary = replay(
         cfg,
         args.source,
@@ -113,6 +115,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         progress=not args.quiet,
         gt_odometry=args.gt_odometry,
+        out_format=args.format,
+        truth_out=args.truth_out,
     )
     # always, terminal or not, --quiet or not: the one line a person reads at the end (stdout
     # keeps only the JSON, for scripts)
@@ -159,8 +163,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         logger.warning("eval: --no-plot is deprecated and does nothing: no plot is written unless --plot PNG is given")
     # a KITTI poses.txt is read as the replay carries it: robot frame at the baseline centre,
     # stamped from the times.txt beside it (by index when it has none and the counts match)
-    est = read_trajectory(args.traj)
-    gt = read_trajectory(args.gt)
+    # a KITTI file without a calib.txt beside it (robotd replay --format kitti --out /tmp/T.txt)
+    # takes the other file's: both are the same rig's left camera
+    est = read_trajectory(args.traj, calib_fallback=Path(args.gt).parent / "calib.txt")
+    gt = read_trajectory(args.gt, calib_fallback=Path(args.traj).parent / "calib.txt")
     cov = _pose_covariance(args, est)
     result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar, cov=cov))
     result["frames"] = int(result["frames"])
@@ -196,7 +202,9 @@ def _pose_covariance(args: argparse.Namespace, est: Any) -> Any:
     if not args.cov and not path.is_file():
         return None
     t, C = read_pose_cov(path)
-    if len(t) != len(est.t_s) or not np.allclose(t, est.t_s, atol=1e-6):
+    # a KITTI pose file has no stamps (est.timed False): its rows are the covariance's, in order
+    by_index = not est.timed and len(t) == len(est.t_s)
+    if not by_index and (len(t) != len(est.t_s) or not np.allclose(t, est.t_s, atol=1e-6)):
         raise InputError(
             f"eval: the pose covariance {path} has {len(t)} rows that do not match the {len(est.t_s)} poses of "
             f"{args.traj} (stamps differ)"
@@ -287,11 +295,29 @@ def build_parser() -> argparse.ArgumentParser:
 Progress on stderr when it is a terminal; one summary line on stderr at the end. With --json,
 a JSON summary on stdout; when the source carries ground truth it holds the keys of
 `robotd eval` prefixed truth_ (truth_drift_m, truth_drift_pct, truth_ate_rmse_m, ...),
-truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m."""
+truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m.
+
+--out T.txt writes the trajectory and T.cov.txt (the pose covariance, stamped). TUM (the default):
+robotd's robot frame (FRD, origin at the stereo baseline centre), world = the robot at the first
+frame. --format kitti: a KITTI pose file, the left rectified camera's optical frame (x right,
+y down, z forward) relative to its first pose, one row per replayed frame, as a KITTI poses.txt,
+so `evo_ape kitti DIR/poses.txt T.txt -a` compares like with like. --truth-out G.txt writes the
+truth the source carries (kitti://, euroc://, sim://) for the same frames, in the same format and
+frame: `evo_ape tum G.txt T.txt -a` then gives truth_ate_umeyama_rmse_m and `evo_rpe tum G.txt
+T.txt` truth_rpe_trans_m (docs/experiments.md, "Metrics")."""
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
     sp.add_argument("--realtime", action="store_true", help="pace frames at their recorded rate")
-    sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format)")
+    sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format; see --format)")
+    sp.add_argument(
+        "--format",
+        choices=("tum", "kitti"),
+        default="tum",
+        help="of --out and --truth-out: tum (robot frame, stamped) or kitti (the left camera's poses, one row a frame)",
+    )
+    sp.add_argument(
+        "--truth-out", metavar="FILE", help="also write the source's ground truth, in --out's format and frame"
+    )
     sp.add_argument("--max-frames", type=int, default=0)
     sp.add_argument("--gt-odometry", action="store_true", help="EXPERIMENTS ONLY: odometry synthesised from truth")
     sp.add_argument("--json", action="store_true", help="print a JSON summary")
@@ -316,7 +342,10 @@ A recording keeps no map and no reset counter, and touches no state directory, u
     sp = add("eval", cmd_eval, "ATE/RPE/drift of a trajectory against ground truth", config=False)
     sp.epilog = """\
 keys: frames (associated poses); ate_rmse_m, ate_mean_m, ate_median_m, ate_max_m, final_error_m
-(after a rigid alignment); heading_rmse_deg; rpe_trans_m, rpe_rot_deg (frame to frame);
+(after a rigid alignment; on a straight path its rotation about the path comes from the
+orientations, which positions leave open); ate_umeyama_rmse_m (after the plain least-squares fit
+of positions, as evo_ape -a computes it); heading_rmse_deg; rpe_trans_m, rpe_rot_deg (frame to
+frame, as evo_rpe's defaults);
 drift_m (end-point error after aligning the first poses only) and drift_pct (the same in % of
 path_length_m); similarity_scale (diagnostic). drift_pct and similarity_scale are undefined
 (n/a, JSON null) when the ground-truth path is shorter than 1 m (a stationary sequence);
@@ -332,8 +361,9 @@ none). A consistent covariance puts about 95 % inside.
 
 A KITTI poses.txt is read as a replay of its folder carries its truth: moved from the left
 camera's optical frame to the robot frame at the stereo baseline centre (baseline from the
-calib.txt beside it) and stamped from the times.txt beside it, so `robotd replay kitti://DIR
---out T.txt` then `robotd eval T.txt DIR/poses.txt` gives the replay's own truth_* figures."""
+calib.txt beside it, else the one beside the other file) and stamped from the times.txt beside
+it, so `robotd replay kitti://DIR --out T.txt` (TUM or --format kitti) then `robotd eval T.txt
+DIR/poses.txt` gives the replay's own truth_* figures."""
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("traj", help="estimated trajectory (TUM, or KITTI poses)")
     sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")

@@ -39,7 +39,7 @@ from robotd.msgs import StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
 from robotd.progress import progress_bar
-from robotd.research.evaluate import cov_path_for, write_pose_cov, write_tum
+from robotd.research.evaluate import TRAJECTORY_FORMATS, cov_path_for, write_pose_cov, write_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -126,16 +126,24 @@ def replay(
     progress: bool = True,
     gt_odometry: bool = False,
     on_step: Callable[[StepResult], None] | None = None,
+    out_format: str = "tum",
+    truth_out: str | None = None,
 ) -> dict[str, Any]:
-    """Run ``source`` through the pipeline; returns a summary (and writes the TUM trajectory).
+    """Run ``source`` through the pipeline; returns a summary (and writes the trajectory).
 
     ``on_step`` (for tools such as bench/mavlink_covariance.py) receives each step's result, as
-    kept for the summary (without its observations), in order.
+    kept for the summary (without its observations), in order. ``out_format``: "tum" (robot frame,
+    stamped) or "kitti" (the left camera's poses, one row per frame:
+    :func:`robotd.research.evaluate.write_trajectory`), of ``out_traj`` and of ``truth_out``, which
+    receives the ground truth the source carries for the same frames.
     """
+    if out_format not in TRAJECTORY_FORMATS:
+        raise RobotdError(f"replay: trajectory format {out_format!r}: expected one of {list(TRAJECTORY_FORMATS)}")
     url = _source_url(source, realtime)
     rng = np.random.default_rng(cfg.robot.seed)
     results: list[StepResult] = []
     truths: list[tuple[int, np.ndarray]] = []
+    seqs: list[int] = []  # the source's frame numbers of the poses
     integ = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
     gate = OdometryGate(odometry_limits_from_config(cfg))
     t_wall = time.monotonic()
@@ -186,6 +194,7 @@ def replay(
                 continue
             last_t = frame.t_ns
             results.append(dataclasses.replace(res, observations=None))  # the run's poses, not its features
+            seqs.append(frame.seq)
             if on_step is not None:
                 on_step(results[-1])
             if frame.truth_T_world_robot is not None:
@@ -201,11 +210,23 @@ def replay(
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
     T = np.stack([r.pose.T_world_robot for r in results])
     if out_traj:
-        write_tum(out_traj, stamps / 1e9, T)
+        write_trajectory(out_traj, stamps / 1e9, T, out_format, rig.baseline_m)
         write_pose_cov(cov_path_for(out_traj), stamps / 1e9, np.stack([r.pose.cov for r in results]))
         logger.info(
-            "trajectory written to %s (%d poses; covariance in %s)", out_traj, len(results), cov_path_for(out_traj)
+            "trajectory written to %s (%d poses, %s; covariance in %s)",
+            out_traj,
+            len(results),
+            out_format.upper(),
+            cov_path_for(out_traj),
         )
+    if out_traj and out_format == "kitti" and source.startswith("kitti://") and seqs != list(range(len(seqs))):
+        logger.warning(
+            "%s has one row per replayed frame, and frames of the source are missing (start/stride/drop or a skipped "
+            "frame): it pairs by row with the truth --truth-out writes, not with the folder's poses.txt",
+            out_traj,
+        )
+    if truth_out:
+        _write_truth(truth_out, source, truths, len(results), out_format, rig.baseline_m)
     total_ms = np.array([r.timings_ms.get("total", np.nan) for r in results])
     summary: dict[str, Any] = {
         "source": source,
@@ -240,6 +261,25 @@ def replay(
     if out_traj:
         summary["trajectory"] = str(out_traj)
     return summary
+
+
+def _write_truth(
+    path: str, source: str, truths: list[tuple[int, np.ndarray]], n_poses: int, fmt: str, baseline_m: float
+) -> None:
+    """``--truth-out``: the truth the frames carried, relative to the first (as the estimate is), in
+    the trajectory's format and frame, so a tool that knows nothing of robotd's frames (evo) compares
+    like with like. A KITTI file pairs by row, so it needs a truth for every replayed frame."""
+    if not truths:
+        raise RobotdError(f"--truth-out {path}: {source} carries no ground truth (kitti://, euroc:// and sim:// do)")
+    if fmt == "kitti" and len(truths) != n_poses:
+        raise RobotdError(
+            f"--truth-out {path}: {len(truths)} of the {n_poses} replayed frames carry a truth, and a KITTI file "
+            "pairs poses by row: write TUM (stamped) instead"
+        )
+    t_gt = np.array([t for t, _ in truths], dtype=np.int64)
+    G = np.stack([g for _, g in truths])
+    write_trajectory(path, t_gt / 1e9, np.linalg.inv(G[0]) @ G, fmt, baseline_m)
+    logger.info("ground truth written to %s (%d poses, %s)", path, len(truths), fmt.upper())
 
 
 def _truth_metrics(

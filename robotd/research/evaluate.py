@@ -13,7 +13,9 @@ evaluation uses the x, y and yaw of the same matrices. Times are float seconds.
 - Map RMSE after alignment.
 - TUM trajectory files (``t x y z qx qy qz qw``, what evo reads) and KITTI pose files (12 numbers
   per row, the row-major 3×4 [R|t] of the left camera, optical frame), read as robot-frame truth
-  at the baseline centre and stamped from the ``times.txt`` beside them, as a replay carries them.
+  at the baseline centre and stamped from the ``times.txt`` beside them, as a replay carries them;
+  written (:func:`write_kitti_poses`) from robot-frame poses as the left camera's, so that tools
+  that read KITTI files (evo_ape kitti) compare like with like.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from scipy.stats import chi2
 
 from robotd.errors import DatasetError, InputError
 from robotd.geometry import (
+    R_ROBOT_OPTICAL,
     R_to_quat,
     quat_to_R,
     rot_z,
@@ -209,7 +212,10 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
 
     ``ate_rmse_m = sqrt(mean ‖trans(Q_i⁻¹ T P_i)‖²)``; also mean, median and max of the
     per-pose translation error, and the heading RMSE [deg] (yaw error in the plane for planar
-    runs, the full rotation angle otherwise). ``planar`` aligns in SE(2).
+    runs, the full rotation angle otherwise). ``planar`` aligns in SE(2). On a straight path the
+    positions leave the rotation about it undetermined and T takes it from the orientations, on a
+    stationary one all of T's rotation; ``ate_umeyama_rmse_m`` is the RMSE after the plain
+    Umeyama fit of positions instead (evo_ape's ``-a``), equal to ``ate_rmse_m`` on other paths.
     """
     P = np.asarray(est_T, dtype=float)
     Q = np.asarray(gt_T, dtype=float)
@@ -218,6 +224,9 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
     if planar:
         P, Q = _planar(P), _planar(Q)
     T = align_rigid(P[:, :3, 3], Q[:, :3, 3], planar=planar) if (align and len(P) > 1) else np.eye(4)
+    # the plain least-squares fit of positions (what evo_ape -a reports): on a straight or
+    # stationary path it takes the rotation the positions leave open from their noise
+    e_umeyama = np.linalg.norm((se3_inverse(Q) @ T @ P)[:, :3, 3], axis=1)
     if align and len(P) > 1 and not planar:
         kind = _positions_degenerate(P[:, :3, 3])
         if kind == "stationary":
@@ -237,6 +246,7 @@ def ate(est_T: np.ndarray, gt_T: np.ndarray, planar: bool = False, align: bool =
         "ate_max_m": float(np.max(e)),
         "heading_rmse_deg": float(np.rad2deg(np.sqrt(np.mean(rot**2)))),
         "final_error_m": float(e[-1]),
+        "ate_umeyama_rmse_m": float(np.sqrt(np.mean(e_umeyama**2))),
     }
 
 
@@ -438,6 +448,44 @@ def write_tum(path: str | Path, t_s: np.ndarray, T: np.ndarray) -> None:
             fh.write(" ".join(f"{v:.9f}" if i == 0 else f"{v:.9g}" for i, v in enumerate(r)) + "\n")
 
 
+def T_robot_left_camera(baseline_m: float) -> np.ndarray:
+    """The left rectified camera's optical frame (x right, y down, z forward) in robotd's robot
+    frame (FRD at the stereo baseline centre, the camera b/2 to its left): x_R = M x_C. It is the
+    map of :func:`drivers.dataset.kitti_truth_to_robot`: T_R0_R = M T_C0_C M⁻¹."""
+    return se3(R_ROBOT_OPTICAL, np.array([0.0, -0.5 * float(baseline_m), 0.0]))
+
+
+def robot_to_left_camera(T_world_robot: np.ndarray, baseline_m: float) -> np.ndarray:
+    """Robot-frame poses (..., 4, 4), world = the robot at the first pose, as KITTI gives its poses:
+    the left camera's optical frame relative to the left camera at the first pose, T_C0_C = M⁻¹ T M."""
+    M = T_robot_left_camera(baseline_m)
+    return se3_inverse(M) @ np.asarray(T_world_robot, dtype=float) @ M
+
+
+def write_kitti_poses(path: str | Path, T_world_robot: np.ndarray, baseline_m: float) -> None:
+    """Write robot-frame poses as a KITTI odometry pose file: per pose one row of the 12 numbers of
+    the row-major 3×4 [R|t] of the left camera (:func:`robot_to_left_camera`), no stamps, no
+    header (KITTI's devkit and evo_ape kitti read it as they read a poses.txt)."""
+    C = robot_to_left_camera(poses_to_T(T_world_robot), baseline_m)
+    with open(path, "w", encoding="ascii") as fh:
+        for row in C[:, :3, :].reshape(len(C), 12):
+            fh.write(" ".join(f"{v:.9g}" for v in row) + "\n")
+
+
+TRAJECTORY_FORMATS = ("tum", "kitti")
+
+
+def write_trajectory(path: str | Path, t_s: np.ndarray, T_world_robot: np.ndarray, fmt: str, baseline_m: float) -> None:
+    """A trajectory file in ``fmt``: "tum" (robot frame, stamped: :func:`write_tum`) or "kitti" (the
+    left camera, one row per pose: :func:`write_kitti_poses`)."""
+    if fmt == "tum":
+        write_tum(path, t_s, T_world_robot)
+    elif fmt == "kitti":
+        write_kitti_poses(path, T_world_robot, baseline_m)
+    else:
+        raise InputError(f"trajectory format {fmt!r}: expected one of {list(TRAJECTORY_FORMATS)}")
+
+
 # The pose covariance beside a TUM file (``robotd replay --out T.txt`` writes ``T.cov.txt``): one
 # row per pose, ``t`` then the 21 upper-triangle entries (row-major) of the 6×6 covariance over
 # (x, y, z, roll, pitch, yaw) in the world frame (LOCAL_FRD), in m², m·rad and rad², the angles
@@ -516,32 +564,33 @@ def read_kitti_poses(path: str | Path, rate_hz: float = 10.0) -> Trajectory:
     Stamps: the ``times.txt`` beside the file when there is one (the frame times, in seconds: what
     a replay stamps its trajectory with), else index / ``rate_hz`` with ``timed`` False.
     """
+    from drivers.dataset import kitti_pose_rows, kitti_times_ns
+
     path = Path(path)
-    a = _read_rows(path, 12, "KITTI poses")
-    T = np.zeros((len(a), 4, 4))
-    T[:, :3, :] = a.reshape(-1, 3, 4)
-    T[:, 3, 3] = 1.0
+    T = kitti_pose_rows(_read_rows(path, 12, "KITTI poses"))  # rotations made orthonormal
     times = path.parent / "times.txt"
     if times.is_file():
-        from drivers.dataset import kitti_times_ns
-
-        return Trajectory(kitti_times_ns(times, len(a)) / 1e9, T)
-    return Trajectory(np.arange(len(a)) / rate_hz, T, timed=False)
+        return Trajectory(kitti_times_ns(times, len(T)) / 1e9, T)
+    return Trajectory(np.arange(len(T)) / rate_hz, T, timed=False)
 
 
-def read_kitti_truth(path: str | Path) -> Trajectory:
+def read_kitti_truth(path: str | Path, calib_fallback: str | Path | None = None) -> Trajectory:
     """A KITTI poses.txt as robot-frame truth, exactly as a replay of its folder carries it.
 
     The left-camera optical-frame poses become the robot frame (FRD) at the stereo baseline centre
     (``drivers.dataset.kitti_truth_to_robot``, baseline from P1 of the ``calib.txt`` beside the
-    file), relative to frame 0; stamps as :func:`read_kitti_poses`. Without a calib.txt the origin
-    stays at the left camera (a warning says so): the lever arm b/2 then shows in any turn.
+    file, else of ``calib_fallback``: the other trajectory's, for a ``robotd replay --format kitti``
+    output written elsewhere), relative to frame 0; stamps as :func:`read_kitti_poses`. Without a
+    calib.txt the origin stays at the left camera (a warning says so): the lever arm b/2 then shows
+    in any turn.
     """
     from drivers.dataset import kitti_baseline_m, kitti_truth_to_robot
 
     path = Path(path)
     tr = read_kitti_poses(path)
     calib = path.parent / "calib.txt"
+    if not calib.is_file() and calib_fallback is not None:
+        calib = Path(calib_fallback)
     if calib.is_file():
         b = kitti_baseline_m(calib)
     else:
@@ -551,11 +600,12 @@ def read_kitti_truth(path: str | Path) -> Trajectory:
     return Trajectory(tr.t_s, kitti_truth_to_robot(T, b), tr.timed)
 
 
-def read_trajectory(path: str | Path) -> Trajectory:
+def read_trajectory(path: str | Path, calib_fallback: str | Path | None = None) -> Trajectory:
     """TUM (8 columns) or KITTI (12 columns) by the first data row, in robotd's robot frame.
 
     A TUM file is taken as it is (robotd writes robot-frame TUM); a KITTI pose file is moved to the
-    robot frame at the baseline centre and stamped from its times.txt (:func:`read_kitti_truth`).
+    robot frame at the baseline centre and stamped from its times.txt (:func:`read_kitti_truth`,
+    with the calib.txt beside it, else ``calib_fallback``).
     """
     p = Path(path)
     if not p.is_file():
@@ -571,7 +621,7 @@ def read_trajectory(path: str | Path) -> Trajectory:
     if n == 8:
         return read_tum(p)
     if n == 12:
-        return read_kitti_truth(p)
+        return read_kitti_truth(p, calib_fallback)
     raise DatasetError(f"trajectory {p}: expected 8 (TUM) or 12 (KITTI) columns, got {n}")
 
 

@@ -70,6 +70,72 @@ def test_eval_of_a_replay_against_poses_txt_gives_the_replays_own_truth_figures(
         assert m[k] == pytest.approx(s[f"truth_{k}"], rel=1e-6, abs=1e-7), k
 
 
+def _rpe_trans_rmse(P: np.ndarray, Q: np.ndarray) -> float:
+    """Frame-to-frame relative translation error, RMSE, as evo_rpe's defaults (delta 1 frame,
+    translation part), written out here without robotd's evaluation code."""
+    inv = np.linalg.inv
+    E = [inv(inv(Q[i]) @ Q[i + 1]) @ (inv(P[i]) @ P[i + 1]) for i in range(len(P) - 1)]
+    return float(np.sqrt(np.mean([np.sum(e[:3, 3] ** 2) for e in E])))
+
+
+def _kitti_rows(path: Path) -> np.ndarray:
+    a = np.loadtxt(path, ndmin=2)
+    assert a.shape[1] == 12
+    T = np.tile(np.eye(4), (len(a), 1, 1))
+    T[:, :3, :] = a.reshape(-1, 3, 4)
+    return T
+
+
+def test_replay_writes_kitti_poses_and_truth_that_outside_tools_compare_as_robotd_eval_does(
+    tmp_path: Path, shared_data, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 27, item 7: evo_ape kitti refused robotd's TUM output, and evo's RPE of it against the
+    KITTI truth read 1.71 m where robotd eval said 0.0138 m (robot frame against camera frame).
+    --format kitti writes the left camera's poses as KITTI does; --truth-out the truth alike."""
+    from tests.robotd.research.test_evaluate import _plain_umeyama_rmse
+
+    root = shared_data("kitti-seq1")
+    url = f"kitti://{root}?stop=20"
+    k, kg = tmp_path / "est.kitti.txt", tmp_path / "truth.kitti.txt"
+    assert main(["replay", url, "--out", str(k), "--format", "kitti", "--truth-out", str(kg), "--json", "--quiet"]) == 0
+    s = _json_out(capsys)
+    assert "#" not in k.read_text() and len(k.read_text().splitlines()) == 20
+    est, truth = _kitti_rows(k), _kitti_rows(kg)
+    assert np.allclose(est[0], np.eye(4), atol=1e-9)
+    # the truth file is the folder's own poses.txt: KITTI's frame, the left camera
+    assert np.allclose(truth, _kitti_rows(root / "poses.txt")[:20], atol=2e-6)
+    # robotd eval reads the KITTI output back (the baseline from the calib.txt beside poses.txt)
+    assert main(["eval", str(k), str(root / "poses.txt"), "--json"]) == 0
+    m = _json_out(capsys)
+    for key in ("ate_rmse_m", "ate_umeyama_rmse_m", "rpe_trans_m", "rpe_rot_deg"):
+        assert m[key] == pytest.approx(s[f"truth_{key}"], rel=1e-5), key
+    # what evo_ape kitti -a and evo_rpe kitti compute on these two files (the left camera's frame)
+    # agrees with robotd eval (the robot frame) within 2 %; on kitti-seq1 whole, 0.4 % and 0.03 %
+    assert _plain_umeyama_rmse(est, truth) == pytest.approx(m["ate_umeyama_rmse_m"], rel=0.02)
+    assert _rpe_trans_rmse(est, truth) == pytest.approx(m["rpe_trans_m"], rel=0.02)
+    # TUM (the default) with its truth: the robot frame, the very figures of robotd eval
+    t, tg = tmp_path / "est.txt", tmp_path / "truth.txt"
+    assert main(["replay", url, "--out", str(t), "--truth-out", str(tg), "--quiet"]) == 0
+    capsys.readouterr()
+    P, Q = read_tum(t), read_tum(tg)
+    assert np.array_equal(P.t_s, Q.t_s)
+    assert _plain_umeyama_rmse(P.T, Q.T) == pytest.approx(m["ate_umeyama_rmse_m"], rel=1e-5)
+    assert _rpe_trans_rmse(P.T, Q.T) == pytest.approx(m["rpe_trans_m"], rel=1e-5)
+    # any source with a truth (sim:// here, its rig's own baseline); none to write is an error
+    sim = tmp_path / "sim.txt"
+    assert main(["replay", "sim://?fps=10", "--max-frames", "3", "--out", str(t), "--format", "kitti",
+                 "--truth-out", str(sim), "--quiet"]) == 0  # fmt: skip
+    assert _kitti_rows(sim).shape == (3, 4, 4) and np.allclose(_kitti_rows(sim)[0], np.eye(4), atol=1e-9)
+    from robotd.errors import RobotdError
+    from robotd.replay import _write_truth
+
+    with pytest.raises(RobotdError, match="carries no ground truth"):
+        _write_truth(str(sim), "x.mcap", [], 3, "tum", 0.1)
+    capsys.readouterr()
+    assert main(["replay", url, "--format", "kitti", "--quiet"]) == 2
+    assert "--out" in capsys.readouterr().err
+
+
 def test_record_then_replay_round_trip(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text(
