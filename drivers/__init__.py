@@ -118,6 +118,29 @@ _VEHICLES: dict[str, tuple[str, str]] = {
 }
 
 
+# scheme -> (module, checker attribute). The checker takes (url, **options), as the factory does, and
+# raises DriverError for what the factory would refuse in the URL itself (scheme, parameter names and
+# values) without opening a device or reading a file: the config is checked with it at start-up,
+# before the kernels load (robotd.device_urls).
+_CAMERA_CHECKS: dict[str, tuple[str, str]] = {
+    "sim": ("drivers.sim", "check_sim_url"),
+    "oak": ("drivers.oak.camera", "check_oak_url"),
+    "kitti": ("drivers.dataset", "check_kitti_url"),
+    "euroc": ("drivers.dataset", "check_euroc_url"),
+    "mcap": ("drivers.dataset", "check_mcap_url"),
+}
+_VEHICLE_CHECKS: dict[str, tuple[str, str]] = {
+    "sim": ("drivers.sim", "check_sim_url"),
+    "none": ("drivers.sim", "check_null_url"),
+    "serial": ("drivers.serial_link", "parse_serial_url"),
+    "mavlink+udp": ("drivers.mavlink_link", "parse_mavlink_url"),
+    "mavlink+serial": ("drivers.mavlink_link", "parse_mavlink_url"),
+    "kitti": ("drivers.dataset", "check_kitti_vehicle_url"),
+    "euroc": ("drivers.dataset", "check_euroc_vehicle_url"),
+    "mcap": ("drivers.dataset", "check_mcap_vehicle_url"),
+}
+
+
 def _scheme(url: str) -> str:
     if "://" not in url:
         # a bare path to a recording is a replay source
@@ -127,7 +150,9 @@ def _scheme(url: str) -> str:
     return urlsplit(url).scheme.lower()
 
 
-def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any) -> Any:
+def _entry(table: dict[str, tuple[str, str]], kind: str, url: str) -> Any:
+    """The function ``table`` names for ``url``'s scheme (imported); DriverError for an unknown
+    scheme or a driver that cannot be loaded."""
     scheme = _scheme(url)
     if scheme not in table:
         known = ", ".join(f"{s}://" for s in sorted(table))
@@ -137,10 +162,28 @@ def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any
         module = importlib.import_module(module_name)
     except ImportError as exc:
         raise DriverError(f"{url!r}: the {scheme}:// driver could not be loaded: {exc}") from exc
-    factory = getattr(module, attr, None)
-    if factory is None:
+    fn = getattr(module, attr, None)
+    if fn is None:
         raise DriverError(f"{url!r}: the {scheme}:// driver is not available in this build ({module_name}.{attr})")
-    return factory(url, **options)
+    return fn
+
+
+def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any) -> Any:
+    return _entry(table, kind, url)(url, **options)
+
+
+def check_camera_url(url: str, **options: Any) -> None:
+    """Raise DriverError when :func:`open_camera` would refuse ``url`` for its scheme or its
+    parameters; opens nothing, reads no file (a missing device or folder is found when opened)."""
+    _entry(_CAMERAS, "camera", url)  # an unknown scheme says so as open_camera does
+    _entry(_CAMERA_CHECKS, "camera", url)(url, **options)
+
+
+def check_vehicle_url(url: str, **options: Any) -> None:
+    """Raise DriverError when :func:`open_vehicle` would refuse ``url`` for its scheme or its
+    parameters; opens nothing."""
+    _entry(_VEHICLES, "vehicle", url)
+    _entry(_VEHICLE_CHECKS, "vehicle", url)(url, **options)
 
 
 def open_camera(url: str, **options: Any) -> StereoCamera:

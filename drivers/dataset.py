@@ -762,6 +762,69 @@ def open_euroc_vehicle(url: str, **options: Any) -> DatasetVehicle:
 
 
 # --------------------------------------------------------------------------------------------
+# URL checks (drivers.check_camera_url / check_vehicle_url): the options the factories above read,
+# checked as they check them, without touching the folder or the file
+
+
+def _checked_replay_options(url: str, scheme: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The URL's and ``options``' keys after the replay keys (validated) are taken out."""
+    _, q = _split_url(url, scheme)
+    opts = {**q, **options}
+    ReplayOptions.pop_from(opts)
+    return opts
+
+
+def check_kitti_url(url: str, **options: Any) -> None:
+    _reject_unknown(url, _checked_replay_options(url, "kitti", options))
+
+
+def check_euroc_url(url: str, **options: Any) -> None:
+    opts = _checked_replay_options(url, "euroc", options)
+    _as_float("alpha", opts.pop("alpha", 0.0), -1.0)
+    _as_int("pair_tolerance_ns", opts.pop("pair_tolerance_ns", 1_000_000), 0)
+    _reject_unknown(url, opts, ("alpha", "pair_tolerance_ns"))
+
+
+def check_mcap_url(url: str, **options: Any) -> None:
+    _reject_unknown(url, _checked_replay_options(url, "mcap", options))
+
+
+def _check_vehicle_options(opts: dict[str, Any]) -> None:
+    """The keys :func:`_dataset_vehicle` reads."""
+    _as_bool("gt_odometry", opts.pop("gt_odometry", False))
+    _as_int("seed", opts.pop("seed", 0))
+    _as_float("sigma_vel_mps", opts.pop("sigma_vel_mps", GT_SIGMA_VEL_MPS), 0.0)
+    _as_float("sigma_rate_radps", opts.pop("sigma_rate_radps", GT_SIGMA_RATE_RADPS), 0.0)
+
+
+def check_kitti_vehicle_url(url: str, **options: Any) -> None:
+    cam_opts, veh = _split_vehicle_options(url, "kitti", options, _KITTI_VEHICLE_KEYS)
+    check_kitti_url(url.split("?")[0], **cam_opts)
+    mode = str(veh.pop("odometry", "none")).lower()
+    if mode not in KITTI_ODOMETRY:
+        raise DriverError(f"{url!r}: option odometry: expected one of {list(KITTI_ODOMETRY)}, got {mode!r}")
+    if mode == "oxts" and _as_bool("gt_odometry", veh.get("gt_odometry", False)):
+        raise DriverError(f"{url!r}: odometry=oxts and gt_odometry both given; choose one")
+    for k in ("oxts_sigma_vel_mps", "oxts_sigma_rate_radps"):
+        if k in veh:
+            _as_float(k, veh.pop(k), 1e-6)
+    _check_vehicle_options(veh)
+
+
+def check_euroc_vehicle_url(url: str, **options: Any) -> None:
+    cam_opts, veh = _split_vehicle_options(url, "euroc", options)
+    check_euroc_url(url.split("?")[0], **cam_opts)
+    _check_vehicle_options(veh)
+
+
+def check_mcap_vehicle_url(url: str, **options: Any) -> None:
+    _, q = _split_url(url, "mcap")
+    opts = {**q, **options}
+    _as_bool("realtime", opts.pop("realtime", False))
+    _reject_unknown(str(url), opts)
+
+
+# --------------------------------------------------------------------------------------------
 # MCAP recordings (robotd.record)
 
 

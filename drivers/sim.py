@@ -829,10 +829,21 @@ def open_sim_vehicle(url: str, **options: Any) -> SimVehicle:
 
 def open_null_vehicle(url: str, **options: Any) -> NullVehicle:
     """``none://`` → a vehicle link that provides no odometry."""
+    check_null_url(url, **options)
+    return NullVehicle(url)
+
+
+def check_sim_url(url: str, **options: Any) -> None:
+    """What :func:`open_sim_camera` and :func:`open_sim_vehicle` refuse in ``url`` (DriverError)."""
+    options = dict(options)
+    _pop_t0(url, options)
+    parse_sim_url(url, **options)
+
+
+def check_null_url(url: str, **options: Any) -> None:
     parts = urlsplit(url)
     if parts.netloc or parts.path not in ("", "/") or parts.query or options:
         raise DriverError(f"{url!r}: none:// takes no host, path, parameters or options")
-    return NullVehicle(url)
 
 
 def param_names() -> list[str]:

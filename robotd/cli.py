@@ -79,8 +79,18 @@ def _load(args: argparse.Namespace) -> Config:
 # subcommands
 
 
+def _check_devices(cfg: Config, args: argparse.Namespace) -> None:
+    """The device URLs' schemes and parameters, with the rest of the config and before anything
+    slow (robotd.device_urls): one error line naming the key."""
+    from robotd.device_urls import check_device_urls
+
+    given = {k: f"--{k.split('.')[0]}" for k in ("camera.url", "vehicle.url") if getattr(args, k.split(".")[0], None)}
+    check_device_urls(cfg, where=getattr(args, "config", None), given=given)
+
+
 def cmd_print_config(args: argparse.Namespace) -> int:
     cfg = _load(args)
+    _check_devices(cfg, args)
     sys.stdout.write(to_toml(cfg, with_docs=args.docs))
     return 0
 
@@ -96,6 +106,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         overrides.setdefault("vehicle", {})["url"] = args.vehicle
     if overrides:
         cfg = load_config(getattr(args, "config", None), overrides)
+    _check_devices(cfg, args)
     configure_logging(args.log_level or cfg.log.level)
     return run_daemon(cfg, duration_s=args.duration)
 
@@ -135,6 +146,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         cfg = load_config(getattr(args, "config", None), {"persistence": {"state_dir": args.state_dir}})
     if not args.buffer_mb > 0:
         raise InputError(f"--buffer-mb: expected MB > 0, got {args.buffer_mb}")
+    _check_devices(cfg, args)
     configure_logging(args.log_level or cfg.log.level)
     daemon = Daemon(
         cfg, duration_s=args.duration, record_path=args.out, keep_state=bool(args.state_dir), buffer_mb=args.buffer_mb

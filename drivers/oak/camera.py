@@ -369,16 +369,22 @@ def _is_link_error(exc: BaseException) -> bool:
     return isinstance(exc, link_types) or "X_LINK" in str(exc) or "Communication exception" in str(exc)
 
 
+def check_oak_url(url: str, **options: Any) -> OakOptions:
+    """``oak://[device-id]?options`` -> its options; DriverError for another scheme or a bad option.
+    Opens no device (the config check at start-up calls it)."""
+    if urlsplit(url).scheme.lower() != "oak":
+        raise DriverError(f"{url!r}: expected oak://[device-id]")
+    return OakOptions.parse(url, options)
+
+
 class OakCamera(Driver):
     """The ``oak://`` StereoCamera. ``session_factory`` replaces the device (tests, benchmarks)."""
 
     def __init__(self, url: str, session_factory: SessionFactory | None = None, **options: Any) -> None:
         self.url = url
         parts = urlsplit(url)
-        if parts.scheme.lower() != "oak":
-            raise DriverError(f"{url!r}: expected oak://[device-id]")
+        self.opts = check_oak_url(url, **options)
         self.device_id = (parts.netloc + parts.path).strip("/")
-        self.opts = OakOptions.parse(url, options)
         self._factory: SessionFactory = session_factory or (lambda o: DeviceSession(o, self.device_id))
         self.gate = PairGate(self.opts.threshold_ns)
         self._session: PipelineSession | None = None

@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 import drivers
 from robotd.config import Config
 from robotd.daemon.sdnotify import Notifier
+from robotd.device_urls import link_options
 from robotd.errors import DriverError
 
 logger = logging.getLogger(__name__)
@@ -32,19 +33,6 @@ class Devices:
     autopilot_link: drivers.VehicleLink | None  # a MAVLink link opened only for the pose
 
 
-def link_options(cfg: Config, url: str) -> dict[str, Any]:
-    """Driver keywords from the config for a MAVLink link (other links take theirs from the URL)."""
-    if not url.startswith("mavlink"):
-        return {}
-    m = cfg.mavlink
-    opts: dict[str, Any] = {"sysid": m.system_id, "message": m.message}
-    if m.signing_key_file:
-        opts["signing_key"] = m.signing_key_file
-    if m.set_origin:
-        opts["origin"] = (m.origin_lat_deg, m.origin_lon_deg, m.origin_alt_m)
-    return opts
-
-
 def open_devices(
     cfg: Config,
     stack: contextlib.ExitStack,
@@ -53,8 +41,10 @@ def open_devices(
     give_up_at: float = math.inf,
 ) -> Devices:
     """Open the camera and the vehicle link (and a separate autopilot link when ``mavlink.enabled``
-    and the vehicle link is not MAVLink); each is closed when ``stack`` unwinds. Hardware that is
-    missing is retried until ``stop`` or the monotonic time ``give_up_at`` (``--duration``)."""
+    and the vehicle link is not MAVLink: robotd.device_urls.device_urls); each is closed when
+    ``stack`` unwinds. Hardware that is missing is retried until ``stop`` or the monotonic time
+    ``give_up_at`` (``--duration``); the URLs were checked before (check_device_urls), so a
+    DriverError here is the device's, not a typo's."""
 
     def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str) -> D:
         return open_with_retry(stack, kind, opener, url, stop, notifier, give_up_at, **link_options(cfg, url))

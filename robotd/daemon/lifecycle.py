@@ -39,6 +39,7 @@ from robotd.daemon.inputs import pump_frames, pump_odometry
 from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
+from robotd.device_urls import check_device_urls
 from robotd.errors import ConfigError, RobotdError
 from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
@@ -148,6 +149,8 @@ class Daemon:
             cfg.slam.filter,
             cfg.slam.dim,
         )
+        # the device URLs' schemes and parameters before anything slow (the CLI checked them too)
+        check_device_urls(cfg)
         # the kernels first: compiling them (first run) takes ~20 s, and the devices are opened
         # only then, so no camera streams into a queue nobody reads (and sim:// starts its path
         # when the daemon can follow it)

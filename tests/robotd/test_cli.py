@@ -249,9 +249,47 @@ def test_bad_input_exits_2_with_one_clear_line(argv: list[str], message: str, ca
     assert message in err and "Traceback" not in err
 
 
-def test_run_with_a_bad_source_fails_at_startup_with_the_reason(caplog: pytest.LogCaptureFixture) -> None:
-    assert main(["run", "--camera", "sim://?fps=-3", "--duration", "1"]) == 2
-    assert any("startup failed" in r.message and "fps" in r.message for r in caplog.records)
+BAD_URLS = [
+    ("camera", "cam://x", "unknown camera scheme 'cam'"),
+    ("camera", "sim://?fps=-3", "parameter fps=-3.0"),
+    ("vehicle", "tcp://x", "unknown vehicle scheme 'tcp'"),
+    ("vehicle", "mavlink+udp://127.0.0.1:14550?mode=sideways", "mode='sideways'"),
+]
+
+
+@pytest.mark.parametrize("command", ["print-config", "run"])
+@pytest.mark.parametrize(("section", "url", "message"), BAD_URLS, ids=[f"{s}:{u}" for s, u, _ in BAD_URLS])
+def test_a_bad_device_url_fails_print_config_and_run_in_one_line_before_the_kernel_load(
+    command: str,
+    section: str,
+    url: str,
+    message: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 27, item 6: a bad camera.url was a log line after the 10-40 s kernel load, and
+    print-config accepted it. Now the driver's own parser judges it with the rest of the config."""
+    from robotd.pipeline import Pipeline
+
+    def no_warmup(*_: object) -> float:
+        raise AssertionError("the kernels were loaded before the URL was checked")
+
+    monkeypatch.setattr(Pipeline, "warmup", staticmethod(no_warmup))
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f'[{section}]\nurl = "{url}"\n[zenoh]\nenabled = false\n')
+    argv = [command, "--config", str(cfg)] + (["--duration", "1"] if command == "run" else [])
+    assert main(argv) == 2
+    out = capsys.readouterr()
+    err = out.err.strip().splitlines()
+    assert len(err) == 1 and out.out == "", (err, out.out)
+    assert err[0].startswith(f"robotd: error: {section}.url: {url!r}: ") and message in err[0], err
+    assert err[0].endswith(f"(in {cfg})")
+    assert not caplog.records, "nothing logged: the daemon never started"
+    if command == "run" and section == "camera":  # the command-line override is named as such
+        assert main(["run", "--camera", url, "--duration", "1"]) == 2
+        assert capsys.readouterr().err.strip().endswith("(from --camera)")
 
 
 def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
