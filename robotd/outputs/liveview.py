@@ -1,5 +1,7 @@
 """The live view (``[liveview] enabled = true``): the recording's channels served to the Foxglove
-app while robotd runs, over the Foxglove SDK's WebSocket server (docs/recording.md, "Live view").
+app while robotd runs, over the Foxglove SDK's WebSocket server (docs/recording.md, "Live view"),
+behind a front that also accepts viewers offering only the older ``foxglove.websocket.v1``
+subprotocol (liveview_front).
 
 The messages are the ones a recording holds (robotd.record.FoxgloveScene): images with the
 feature tracks, the pose, trajectory and ground truth, the landmark map with its ellipsoids, the
@@ -24,6 +26,7 @@ from robotd.config import LiveViewConfig
 from robotd.errors import DriverError
 from robotd.msgs import Odometry, StereoFrame
 from robotd.outputs.base import Output, StepReport
+from robotd.outputs.liveview_front import SubprotocolFront
 from robotd.record import FoxgloveScene, Item, calibration_to_json, message_encoding, payload, schema_record
 from robotd.stereo import RectifiedStereo
 
@@ -59,21 +62,31 @@ class LiveViewOutput(Output):
             self._channels[key] = foxglove.Channel(
                 topic, schema=sch, message_encoding=message_encoding(schema), context=self._ctx
             )
+        # the SDK's server on a loopback port of its own, behind a front on the configured address
+        # that also lets in clients offering only the older subprotocol name (liveview_front)
         try:
-            self._server = foxglove.start_server(
-                name=f"robotd {robot_id}", host=cfg.host, port=cfg.port, context=self._ctx
-            )
-        except RuntimeError as exc:  # the SDK's FoxgloveError: e.g. the port is taken
+            self._server = foxglove.start_server(name=f"robotd {robot_id}", host="127.0.0.1", port=0, context=self._ctx)
+        except RuntimeError as exc:  # the SDK's FoxgloveError
+            raise DriverError(f"liveview: the Foxglove SDK's server did not start: {exc}") from None
+        try:
+            self._front = SubprotocolFront(cfg.host, cfg.port, int(self._server.port))
+        except OSError as exc:  # e.g. the port is taken
+            self._server.stop()
             raise DriverError(
-                f"liveview.port: cannot listen on {cfg.host}:{cfg.port}: {exc}; set another [liveview] port "
-                "or enabled = false"
+                f"liveview.port: cannot listen on {cfg.host}:{cfg.port}: {exc.strerror or exc}; set another "
+                "[liveview] port or enabled = false"
             ) from None
-        logger.info("live view: ws://%s:%d (Foxglove: open a connection, Foxglove WebSocket)", cfg.host, self.port)
+        logger.info(
+            "live view: ws://%s:%d (Foxglove: open a connection, Foxglove WebSocket; subprotocol foxglove.sdk.v1 "
+            "or foxglove.websocket.v1)",
+            cfg.host,
+            self.port,
+        )
 
     @property
     def port(self) -> int:
-        """The port the server listens on (the configured one, or the one the OS chose for 0)."""
-        return int(self._server.port)
+        """The port the live view listens on (the configured one, or the one the OS chose for 0)."""
+        return self._front.port
 
     def _wanted(self, key: str) -> bool:
         return bool(self._channels[key].has_sinks())
@@ -115,9 +128,10 @@ class LiveViewOutput(Output):
                 self._counts["sent"] += 1
 
     def stats(self) -> dict[str, Any]:
-        return {"port": self.port, **self._counts}
+        return {"port": self.port, **self._counts, "clients": dict(self._front.counts)}
 
     def close(self) -> None:
+        self._front.close()
         self._server.stop()
         for ch in self._channels.values():
             ch.close()

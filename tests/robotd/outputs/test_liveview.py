@@ -1,6 +1,7 @@
 """The live view: the Foxglove SDK's WebSocket server, on loopback, advertising the recording's
-channels; a plain WebSocket client (``websockets``, Foxglove's ``foxglove.sdk.v1`` subprotocol)
-subscribes and decodes what arrives with the schemas the server advertised."""
+channels; a plain WebSocket client (``websockets``, offering Foxglove's ``foxglove.sdk.v1`` or the
+older ``foxglove.websocket.v1`` subprotocol) subscribes and decodes what arrives with the schemas
+the server advertised."""
 
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ from tests.support.paths import REPO
 
 RIG = RectifiedStereo(60.0, 32.0, 20.0, 0.075, 64, 40)
 SUBPROTOCOL = "foxglove.sdk.v1"
+# what older Foxglove Studio, Lichtblick (before it added the new name) and ws-protocol clients offer
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 
 
 @pytest.fixture
@@ -81,8 +84,13 @@ def _step(t_ns: int) -> tuple[StereoFrame, Odometry, StepReport]:
     return frame, odo, StepReport(res, 1, 7, 50, 0, 10.0, "tracking", landmarks=lm)
 
 
-def test_a_client_sees_the_recordings_channels_and_decodes_what_it_subscribed_to(live: LiveViewOutput) -> None:
-    with connect(f"ws://127.0.0.1:{live.port}", subprotocols=[SUBPROTOCOL], open_timeout=5) as ws:
+@pytest.mark.parametrize("offered", [SUBPROTOCOL, LEGACY_SUBPROTOCOL])
+def test_a_client_sees_the_recordings_channels_and_decodes_what_it_subscribed_to(
+    live: LiveViewOutput, offered: str
+) -> None:
+    """With either subprotocol name (issue 27, item 5: the old one was refused with HTTP 400)."""
+    with connect(f"ws://127.0.0.1:{live.port}", subprotocols=[offered], open_timeout=5) as ws:
+        assert ws.subprotocol == offered
         channels = _advertised(ws)
         assert set(channels) == {topic for topic, _ in CHANNELS.values()}  # exactly a recording's channels
         assert channels["/camera/left/image"]["schemaName"] == "foxglove.CompressedImage"
@@ -117,6 +125,33 @@ def test_a_client_sees_the_recordings_channels_and_decodes_what_it_subscribed_to
     assert got["/robotd/odometry"][1].linear_velocity.x == 1.0
     # nothing is sent on the channels nobody subscribed to
     assert live.stats()["sent"] == len(wanted)
+
+
+def test_the_front_passes_what_the_sdk_answers_to_other_offers(live: LiveViewOutput) -> None:
+    """Both names at once: the SDK's choice, untouched; neither, or no subprotocol: the SDK's 400."""
+    from websockets.exceptions import InvalidStatus
+
+    with connect(f"ws://127.0.0.1:{live.port}", subprotocols=[LEGACY_SUBPROTOCOL, SUBPROTOCOL]) as ws:
+        assert ws.subprotocol == SUBPROTOCOL and _advertised(ws)
+    for offer in (["foxglove.websocket.v2"], None):
+        with pytest.raises(InvalidStatus) as e:
+            connect(f"ws://127.0.0.1:{live.port}", subprotocols=offer, open_timeout=5)
+        assert e.value.response.status_code == 400
+    assert live.stats()["clients"] == {"connections": 3, "renamed": 0, "refused": 2}
+
+
+def test_rewriting_touches_only_the_subprotocol_header() -> None:
+    from robotd.outputs.liveview_front import rewrite_request, rewrite_response
+
+    req = (b"GET / HTTP/1.1\r\nHost: h\r\nsec-websocket-protocol: foxglove.websocket.v1\r\n"
+           b"Sec-WebSocket-Key: k==\r\n\r\n")  # fmt: skip
+    out, renamed = rewrite_request(req)
+    assert renamed and out == req.replace(b"sec-websocket-protocol: foxglove.websocket.v1",
+                                          b"Sec-WebSocket-Protocol: foxglove.sdk.v1")  # fmt: skip
+    both = req.replace(b"foxglove.websocket.v1", b"foxglove.websocket.v1, foxglove.sdk.v1")
+    assert rewrite_request(both) == (both, False)
+    resp = b"HTTP/1.1 101 Switching Protocols\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\nX: y\r\n\r\n"
+    assert rewrite_response(resp) == resp.replace(b"foxglove.sdk.v1", b"foxglove.websocket.v1")
 
 
 def test_off_by_default_on_loopback_when_on_and_a_taken_port_is_one_line() -> None:
