@@ -22,36 +22,26 @@ import json
 import logging
 import math
 import sys
+import typing
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from robotd import __version__
+from robotd import __version__, journal
 from robotd.config import Config, load_config, to_toml
 from robotd.errors import InputError, RobotdError
+from robotd.journal import SYSLOG_PRIORITY, JournalFormatter
+
+__all__ = ["SYSLOG_PRIORITY", "JournalFormatter", "build_parser", "configure_logging", "main"]
 
 logger = logging.getLogger("robotd")
 
 
-# syslog priorities (RFC 5424) of the logging levels, for journald's "<N>" line prefix
-SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
-
-
-class JournalFormatter(logging.Formatter):
-    """Prefixes each line with ``<N>``, its syslog priority: journald reads that prefix on a
-    service's stderr (SyslogLevelPrefix=, on by default), so ``journalctl -p err -u robotd``
-    shows the errors alone. journald stamps the time itself."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        prio = SYSLOG_PRIORITY.get(record.levelno, 6 if record.levelno < logging.WARNING else 3)
-        return f"<{prio}>{super().format(record)}"
-
-
 def configure_logging(level: str = "INFO") -> None:
-    """stderr logging; under systemd (JOURNAL_STREAM set) with syslog priorities and without
-    timestamps, which journald adds."""
+    """stderr logging; under systemd (stderr the journal stream: robotd.journal) with a syslog
+    priority on every line and without timestamps, which journald adds."""
     handler = logging.StreamHandler()
-    if os.environ.get("JOURNAL_STREAM"):
+    if journal.active():
         handler.setFormatter(JournalFormatter("%(levelname)s %(name)s: %(message)s"))
     else:
         handler.setFormatter(
@@ -131,7 +121,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     )
     # always, terminal or not, --quiet or not: the one line a person reads at the end (stdout
     # keeps only the JSON, for scripts)
-    print(summary_line(summary), file=sys.stderr, flush=True)
+    with journal.priority(journal.INFO):
+        print(summary_line(summary), file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     return 0
@@ -282,8 +273,16 @@ def cmd_mcu_sim(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------------
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's usage and error lines are errors (journald priority 3); its subparsers too."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        with journal.priority(journal.ERR):
+            super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="robotd", description="Onboard stereo-vision SLAM daemon.")
+    p = _Parser(prog="robotd", description="Onboard stereo-vision SLAM daemon.")
     p.add_argument("--version", action="version", version=f"robotd {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -414,12 +413,15 @@ DIR/poses.txt` gives the replay's own truth_* figures."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # the robotd command itself (not a caller passing arguments, e.g. a test)
+        journal.install()  # under systemd: a syslog priority on every line it writes
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
     except RobotdError as exc:
-        print(f"robotd: error: {exc}", file=sys.stderr)
+        with journal.priority(journal.ERR):
+            print(f"robotd: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
