@@ -145,7 +145,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     code = daemon.run()
     summary = daemon.record_summary()
     if daemon.recorder is not None:  # a start-up that failed has said so in its one line
-        print(summary_line(summary), file=sys.stderr, flush=True)
+        with journal.priority(journal.INFO):
+            print(summary_line(summary), file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     return code
