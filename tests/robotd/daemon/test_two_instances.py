@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import pytest
@@ -34,29 +34,74 @@ def _robotd(*args: str) -> subprocess.Popen[str]:
     )
 
 
+class Lines:
+    """A process's merged output, read line by line on a thread (so its pipe never fills), and an
+    event set at the first line containing ``marker``."""
+
+    def __init__(self, proc: subprocess.Popen[str], marker: str) -> None:
+        self.lines: list[str] = []
+        self.seen = threading.Event()
+        self._marker = marker
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.lines.append(line)
+            if self._marker in line:
+                self.seen.set()
+        self.seen.set()  # the process ended (the caller checks that it still runs)
+
+    def text(self) -> str:
+        self._thread.join(timeout=30)
+        return "".join(self.lines)
+
+
+# how long a run may take to load its kernels and open its devices on a busy machine before the
+# test calls it hung (an event, the first one's "ready:" line, ends the wait as soon as it comes)
+STARTUP_TIMEOUT_S = 120.0
+RUN_TIMEOUT_S = 150.0
+
+
 @pytest.mark.slow
 def test_a_second_instance_fails_in_one_line_or_runs_beside_with_its_own_port(tmp_path: Path) -> None:
     port = free_port()
-    # long enough to outlast the three runs below on a loaded machine; it is stopped in `finally`
-    first = _robotd("run", "--config", str(_config(tmp_path, "a", port)), "--duration", "120")
+    # runs until stopped in `finally`, however long the three runs below take on a loaded machine
+    first = _robotd("run", "--config", str(_config(tmp_path, "a", port)))
+    first_out = Lines(first, "ready:")
+    others: list[subprocess.Popen[str]] = []  # killed in `finally` if a failed check left them running
     try:
-        time.sleep(4.0)  # the first one is up and holds the port
-        assert first.poll() is None
+        # the first one is up and holds the port: its Zenoh session is open before its first step
+        assert first_out.seen.wait(STARTUP_TIMEOUT_S) and first.poll() is None, "".join(first_out.lines)[-2000:]
         same = _robotd("run", "--config", str(_config(tmp_path, "b", port)), "--duration", "5")
-        out, _ = same.communicate(timeout=60)
+        others.append(same)
+        out, _ = same.communicate(timeout=RUN_TIMEOUT_S)
         errors = [x for x in out.splitlines() if "ERROR" in x]
         assert same.returncode == 2, out[-2000:]
         assert len(errors) == 1 and f"zenoh.listen: tcp/127.0.0.1:{port} is already in use" in errors[0]
         # with its own port it runs beside the first; a recording beside both is written
-        beside = _robotd("run", "--config", str(_config(tmp_path, "c", free_port())), "--duration", "3")
+        # (it runs until it is ready, an event, then stops as systemd stops it)
+        beside = _robotd("run", "--config", str(_config(tmp_path, "c", free_port())))
+        beside_out = Lines(beside, "ready:")
+        others.append(beside)
         rec_out = tmp_path / "beside.mcap"
         rec = _robotd("record", str(rec_out), "--config", str(_config(tmp_path, "d", free_port())), "--duration", "3")
-        out_beside, _ = beside.communicate(timeout=60)
-        out_rec, _ = rec.communicate(timeout=60)
-        assert beside.returncode == 0 and "ready:" in out_beside, out_beside[-2000:]
+        others.append(rec)
+        ready = beside_out.seen.wait(STARTUP_TIMEOUT_S) and beside.poll() is None
+        beside.terminate()
+        beside.wait(timeout=60)
+        out_beside = beside_out.text()
+        out_rec, _ = rec.communicate(timeout=RUN_TIMEOUT_S)
+        assert ready and beside.returncode == 0 and "ready:" in out_beside, out_beside[-2000:]
         assert rec.returncode == 0 and rec_out.exists() and rec_out.stat().st_size > 0, out_rec[-2000:]
         assert first.poll() is None  # the first one was never disturbed
     finally:
+        for proc in others:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
         first.terminate()
-        out_first, _ = first.communicate(timeout=30)
+        first.wait(timeout=60)
+    out_first = first_out.text()
     assert first.returncode == 0 and "map saved" in out_first, out_first[-2000:]
