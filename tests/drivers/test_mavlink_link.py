@@ -203,7 +203,7 @@ def test_data_driven_never_resends_and_drops_stale() -> None:
             link.autopilot.send_pose(pose_at(t), 50, 0)
             time.sleep(1.2)  # no new pose: nothing is repeated
             link.autopilot.send_pose(pose_at(t - 1000), 50, 0)  # older than the last one sent
-            time.sleep(0.2)
+            assert wait_for(lambda: link.stats()["poses_stale"] == 1)  # the transmit thread refused it
             st = link.stats()
             st_pose = link.autopilot.stats()
     assert len(ap.messages("ODOMETRY")) == 1
@@ -319,7 +319,7 @@ def test_vision_position_estimate_fallback() -> None:
             link.autopilot.send_pose(pose_at(t, 1.0, 2.0, -0.5, yaw=0.3), 70, 4)
             assert wait_for(lambda: len(ap.messages("VISION_POSITION_ESTIMATE")) == 1)
             link.autopilot.send_pose(pose_at(t + 10**8, 1.1, 2.0, -0.5, yaw=0.3), -1, 4)  # lost: stream stops
-            time.sleep(0.3)
+            assert wait_for(lambda: link.stats()["poses_withheld"] == 1)  # the transmit thread withheld it
             st = link.stats()
     vpe = ap.messages("VISION_POSITION_ESTIMATE")
     assert len(vpe) == 1 and st["poses_withheld"] == 1
@@ -531,8 +531,14 @@ def test_listening_link_takes_vehicle_data_from_the_autopilots_address_only() ->
             autopilot_send(k)
             spoof_send(k)
             time.sleep(0.005)
-        time.sleep(0.3)
-        samples = link.drain()
+        # until the link has read all 150 of both (however long a busy host takes), not a 0.3 s sleep
+        samples: list = []
+
+        def read_all() -> bool:
+            samples.extend(link.drain())
+            return len(samples) > 100 and link.stats()["rejected_source"] >= 3 * 150
+
+        assert wait_for(read_all, 10.0), (len(samples), link.stats()["rejected_source"])
         st = link.stats()
         ap_port = autopilot_conn.port.getsockname()[1]  # type: ignore[attr-defined]
         autopilot_conn.close()  # type: ignore[attr-defined]

@@ -13,9 +13,13 @@ from robotd.config import load_config
 from robotd.daemon import Daemon
 from robotd.outputs import Output, StepReport
 from robotd.pipeline import Pipeline
+from tests.support.daemon_runs import HANG_GUARD_S
 
 
-def _daemon(tmp_path: Path, camera: str = "sim://?fps=20", duration_s: float = 6.0) -> Daemon:
+def _daemon(tmp_path: Path, camera: str = "sim://?fps=20", duration_s: float = HANG_GUARD_S) -> Daemon:
+    """Each run ends on its event (the failure at the 10th step, ...), however long a busy machine
+    takes to reach it; ``duration_s`` only guards against a hang (at 6 s, as it was, a host too busy
+    for 10 steps in them would end the run with 0 before the failure it tests)."""
     cfg = load_config(
         None,
         {
