@@ -350,7 +350,7 @@ def check_numba_cache(cfg: Config, warm: bool = False, modules: Sequence[Path] |
         name,
         WARN,
         f"{warmed}cold for {len(cold)}/{len(mods)} kernel modules ({', '.join(cold)}; {where}): the first start "
-        "compiles for ~20 s; run `robotd doctor --warm` to fill it",
+        "compiles them (tens of seconds, more on a busy machine); run `robotd doctor --warm` to fill it",
     )
 
 

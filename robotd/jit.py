@@ -16,6 +16,11 @@ recompiles it once.
 
 ``nogil=True``: a kernel called from Python releases the GIL while it runs, so the left and right
 images can be processed in two threads, and the camera and detection threads run meanwhile.
+
+Whether a start compiles: :class:`CompileWatch` hears numba's own ``numba:compile`` event, which
+numba raises only after its disk cache had no entry for the kernel (this source, this numba, this
+CPU), so a start that loads everything from the cache raises none. The daemon announces the
+compile when the first one begins, and never on a warm start.
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ from collections.abc import Callable, Set
 from typing import Any, Literal
 
 import numba
+from numba.core import event as numba_event
 
 logger = logging.getLogger(__name__)
+
+UNCACHED: list[str] = []  # kernels decorated without a disk cache (none writable): every process compiles them
 
 
 def jit(
@@ -56,6 +64,41 @@ def jit(
             return numba.njit(cache=True, nogil=True, **options)(f)
         except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
             logger.warning("numba disk cache unavailable for %s (%s); compiling per process", f.__name__, exc)
+            UNCACHED.append(f"{f.__module__}.{f.__qualname__}")
             return numba.njit(cache=False, nogil=True, **options)(f)
 
     return decorate if fn is None else decorate(fn)
+
+
+class CompileWatch(numba_event.Listener):
+    """While entered (``with``), counts the kernels numba compiles because its cache had none
+    (loads from the cache are not compiles), and calls ``on_first`` as the first one begins.
+
+    The listener is process-wide: a compile on another thread meanwhile counts too. numba calls it
+    with its compiler lock held (compiles are serialised), so its counters need no lock of their own."""
+
+    def __init__(self, on_first: Callable[[], None] | None = None) -> None:
+        self.on_first = on_first
+        self.compiled = 0  # kernels compiled (numba's outermost compile events)
+        self._depth = 0  # nesting: compiling a kernel compiles the kernels it calls
+        self._installed = False
+
+    def on_start(self, event: Any) -> None:
+        self._depth += 1
+        if self._depth == 1:
+            self.compiled += 1
+            if self.compiled == 1 and self.on_first is not None:
+                self.on_first()
+
+    def on_end(self, event: Any) -> None:
+        self._depth = max(0, self._depth - 1)
+
+    def __enter__(self) -> CompileWatch:
+        numba_event.register("numba:compile", self)
+        self._installed = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._installed:
+            numba_event.unregister("numba:compile", self)
+            self._installed = False

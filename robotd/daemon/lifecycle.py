@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 import drivers
+from robotd import jit
 from robotd.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
@@ -41,6 +42,7 @@ from robotd.daemon.signals import StopSignals
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
 from robotd.device_urls import check_device_urls
 from robotd.errors import ConfigError, RobotdError
+from robotd.jit import CompileWatch
 from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
@@ -54,6 +56,15 @@ from robotd.queues import DropOldestQueue
 logger = logging.getLogger("robotd.daemon")  # the name users filter the lifecycle lines by
 
 JOIN_TIMEOUT_S = 2.0
+# said when the first kernel compiles (numba found none in its cache); a warm start never says it
+COMPILING = (
+    "compiling the kernels: the numba cache has none for this robotd, numba and CPU (a first run or an "
+    "upgrade); this takes tens of seconds, more on a busy machine, once: later starts load them from the cache"
+)
+COMPILING_UNCACHED = (
+    "compiling the kernels: no numba cache directory is writable (NUMBA_CACHE_DIR), so every start compiles "
+    "them; this takes tens of seconds, more on a busy machine"
+)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -151,11 +162,17 @@ class Daemon:
         )
         # the device URLs' schemes and parameters before anything slow (the CLI checked them too)
         check_device_urls(cfg)
-        # the kernels first: compiling them (first run) takes ~20 s, and the devices are opened
-        # only then, so no camera streams into a queue nobody reads (and sim:// starts its path
-        # when the daemon can follow it)
-        logger.info("loading the filter and matcher kernels (the first run compiles them: ~20 s)")
-        logger.info("filter and matcher kernels ready in %.1f s", Pipeline.warmup((cfg.slam.measurement,)))
+        # the kernels first: compiling them (a cold numba cache) takes a while, and the devices are
+        # opened only then, so no camera streams into a queue nobody reads (and sim:// starts its
+        # path when the daemon can follow it). The compile is announced only when numba finds no
+        # cached kernel (robotd.jit.CompileWatch), never on a warm start.
+        logger.info("loading the filter and matcher kernels")
+        with CompileWatch(lambda: logger.info(COMPILING_UNCACHED if jit.UNCACHED else COMPILING)) as watch:
+            seconds = Pipeline.warmup((cfg.slam.measurement,))
+        how = "loaded from the numba cache"
+        if watch.compiled:
+            how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")
+        logger.info("filter and matcher kernels ready in %.1f s (%s)", seconds, how)
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
         dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link

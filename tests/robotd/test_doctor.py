@@ -178,7 +178,7 @@ def test_numba_cache_cold_and_warm(tmp_path: Path, monkeypatch: pytest.MonkeyPat
     mod.parent.mkdir()
     mod.write_text("")
     cold = doctor.check_numba_cache(cfg_with(), modules=[mod])
-    assert cold.status == doctor.WARN and "~20 s" in cold.message and "--warm" in cold.message
+    assert cold.status == doctor.WARN and "tens of seconds" in cold.message and "--warm" in cold.message
     (mod.parent / "__pycache__").mkdir()
     (mod.parent / "__pycache__" / "_k.kernel-12.py311.nbi").write_bytes(b"")
     assert doctor.check_numba_cache(cfg_with(), modules=[mod]).status == doctor.OK
