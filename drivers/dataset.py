@@ -219,6 +219,7 @@ class _ImageDatasetCamera(Driver):
     url: str
     raw_calibration = None
     fps = None  # frames carry their recorded stamps; there is no nominal rate to budget for
+    host_clock = False  # dataset time, not the replaying host's
 
     def __init__(self, url: str, entries: list[FrameEntry], replay: ReplayOptions) -> None:
         self.url = url
@@ -832,11 +833,15 @@ class McapCamera(Driver):
     """Replay a ``robotd record`` session: the recorded frames, same order and stamps, every time.
 
     (``raw_calibration`` stays None: the recording's own calibration is what ``rectified_model`` gives.)
+    The stamps are the recording host's monotonic clock of then, not this host's now
+    (``host_clock`` False).
 
     Options: start/stop/stride (over the recorded frames), realtime/speed. ``recorded_odometry()``
     and :func:`open_mcap_vehicle` give the recorded odometry; :meth:`events` gives frames and
     odometry interleaved exactly as recorded (what a deterministic single-thread replay wants).
     """
+
+    host_clock = False
 
     def __init__(self, url: str | Path, **options: Any) -> None:
         from robotd.errors import PersistenceError

@@ -485,6 +485,12 @@ class SimCamera(Driver):
         return self.params.fps
 
     @property
+    def host_clock(self) -> bool:
+        """In real time frames come at their stamps on the host's clock; with ``realtime=0`` as fast
+        as pulled, so the stamps run ahead of it (a replay's clock)."""
+        return bool(self.params.realtime)
+
+    @property
     def n_frames(self) -> int | None:
         """Frames in the stream when ``duration`` is set (non-real-time), else None (endless)."""
         if self.params.duration <= 0:

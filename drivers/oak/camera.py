@@ -380,6 +380,8 @@ def check_oak_url(url: str, **options: Any) -> OakOptions:
 class OakCamera(Driver):
     """The ``oak://`` StereoCamera. ``session_factory`` replaces the device (tests, benchmarks)."""
 
+    host_clock = True  # dai.Clock stamps: the host's monotonic clock
+
     def __init__(self, url: str, session_factory: SessionFactory | None = None, **options: Any) -> None:
         self.url = url
         parts = urlsplit(url)

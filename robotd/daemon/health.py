@@ -95,6 +95,16 @@ class HealthMonitor:
         self._lock = threading.Lock()
         self._last: StepReport | None = None
         self._first_truth_inv: np.ndarray | None = None
+        # where latency is measured from: "capture" (the frame's stamp, on this host's monotonic
+        # clock) or "delivery" (the host's time when the camera handed the frame over, for a camera
+        # whose stamps are on another clock: a dataset replayed by `robotd run`)
+        self.latency_from = "capture"
+
+    def frames_dropped(self, frame_q: DropOldestQueue[Any]) -> int:
+        """Frames the camera delivered while SLAM was busy (the drop-oldest queue's) plus frames it
+        never delivered (gaps in its sequence numbers): the status line's and the stop summary's
+        ``dropped``, one quantity."""
+        return frame_q.dropped + self.stats.frames_missed
 
     def on_step(self, timings_ms: Mapping[str, float]) -> None:
         """SLAM thread: one step completed."""
@@ -158,9 +168,11 @@ class HealthMonitor:
             "latency_ms": {
                 "p50": float(np.percentile(lat, 50)) if lat.size else None,
                 "p99": float(np.percentile(lat, 99)) if lat.size else None,
+                "from": self.latency_from,
             },
             "frames_in": self.stats.frames_in,
             "frames_processed": self.stats.steps,
+            "frames_dropped": self.frames_dropped(frame_q),
             "frame_drops": frame_q.dropped,
             "odometry_drops": odo_q.dropped,
             "seq_gaps": self.stats.seq_gaps,
@@ -243,8 +255,9 @@ class HealthMonitor:
         err = h["error_vs_truth_m"]
         lat = h["latency_ms"]
         b = h["budget"]
-        # frames the camera delivered that SLAM did not process: dropped from the queue (SLAM was
-        # busy) or skipped by the latency budget (its last rung processes one frame in k)
+        since = " from delivery" if lat.get("from") == "delivery" else ""  # a dataset's clock is not the host's
+        # frames SLAM did not process: dropped (delivered while SLAM was busy, or never delivered:
+        # frames_dropped) or skipped by the latency budget (its last rung processes one frame in k)
         budget = f"budget L{b['level']}"
         if b["level"] > 0:
             budget += f" ({b['max_features']} feat, {b['n_particles']} particles"
@@ -252,8 +265,8 @@ class HealthMonitor:
         line = (
             f"pose x {p.xyz_W_m[0]:+7.2f} y {p.xyz_W_m[1]:+7.2f} z {p.xyz_W_m[2]:+6.2f} m yaw {yaw:+6.1f}° | "
             f"err {'n/a' if err is None else f'{err:.3f} m'} | "
-            f"latency p50 {lat['p50'] or 0:.1f} p99 {lat['p99'] or 0:.1f} ms | "
-            f"{fps:.1f} fps, dropped {h['frame_drops'] + h.get('frames_missed', 0)} skipped {b['skipped_frames']} | "
+            f"latency p50 {lat['p50'] or 0:.1f} p99 {lat['p99'] or 0:.1f} ms{since} | "
+            f"{fps:.1f} fps, dropped {h['frames_dropped']} skipped {b['skipped_frames']} | "
             f"lm {h['landmarks']} feat {h['features']} | q {last.quality} {budget}"
         )
         # what is wrong, when something is: the stalls, missing odometry, the links, failed saves

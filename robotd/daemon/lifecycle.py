@@ -22,6 +22,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +79,30 @@ class _Stepped:
     odometry: MotionIncrement | None  # the vehicle's motion from the previous step's frame to this one
     landmarks: LandmarkMap | None
     state: dict[str, Any] | None
+    t_ref_ns: int  # where its latency is measured from (host monotonic): capture, or delivery (Daemon.host_clock)
+
+
+class _Deliveries:
+    """When each frame was delivered (host monotonic ns), for a camera whose stamps are not on the
+    host's clock (a dataset replayed by ``robotd run``): its latency is measured from delivery.
+    The camera thread adds (a tee), the SLAM thread takes, both in sequence order; frames the
+    queue dropped are passed over, and at most ``maxlen`` wait."""
+
+    def __init__(self, maxlen: int) -> None:
+        self._d: deque[tuple[int, int]] = deque(maxlen=maxlen)
+
+    def tee(self, frame: StereoFrame) -> None:
+        self._d.append((frame.seq, time.monotonic_ns()))
+
+    def take(self, seq: int) -> int | None:
+        while self._d:
+            s, t = self._d[0]
+            if s > seq:
+                return None
+            self._d.popleft()
+            if s == seq:
+                return t
+        return None
 
 
 class Daemon:
@@ -125,6 +150,10 @@ class Daemon:
         self.outputs: list[Output] = []
         self.threads: list[threading.Thread] = []
         self._ready = False
+        # the camera stamps frames on this host's monotonic clock (a live camera); False for a
+        # dataset's clock (kitti://, euroc://, a recording, sim:// not in real time)
+        self.host_clock = True
+        self._deliveries = _Deliveries(cfg.camera.queue_size + 16)
         self._frame_period_s = 1.0 / 30.0  # the camera's, once it is open
         self.resumed = False
         self.exit_code = 0
@@ -180,6 +209,10 @@ class Daemon:
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
         self._limits = limit_threads(self.pipeline.frontend.params.parallel_detect, cfg.slam.blas_threads)
+        self.host_clock = dev.camera.host_clock
+        if not self.host_clock:
+            self.health.latency_from = "delivery"
+            logger.info("camera stamps are not on this host's clock: latency is measured from each frame's delivery")
         fps = dev.camera.fps or 30.0
         self._frame_period_s = 1.0 / fps
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
@@ -244,7 +277,10 @@ class Daemon:
             odometry = self.odo_q.drain()
             for out in self.outputs:  # what SLAM consumes (the recorder got every sample at the pumps)
                 out.record_inputs(frame, odometry)
-            now_ns = time.monotonic_ns()
+            # delivery stands for capture when the stamps are on another clock (a dataset's), whose
+            # vehicle samples are on that clock too: no future-stamp check against the host's then
+            t_ref_ns = frame.t_ns if self.host_clock else self._deliveries.take(frame.seq) or time.monotonic_ns()
+            now_ns = time.monotonic_ns() if self.host_clock else None
             for odo in odometry:
                 if self.odometry_gate.accept(odo, now_ns):  # an implausible sample is never integrated
                     self.integrator.add(odo)
@@ -276,8 +312,9 @@ class Daemon:
                 logger.error("frame %d skipped: %s", frame.seq, exc)
                 continue
             frame_ms = (time.perf_counter() - t0) * 1e3
-            # the budget judges what the deadline is about: capture to result, queue wait included
-            latency_ms = (time.monotonic_ns() - frame.t_ns) / 1e6
+            # the budget judges what the deadline is about: capture (or delivery) to result, queue
+            # wait included
+            latency_ms = (time.monotonic_ns() - t_ref_ns) / 1e6
             last_t = frame.t_ns
             self.integrator.prune_before(frame.t_ns)
             self.health.on_step(result.timings_ms)
@@ -296,7 +333,7 @@ class Daemon:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
                 # the autopilot must not fuse the jump as motion (interfaces.md §1.5)
                 event = event or ResetEvent.STALL
-            self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot))
+            self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot, t_ref_ns))
         self.pub_q.close()
 
     def _publisher_loop(self) -> None:
@@ -324,7 +361,7 @@ class Daemon:
                 frame_seq=item.frame.seq,
                 quality=pose_quality(res, self.cfg.frontend.min_inliers, self.cfg.mavlink.quality_good_sigma_m),
                 reset_counter=reset_counter,
-                latency_ms=(time.monotonic_ns() - res.t_ns) / 1e6,
+                latency_ms=(time.monotonic_ns() - item.t_ref_ns) / 1e6,
                 health=self._health_state(res),
                 landmarks=item.landmarks,
                 state=item.state,
@@ -450,7 +487,8 @@ class Daemon:
             self.duration_s == 0.0,
             stall_s,
             lambda gap_s: self.health.on_stall(gap_s, camera=True),
-            [o.tee_frame for o in self.outputs if type(o).tee_frame is not Output.tee_frame],
+            [o.tee_frame for o in self.outputs if type(o).tee_frame is not Output.tee_frame]
+            + ([] if self.host_clock else [self._deliveries.tee]),
         )
 
     def _guarded(self, name: str, loop: Callable[[], None]) -> None:
@@ -550,11 +588,12 @@ class Daemon:
             out.finish(state, time.monotonic_ns())
         lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
         logger.info(
-            "stopped after %d steps: latency p50 %.1f ms p99 %.1f ms, %d frames dropped, shutdown %.2f s",
+            "stopped after %d steps: latency p50 %.1f ms p99 %.1f ms%s, %d frames dropped, shutdown %.2f s",
             self.stats.steps,
             np.percentile(lat, 50),
             np.percentile(lat, 99),
-            self.frame_q.dropped,
+            "" if self.host_clock else " from delivery",
+            self.health.frames_dropped(self.frame_q),  # the status line's `dropped`
             time.monotonic() - t0,
         )
         self.notifier.close()

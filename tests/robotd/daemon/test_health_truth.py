@@ -199,3 +199,57 @@ def test_assess_reports_each_problem_and_ok_only_without_any() -> None:
     got = h.assess(_doc(tracking=False), needs_vehicle=True)
     assert got["state"] == "failed" and got["problems"] == ["tracking lost"]
     assert h.assess(_doc(vehicle={"state": "lost"}), needs_vehicle=False)["state"] == "ok"  # none://
+
+
+def test_the_status_line_and_the_stop_summary_count_the_same_dropped_frames(tmp_path, collect, caplog) -> None:
+    # issue 27, item 8: the health line said "dropped 182" (the queue's drops and the frames the
+    # camera never delivered), the stop summary "89 frames dropped" (the queue's alone)
+    url = "sim://?fps=20&stall_at=1&stall_s=0.5"  # frames 20..29 never delivered
+    d = _daemon(tmp_path, vehicle=url, camera=url)
+    caplog.set_level("INFO", logger="robotd.daemon")
+    _run(d, lambda: sum(r.frame_seq >= 30 for r in list(collect.reports)) >= 5)
+    dropped = d.health.frames_dropped(d.frame_q)
+    assert dropped == d.frame_q.dropped + d.stats.frames_missed and d.stats.frames_missed >= 10
+    summary = [r.getMessage() for r in caplog.records if r.getMessage().startswith("stopped after")]
+    assert len(summary) == 1 and f", {dropped} frames dropped," in summary[0], summary
+    doc = d.health_doc()
+    assert doc["frames_dropped"] == dropped and f"dropped {dropped} " in d.health.status_line(doc, 20.0)
+    assert all(h["frames_dropped"] == h["frame_drops"] + h["frames_missed"] for h in collect.docs)
+
+
+def _latencies_from_delivery(d: Daemon, collect: Collect, caplog: pytest.LogCaptureFixture, poses: int) -> None:
+    """Run ``d`` (a camera whose stamps are on a dataset's clock) for ``poses`` poses: every
+    latency is measured on the host's clock, from the frame's delivery, so it is positive and
+    shorter than the run; the status line and the stop summary say so."""
+    caplog.set_level("INFO", logger="robotd.daemon")
+    t0 = time.monotonic()
+    _run(d, lambda: len(collect.reports) >= poses)
+    run_ms = (time.monotonic() - t0) * 1e3
+    lat = [r.latency_ms for r in collect.reports]
+    assert all(0 < x < run_ms for x in lat), (min(lat), max(lat), run_ms)
+    assert not d.host_clock
+    doc = d.health_doc()
+    assert doc["latency_ms"]["from"] == "delivery" and 0 < doc["latency_ms"]["p99"] < run_ms
+    assert " ms from delivery | " in d.health.status_line(doc, 10.0)
+    assert any("ms from delivery," in r.getMessage() for r in caplog.records if r.getMessage().startswith("stopped"))
+
+
+def test_latency_of_a_replayed_dataset_is_from_delivery_not_its_clock(tmp_path, collect, caplog, shared_data) -> None:
+    # issue 27, item 8: `robotd run` with a kitti:// camera read 1.75 million ms (the dataset's
+    # clock minus the host's), and the latency budget took that for overload
+    kitti = shared_data("kitti-seq1")
+    d = _daemon(tmp_path, vehicle="none://", camera=f"kitti://{kitti}?stop=60")
+    _latencies_from_delivery(d, collect, caplog, poses=15)
+
+
+def test_latency_of_sim_not_in_real_time_is_from_delivery(tmp_path, collect, caplog) -> None:
+    # realtime=0: frames as fast as pulled, their stamps run ahead of the host's clock
+    d = _daemon(tmp_path, vehicle="none://", camera="sim://?fps=20&realtime=0")
+    _latencies_from_delivery(d, collect, caplog, poses=15)
+
+
+def test_latency_of_a_live_camera_is_from_capture(tmp_path, collect) -> None:
+    d = _daemon(tmp_path)
+    _run(d, lambda: len(collect.reports) >= 5 and len(collect.docs) >= 1)
+    assert d.host_clock and collect.docs[-1]["latency_ms"]["from"] == "capture"
+    assert " ms from delivery" not in d.health.status_line(d.health_doc(), 20.0)
