@@ -623,15 +623,17 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, DriverError) as exc:
         print(f"rover-physics: {exc}", file=sys.stderr)
         return 2
-    stop = threading.Event()
+    stop = [False]
 
     def _on_signal(signum: int, _frame: object) -> None:
-        stop.set()  # handlers only set flags
+        # a plain store: the handler runs in this thread between two bytecodes, so it must not
+        # take a lock this thread may hold (an Event's, inside its wait())
+        stop[0] = True
 
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while not stop.wait(0.5):
-            pass
+        while not stop[0]:
+            time.sleep(0.1)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
