@@ -1,4 +1,5 @@
-"""The ``robotd`` command: run | replay | record | eval | experiments | echo | doctor | print-config | mcu-sim.
+"""The ``robotd`` command: run | replay | replay-many | record | eval | experiments | echo | doctor |
+print-config | mcu-sim.
 
 Logging is configured here and nowhere else. Every subcommand returns an exit code; a
 :class:`robotd.errors.RobotdError` becomes one clear line on stderr and exit status 2.
@@ -126,6 +127,36 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, sort_keys=True))
     return 0
+
+
+def cmd_replay_many(args: argparse.Namespace) -> int:
+    from robotd.batch.configs import build_configurations
+    from robotd.batch.run import Options, print_outcome, replay_many
+    from robotd.batch.sources import check_sources, expand_sources
+
+    configure_logging(args.log_level or "WARNING")
+    for name, value in (("--workers", args.workers), ("--max-retries", args.max_retries)):
+        if value < 0:
+            raise InputError(f"{name}: expected an integer >= 0, got {value}")
+    for name, fv in (("--timeout", args.timeout), ("--memory-mb", args.memory_mb)):
+        if not (fv >= 0 and math.isfinite(fv)):
+            raise InputError(f"{name}: expected a number >= 0 (0: no limit), got {fv}")
+    sources = expand_sources(args.sources, args.sources_file)
+    check_sources(sources)
+    configurations = build_configurations(args.config, args.set, args.variant)
+    opts = Options(
+        out_dir=Path(args.out),
+        workers=args.workers,
+        ray=args.ray,
+        timeout_s=args.timeout,
+        memory_mb=args.memory_mb,
+        max_retries=args.max_retries,
+        rerun=args.rerun,
+        progress=not args.quiet,
+    )
+    outcome = replay_many(sources, configurations, opts)
+    print_outcome(outcome, args.json)
+    return outcome.exit_code
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -334,6 +365,45 @@ T.txt` truth_rpe_trans_m (docs/experiments.md, "Metrics")."""
     sp.add_argument("--gt-odometry", action="store_true", help="EXPERIMENTS ONLY: odometry synthesised from truth")
     sp.add_argument("--json", action="store_true", help="print a JSON summary")
     sp.add_argument("--quiet", action="store_true", help="no progress bar (the final summary line stays)")
+
+    sp = add("replay-many", cmd_replay_many, "replay many sources × configurations, locally or on Ray", config=False)
+    sp.epilog = """\
+Sources: URLs (sim://..., kitti://DIR, euroc://DIR, mcap://FILE), recordings (FILE.mcap), KITTI or
+EuRoC folders, folders of recordings, and globs of any of these ('archive/**/*.mcap',
+kitti:///data/kitti-*); the shell's braces give seeds: 'sim://?duration=20&realtime=0&seed='{1..8}.
+
+Configurations: each --config FILE (none: the defaults) times each --variant ('NAME: slam.filter=ekf
+frontend.detector=sift'; none: one per file), with every --set applied to all. The first is the
+baseline of the comparison columns.
+
+Each replay runs robotd.replay in a worker process (or a Ray task), exactly as `robotd replay SOURCE
+--out T.txt`: DIR/trajectories/KEY.txt is byte for byte that file. Rows go to DIR/rows.jsonl as they
+finish, keyed by (source digest, configuration digest, robotd version): a rerun skips the rows done
+(ok, or the replay raised) and runs again those that timed out, ran out of memory, lost their
+worker or were interrupted. A failure is a row. The table goes to stdout (Markdown; --json: the JSON
+document) and to DIR/table.md, DIR/results.json and DIR/table.csv.
+
+Exit status: 0 every replay ok, 1 some failed, 130 interrupted (finished rows kept), 2 usage error.
+`robotd replay-many compare A B` compares two results (see its --help). docs/fleet.md."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
+    sp.add_argument("sources", nargs="*", metavar="SOURCE", help="URL, recording, dataset folder, folder or glob")
+    sp.add_argument("--sources-file", action="append", default=[], metavar="FILE", help="sources, one a line")
+    sp.add_argument("--out", required=True, metavar="DIR", help="the results folder (rows, trajectories, table)")
+    sp.add_argument("--config", action="append", default=[], metavar="FILE", help="a configuration (repeatable)")
+    sp.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="for every configuration")
+    sp.add_argument(
+        "--variant", action="append", default=[], metavar="'[NAME:] K=V ...'", help="a configuration per variant"
+    )
+    sp.add_argument("--workers", type=int, default=0, help="local worker processes (0: one per core)")
+    sp.add_argument("--ray", metavar="ADDRESS", help="run on Ray: a cluster's address, 'auto', or 'local'")
+    sp.add_argument("--max-retries", type=int, default=3, help="Ray: retries of a replay whose worker died")
+    sp.add_argument("--timeout", type=float, default=0.0, help="seconds a replay may take (0: no limit)")
+    sp.add_argument(
+        "--memory-mb", type=float, default=4000.0, help="resident memory a replay may use (Ray: its request)"
+    )
+    sp.add_argument("--rerun", action="store_true", help="run every replay again, done or not")
+    sp.add_argument("--json", action="store_true", help="print the JSON document instead of the Markdown table")
+    sp.add_argument("--quiet", action="store_true", help="no progress bar")
 
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.epilog = """\

@@ -110,6 +110,21 @@ def summary_line(summary: dict[str, Any]) -> str:
     return line
 
 
+# the clock start of an unpaced sim:// replay (realtime=0): fixed, so two replays of the same URL
+# write the same trajectory file, stamps included (a paced one runs on the host's monotonic clock)
+SIM_REPLAY_T0_NS = 1_000_000_000
+
+
+def _sim_options(url: str) -> dict[str, Any]:
+    """Options for opening an unpaced sim:// source: its clock starts at SIM_REPLAY_T0_NS."""
+    if not url.startswith("sim://"):
+        return {}
+    from urllib.parse import parse_qsl, urlsplit
+
+    realtime = dict(parse_qsl(urlsplit(url).query)).get("realtime", "1")
+    return {"t0_ns": SIM_REPLAY_T0_NS} if realtime.strip() in ("0", "false", "False") else {}
+
+
 def _source_url(source: str, realtime: bool) -> str:
     if realtime and "://" in source and not source.startswith("sim://"):
         sep = "&" if "?" in source else "?"
@@ -128,6 +143,7 @@ def replay(
     on_step: Callable[[StepResult], None] | None = None,
     out_format: str = "tum",
     truth_out: str | None = None,
+    truth_out_if_any: str | None = None,
 ) -> dict[str, Any]:
     """Run ``source`` through the pipeline; returns a summary (and writes the trajectory).
 
@@ -135,7 +151,9 @@ def replay(
     kept for the summary (without its observations), in order. ``out_format``: "tum" (robot frame,
     stamped) or "kitti" (the left camera's poses, one row per frame:
     :func:`robotd.research.evaluate.write_trajectory`), of ``out_traj`` and of ``truth_out``, which
-    receives the ground truth the source carries for the same frames.
+    receives the ground truth the source carries for the same frames. ``truth_out_if_any``: the
+    same, written only when the source carried a truth (``robotd replay-many``), where
+    ``truth_out`` refuses a source without one.
     """
     if out_format not in TRAJECTORY_FORMATS:
         raise RobotdError(f"replay: trajectory format {out_format!r}: expected one of {list(TRAJECTORY_FORMATS)}")
@@ -144,6 +162,7 @@ def replay(
     results: list[StepResult] = []
     truths: list[tuple[int, np.ndarray]] = []
     seqs: list[int] = []  # the source's frame numbers of the poses
+    step_errors = 0  # frames the step refused (logged and skipped)
     integ = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
     gate = OdometryGate(odometry_limits_from_config(cfg))
     t_wall = time.monotonic()
@@ -151,17 +170,18 @@ def replay(
         if progress:
             # opening a recording is seconds of silence otherwise (the MCAP index is read first)
             print(_opening_line(source), file=sys.stderr, flush=True)
-        camera = stack.enter_context(drivers.open_camera(url))
+        sim_opts = _sim_options(url)
+        camera = stack.enter_context(drivers.open_camera(url, **sim_opts))
         vehicle = None
         if gt_odometry:
             logger.warning("EXPERIMENT: odometry synthesised from ground truth (never for reported figures)")
-            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source)))
+            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source), **sim_opts))
         elif _is_recording(source):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
         elif source.startswith("sim://"):
             # the simulated rover's own noisy odometry (same world and clock as its camera);
             # none with odometry=0 in the URL (vision only)
-            vehicle = stack.enter_context(drivers.open_vehicle(url))
+            vehicle = stack.enter_context(drivers.open_vehicle(url, **sim_opts))
         elif source.startswith("kitti://") and cfg.replay.odometry == "dataset":
             vehicle = stack.enter_context(drivers.open_vehicle(_recorded_odometry_url(url, cfg)))
         odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
@@ -191,6 +211,7 @@ def replay(
                 res = pipeline.step(frame, inc)
             except RobotdError as exc:
                 logger.error("frame %d skipped: %s", frame.seq, exc)
+                step_errors += 1
                 continue
             last_t = frame.t_ns
             results.append(dataclasses.replace(res, observations=None))  # the run's poses, not its features
@@ -227,6 +248,8 @@ def replay(
         )
     if truth_out:
         _write_truth(truth_out, source, truths, len(results), out_format, rig.baseline_m)
+    if truth_out_if_any and truths and (out_format != "kitti" or len(truths) == len(results)):
+        _write_truth(truth_out_if_any, source, truths, len(results), out_format, rig.baseline_m)
     total_ms = np.array([r.timings_ms.get("total", np.nan) for r in results])
     summary: dict[str, Any] = {
         "source": source,
@@ -243,6 +266,11 @@ def replay(
         "landmarks": int(results[-1].counts.get("landmarks", 0)),
         "final_xyz_m": [float(v) for v in results[-1].pose.xyz_W_m],
         "lost_frames": int(sum(not r.tracking for r in results)),
+        # runs of lost frames (a lost frame after a tracked one, or the first)
+        "tracking_lost_episodes": int(
+            sum(not r.tracking and (i == 0 or results[i - 1].tracking) for i, r in enumerate(results))
+        ),
+        "step_errors": step_errors,
         "visual_priors": pipeline.counters.visual_priors,
         "odometry_priors": pipeline.counters.odometry_priors,
         "odometry_rejected": sum(gate.rejected.values()),

@@ -1,0 +1,103 @@
+"""``robotd replay-many`` on the local engine (robotd/batch/run.py): at least 20 sources in one
+table, every trajectory byte for byte the one a single ``robotd replay`` writes, a failing source a
+row of its own, and a rerun that replays nothing that is done."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+from pathlib import Path
+
+import pytest
+
+from robotd.cli import main
+from tests.robotd.batch.conftest import LocalRun, run_cli
+from tests.support.batch_sources import sim_url
+
+
+def test_twenty_sources_make_one_table_and_a_failing_source_is_a_row(local_run: LocalRun) -> None:
+    doc = local_run.doc
+    rows = {r["url"]: r for r in doc["rows"]}
+    assert len(local_run.sources) >= 20
+    assert len(doc["rows"]) == len(local_run.sources) + 1
+    assert local_run.code == 1, "a failed row makes the exit status 1"
+    bad = rows[local_run.damaged]
+    assert bad["status"] == "error" and "not a readable MCAP file" in bad["error"], bad
+    for url in local_run.sources:
+        r = rows[url]
+        assert r["status"] == "ok", r
+        assert r["frames"] and r["frames"] > 0
+        assert r["trajectory_sha256"]
+        assert r["ate_m"] is not None or url.startswith("euroc://"), r  # 8 EuRoC frames: too few with truth
+    assert doc["counts"] == {"replays": len(rows), "run": len(rows), "reused": 0, "failed": 1}
+    # the same table as CSV and Markdown in the results folder
+    with open(local_run.out / "table.csv", newline="") as f:
+        csv_rows = list(csv.DictReader(f))
+    assert [r["url"] for r in csv_rows] == [r["url"] for r in doc["rows"]]
+    md = (local_run.out / "table.md").read_text()
+    assert md.count("\n| ") == len(rows) + 1 and "| error |" in md
+
+
+def test_trajectories_are_byte_for_byte_those_of_single_replays(local_run: LocalRun, tmp_path: Path) -> None:
+    rows = {r["url"]: r for r in local_run.doc["rows"]}
+    # a sim drive, a vision-only one, a recording and (when there) a KITTI and an EuRoC sequence
+    picks = [local_run.sources[0], local_run.sources[15], *[s for s in local_run.sources if s.endswith(".mcap")][:1]]
+    picks += [s for s in local_run.sources if s.startswith(("kitti://", "euroc://"))]
+    for k, url in enumerate(picks):
+        out = tmp_path / f"single-{k}.txt"
+        assert main(["replay", url, "--out", str(out), "--quiet", "--log-level", "WARNING"]) == 0
+        single = hashlib.sha256(out.read_bytes()).hexdigest()
+        stored = local_run.out / rows[url]["trajectory"]
+        assert hashlib.sha256(stored.read_bytes()).hexdigest() == single == rows[url]["trajectory_sha256"], url
+        cov = out.with_name(f"{out.stem}.cov.txt")
+        assert (local_run.out / rows[url]["trajectory"].replace(".txt", ".cov.txt")).read_bytes() == cov.read_bytes()
+
+
+def test_a_rerun_skips_every_row_done_and_runs_only_what_is_new(local_run: LocalRun) -> None:
+    code, doc = run_cli([*local_run.argv, "--json"])
+    assert code == 1  # the damaged recording's row is still an error (reused: it would fail again)
+    assert doc["counts"]["run"] == 0 and doc["counts"]["reused"] == len(local_run.sources) + 1
+    assert all(r["reused"] for r in doc["rows"])
+    new = sim_url(99)
+    code, doc = run_cli(["replay-many", new, *local_run.argv[1:], "--json"])
+    assert doc["counts"]["run"] == 1 and doc["counts"]["reused"] == len(local_run.sources) + 1
+    assert [r["url"] for r in doc["rows"] if not r["reused"]] == [new]
+
+
+def test_configurations_are_compared_with_the_first(tmp_path: Path) -> None:
+    code, doc = run_cli(
+        [
+            "replay-many",
+            sim_url(5),
+            sim_url(6),
+            "--variant",
+            'fs2: slam.filter="fastslam2"',
+            "--variant",
+            'ekf: slam.filter="ekf"',
+            "--out",
+            str(tmp_path / "out"),
+            "--workers",
+            "1",
+            "--quiet",
+            "--json",
+        ]
+    )
+    assert code == 0
+    assert doc["baseline"] == "fs2" and [c["name"] for c in doc["configurations"]] == ["fs2", "ekf"]
+    by = {(r["url"], r["config"]): r for r in doc["rows"]}
+    for url in (sim_url(5), sim_url(6)):
+        base, ekf = by[(url, "fs2")], by[(url, "ekf")]
+        assert base["summary"]["filter"] == "fastslam2" and ekf["summary"]["filter"] == "ekf"
+        assert ekf["ate_delta_m"] == pytest.approx(ekf["ate_m"] - base["ate_m"])
+        assert base["ate_delta_m"] is None
+    assert "Δ ATE ekf vs fs2" in (tmp_path / "out" / "table.md").read_text()
+
+
+def test_bad_arguments_are_one_line_before_anything_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o"
+    assert main(["replay-many", "sim://?fpz=3", "--out", str(out)]) == 2
+    assert "unknown parameter 'fpz'" in capsys.readouterr().err
+    assert main(["replay-many", str(tmp_path / "nothing-*.mcap"), "--out", str(out)]) == 2
+    assert "no file or folder matches" in capsys.readouterr().err
+    assert main(["replay-many", sim_url(1), "--variant", "slam.n_particles=0", "--out", str(out)]) == 2
+    assert "slam.n_particles" in capsys.readouterr().err
