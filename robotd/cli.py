@@ -159,6 +159,23 @@ def cmd_replay_many(args: argparse.Namespace) -> int:
     return outcome.exit_code
 
 
+def cmd_replay_many_compare(args: argparse.Namespace) -> int:
+    from robotd.batch import compare
+
+    configure_logging(args.log_level or "WARNING")
+    tol = compare.Tolerance(args.tolerance, args.ate_m, args.drift_pct, args.drift_m, args.lost)
+    a, b = compare.load(args.a), compare.load(args.b)
+    report = compare.compare(a, b, tol)
+    plots = Path(args.plots) if args.plots else b.folder / "compare"
+    if args.worst > 0 and report["worse"]:
+        compare.plot_pairs(report, a, b, plots, args.worst)
+    if args.json:
+        print(json.dumps(report, sort_keys=True, default=str))
+    else:
+        sys.stdout.write(compare.markdown(report))
+    return 1 if report["worse"] else 0
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from robotd.daemon import Daemon
     from robotd.outputs.recorder import summary_line
@@ -405,6 +422,31 @@ Exit status: 0 every replay ok, 1 some failed, 130 interrupted (finished rows ke
     sp.add_argument("--json", action="store_true", help="print the JSON document instead of the Markdown table")
     sp.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    sp = add(
+        "replay-many compare",
+        cmd_replay_many_compare,
+        "which sources got worse between two replay-many results (versions or configurations)",
+        config=False,
+    )
+    sp.epilog = """\
+A and B: a replay-many --out folder (or its results.json), with #CONFIG to take one configuration
+(DIR#default DIR#ekf compares two configurations of one run). Rows pair by source digest. B is
+worse where it failed and A did not, lost more frames (beyond --lost), or its ATE or drift exceeds
+A's x (1 + --tolerance) plus --ate-m / --drift-pct (--drift-m on paths under 1 m). The worst
+--worst get a PNG each: A's and B's trajectories side by side over the truth, in --plots (default
+B's folder/compare). Exit status 1 when something got worse, else 0."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
+    sp.add_argument("a", metavar="A", help="the reference: DIR[#CONFIG] or results.json[#CONFIG]")
+    sp.add_argument("b", metavar="B", help="the candidate, likewise")
+    sp.add_argument("--tolerance", type=float, default=0.10, help="relative slack on ATE and drift (0.10: 10 %%)")
+    sp.add_argument("--ate-m", type=float, default=0.005, help="absolute slack on ATE [m]")
+    sp.add_argument("--drift-pct", type=float, default=0.1, help="absolute slack on drift [points of %%]")
+    sp.add_argument("--drift-m", type=float, default=0.005, help="absolute slack on drift in metres (short paths)")
+    sp.add_argument("--lost", type=int, default=0, help="more lost frames than this is worse")
+    sp.add_argument("--worst", type=int, default=5, help="plot this many of the worst (0: none)")
+    sp.add_argument("--plots", metavar="DIR", help="where the PNGs go (default: B's folder/compare)")
+    sp.add_argument("--json", action="store_true")
+
     sp = add("record", cmd_record, "record a session (camera, odometry, calibration, poses) as MCAP")
     sp.epilog = """\
 Every frame the camera delivers and every odometry sample is recorded, whatever SLAM keeps up
@@ -487,6 +529,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None:  # the robotd command itself (not a caller passing arguments, e.g. a test)
         journal.install()  # under systemd: a syslog priority on every line it writes
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:2] == ["replay-many", "compare"]:  # a command of two words (argparse knows it as one)
+        argv = ["replay-many compare", *argv[2:]]
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

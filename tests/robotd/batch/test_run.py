@@ -101,3 +101,19 @@ def test_bad_arguments_are_one_line_before_anything_runs(tmp_path: Path, capsys:
     assert "no file or folder matches" in capsys.readouterr().err
     assert main(["replay-many", sim_url(1), "--variant", "slam.n_particles=0", "--out", str(out)]) == 2
     assert "slam.n_particles" in capsys.readouterr().err
+
+
+def test_the_local_default_needs_no_ray(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from tests.support.paths import REPO
+
+    code = (
+        "import sys; sys.modules['ray'] = None  # any `import ray` now fails\n"
+        "from robotd.cli import main\n"
+        f"sys.exit(main(['replay-many', {sim_url(7)!r}, '--out', {str(tmp_path / 'o')!r}, '--quiet']))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "| ok |" in proc.stdout
