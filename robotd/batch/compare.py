@@ -54,7 +54,8 @@ class ResultSet:
 
 def load(spec: str) -> ResultSet:
     """``PATH[#CONFIG]`` -> its rows (one configuration's)."""
-    path_text, _, config = spec.partition("#")
+    path_text, _, named = spec.partition("#")
+    config: str | None = named or None
     path = Path(path_text)
     doc_path = path / "results.json" if path.is_dir() else path
     try:
