@@ -21,8 +21,15 @@ Sim cases: ``--sim`` takes world names (``yard`` becomes ``sim://?world=yard&dur
 or full ``sim://`` URLs; by default every world in ``drivers.simworld.WORLDS`` at run time plus
 ``SIM_EXTRA``.
 
+The robotd runs go through ``robotd replay-many``'s engine (robotd.batch): one configuration per
+detector × filter, the KITTI places under every one and the sim places under the default one,
+on ``--jobs N`` local worker processes or on a Ray cluster (``--ray ADDRESS``, ``--ray local``);
+``--out DIR`` keeps the results folder, so a rerun replays only what changed (robotd's code, the
+data, the settings). The PnP baseline runs in this process. ``--max-frames N`` cuts each source
+(KITTI ``stop=N``, sim ``duration``) for both.
+
     python bench/accuracy.py [--json] [--quick] [--folders kitti-seq1,...] [--detectors orb,sift,surf]
-        [--filters fastslam2,fastslam1,ekf] [--sim yard ...] [--max-frames N] [--jobs N]
+        [--filters fastslam2,fastslam1,ekf] [--sim yard ...] [--max-frames N] [--jobs N] [--ray ADDRESS] [--out DIR]
 """
 
 from __future__ import annotations
@@ -33,8 +40,8 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, NamedTuple
 from urllib.parse import parse_qsl, urlsplit
@@ -160,6 +167,76 @@ def run_task(
         odometry=bool(s.get("odometry_priors", 0)),
     )
     return row
+
+
+def limit_frames(place: Place, max_frames: int) -> Place:
+    """The place cut to ``max_frames`` frames in its URL (KITTI ``stop``, sim ``duration``), so the
+    baseline and robotd's replays read the same frames."""
+    if not max_frames:
+        return place
+    base, _, query = place.source.partition("?")
+    q = dict(parse_qsl(query))
+    if place.kind == "kitti":
+        start, stride = int(q.get("start", 0)), int(q.get("stride", 1))
+        stop = start + max_frames * stride
+        q["stop"] = str(min(stop, int(q["stop"])) if "stop" in q else stop)
+    else:
+        fps = float(q.get("fps", 30.0))
+        q["duration"] = f"{min(float(q.get('duration', 0) or 1e9), max_frames / fps):g}"
+    return place._replace(source=f"{base}?{'&'.join(f'{k}={v}' for k, v in q.items())}")
+
+
+def robotd_rows(
+    grid: list[tuple[list[Place], list[tuple[str, str]]]], cfg_path: str | None, args: argparse.Namespace
+) -> list[dict[str, Any]]:
+    """robotd's replays through replay-many's engine: for each (places, [(detector, filter)]) the
+    places × those configurations; rows in run_task's form."""
+    from robotd.batch.configs import build_configurations
+    from robotd.batch.run import Options, replay_many
+    from robotd.batch.sources import Source
+
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="robotd-accuracy-") as tmp:
+        opts = Options(out_dir=Path(args.out or tmp), workers=args.jobs, ray=args.ray, memory_mb=args.memory_mb)
+        for places, combos in grid:
+            if not places or not combos:
+                continue
+            variants = [f'{d}-{f}: frontend.detector="{d}" slam.filter="{f}"' for d, f in combos]
+            configs = build_configurations([cfg_path] if cfg_path else [], [], variants)
+            which = {c.name: combo for c, combo in zip(configs, combos)}
+            out = replay_many([Source(p.source, p.name) for p in places], configs, opts)
+            by_url = {p.source: p for p in places}
+            for r in out.doc["rows"]:
+                place = by_url[r["url"]]
+                d, f = which[r["config"]]
+                row: dict[str, Any] = {
+                    "place": place.name,
+                    "kind": place.kind,
+                    "source": place.source,
+                    "method": "robotd",
+                    "detector": d,
+                    "filter": f,
+                }
+                s = r.get("summary")
+                if r["status"] != "ok" or not s:
+                    row["error"] = r.get("error") or r["status"]
+                else:
+                    row.update(
+                        frames=s["frames"],
+                        lost_frames=s["lost_frames"],
+                        drift_pct=s.get("truth_drift_pct"),
+                        drift_m=s.get("truth_drift_m"),
+                        ate_m=s.get("truth_ate_rmse_m"),
+                        rpe_m=s.get("truth_rpe_trans_m"),
+                        rpe_rot_deg=s.get("truth_rpe_rot_deg"),
+                        path_length_m=s.get("truth_path_length_m"),
+                        ms_per_frame=s["step_ms_p50"],
+                        ms_per_frame_p95=s["step_ms_p95"],
+                        wall_s=s["wall_s"],
+                        odometry=bool(s.get("odometry_priors", 0)),
+                    )
+                rows.append(row)
+    return rows
 
 
 def judge(rows: list[dict[str, Any]], places: list[Place], default_filter: str) -> None:
@@ -298,7 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-duration", type=float, default=SIM_DURATION_S, help="simulated seconds of a world name")
     ap.add_argument("--config", metavar="FILE", help="TOML file overriding the built-in defaults (as robotd replay)")
     ap.add_argument("--max-frames", type=int, default=0, help="frames per run at most (0: all)")
-    ap.add_argument("--jobs", type=int, default=1, help="runs in parallel (ms/frame is only meaningful with 1)")
+    ap.add_argument("--jobs", type=int, default=1, help="local worker processes (ms/frame is only meaningful with 1)")
+    ap.add_argument("--ray", metavar="ADDRESS", help="run robotd's replays on Ray: a cluster's address, or 'local'")
+    ap.add_argument("--out", metavar="DIR", help="keep replay-many's results folder here (a rerun reuses it)")
+    ap.add_argument("--memory-mb", type=float, default=4000.0, help="a replay's memory limit (Ray: its request)")
     ap.add_argument(
         "--quick", action="store_true", help="one KITTI folder x orb x fastslam2 + PnP; sim only with --sim"
     )
@@ -328,34 +408,23 @@ def main(argv: list[str] | None = None) -> int:
         print("nothing to run: " + "; ".join(skipped), file=sys.stderr)
         return 2
 
-    tasks: list[tuple[str, Place, str | None, str | None]] = []
-    for p in places:  # the baseline first, so a --jobs 1 run shows each place's reference early
-        tasks.append(("pnp", p, None, None))
-        if p.kind == "sim":
-            # sim cases: the default detector and filter only (the full grid there took 2 h,
-            # EKF with SIFT on 300 frames alone most of it); the KITTI grid is the judged one
-            d0 = "orb" if "orb" in detectors else detectors[0]
-            f0 = default_filter if default_filter in filters else filters[0]
-            tasks.append(("robotd", p, d0, f0))
-        else:
-            tasks += [("robotd", p, d, f) for d in detectors for f in filters]
+    places = [limit_frames(p, args.max_frames) for p in places]
+    d0 = "orb" if "orb" in detectors else detectors[0]
+    f0 = default_filter if default_filter in filters else filters[0]
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    with _bar(len(tasks), "run", "accuracy") as bar:
-        if args.jobs <= 1:
-            for method, p, d, f in tasks:
-                bar.set_postfix_str(f"{p.name} {d or 'pnp'} {f or ''}")
-                rows.append(run_task(method, p, d, f, args.config, args.max_frames))
-                bar.update(1)
-        else:
-            import multiprocessing
-
-            ctx = multiprocessing.get_context("spawn")  # no fork of a process with numba/OpenCV threads
-            with ProcessPoolExecutor(max_workers=args.jobs, mp_context=ctx) as pool:
-                futs = [pool.submit(run_task, m, p, d, f, args.config, args.max_frames) for m, p, d, f in tasks]
-                for fut in futs:
-                    rows.append(fut.result())
-                    bar.update(1)
+    # the baseline first, in this process; then robotd's replays on the engine: the KITTI grid, and
+    # the sim cases with the default detector and filter only (the full grid there took 2 h, EKF with
+    # SIFT on 300 frames alone most of it); the KITTI grid is the judged one
+    with _bar(len(places), "place", "PnP baseline") as bar:
+        for p in places:
+            rows.append(run_task("pnp", p, None, None, args.config, 0))
+            bar.update(1)
+    kitti = [p for p in places if p.kind == "kitti"]
+    sims = [p for p in places if p.kind == "sim"]
+    rows += robotd_rows([(kitti, [(d, f) for d in detectors for f in filters]), (sims, [(d0, f0)])], args.config, args)
+    order = {p.name: k for k, p in enumerate(places)}
+    rows.sort(key=lambda r: (order[r["place"]], r["method"] != "pnp"))  # each place's baseline first
     judge(rows, places, default_filter)
     out = {
         "benchmark": "accuracy",
@@ -365,6 +434,7 @@ def main(argv: list[str] | None = None) -> int:
         "default_filter": default_filter,
         "max_frames": args.max_frames,
         "jobs": args.jobs,
+        "engine": f"ray {args.ray}" if args.ray else f"local, {args.jobs} worker process(es)",
         "criteria": {"max_ate_m": MAX_ATE_M, "max_drift_pct": MAX_DRIFT_PCT, "max_ate_vs_pnp": MAX_ATE_RATIO},
         "places": [{"name": p.name, "kind": p.kind, "source": p.source, "judge_drift": p.judge_drift} for p in places],
         "skipped": skipped,
