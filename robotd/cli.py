@@ -1,5 +1,5 @@
-"""The ``robotd`` command: run | replay | replay-many | record | eval | experiments | echo | doctor |
-print-config | mcu-sim.
+"""The ``robotd`` command: run | replay | replay-many | record | eval | experiments | echo | fleet | router |
+doctor | print-config | mcu-sim.
 
 Logging is configured here and nowhere else. Every subcommand returns an exit code; a
 :class:`robotd.errors.RobotdError` becomes one clear line on stderr and exit status 2.
@@ -298,6 +298,20 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return echo(args.key, connect=args.connect, count=args.count, timeout_s=args.timeout)
 
 
+def cmd_fleet(args: argparse.Namespace) -> int:
+    from robotd.fleet import fleet
+
+    configure_logging(args.log_level or "WARNING")
+    return fleet(args.connect, as_json=args.json, wait_s=args.wait, watch=args.watch, timeout_s=args.timeout)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from robotd.fleet import run_router
+
+    configure_logging(args.log_level or "WARNING")
+    return run_router(args.listen, args.zenoh_config, args.duration)
+
+
 def cmd_doctor(args: argparse.Namespace) -> int:
     from robotd import doctor
 
@@ -511,6 +525,26 @@ DIR/poses.txt` gives the replay's own truth_* figures."""
     sp.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447")
     sp.add_argument("--count", type=int, default=0, help="exit after N samples (0: forever)")
     sp.add_argument("--timeout", type=float, default=0.0, help="exit after this many seconds (0: never)")
+
+    sp = add("fleet", cmd_fleet, "the live rovers on a Zenoh network and their health", config=False)
+    sp.epilog = """\
+Lists every robotd whose liveliness token robotd/<id>/alive is alive where --connect points (a
+base station's router, or a robotd's own endpoint), with the state and problems of its health
+topic, fps, tracking, quality, landmarks, position and latency. --watch then prints a line when a
+rover joins or leaves, and the table again. Exit status 1 when no rover is alive. docs/fleet.md."""
+    sp.formatter_class = argparse.RawDescriptionHelpFormatter
+    sp.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="e.g. tcp/base-station:7447")
+    sp.add_argument("--wait", type=float, default=2.0, help="seconds to wait for each rover's health (1 Hz)")
+    sp.add_argument("--watch", action="store_true", help="then report rovers joining and leaving")
+    sp.add_argument("--timeout", type=float, default=0.0, help="with --watch: stop after this many seconds")
+    sp.add_argument("--json", action="store_true", help="one JSON object (per table, with --watch)")
+
+    sp = add("router", cmd_router, "a Zenoh router (a fleet's base station, or a host without zenohd)", config=False)
+    sp.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help="default tcp/127.0.0.1:7447 (repeatable)"
+    )
+    sp.add_argument("--zenoh-config", metavar="FILE", help="a JSON5 file instead (config/zenoh-base-station.json5)")
+    sp.add_argument("--duration", type=_seconds, default=0.0, help="stop after this many seconds (0: until SIGTERM)")
 
     add("print-config", cmd_print_config, "print the resolved configuration").add_argument(
         "--docs", action="store_true", help="with each key's documentation"

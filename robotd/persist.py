@@ -41,6 +41,82 @@ def default_state_dir(configured: str = "") -> Path:
 
 
 COUNTER_FILENAME = "reset_counter"
+LOCK_FILENAME = "robotd.lock"
+
+
+class StateDirLock:
+    """One robotd per state directory: an exclusive ``flock`` on ``state_dir/robotd.lock``, held while
+    the daemon runs (the kernel drops it when the process dies, however it dies), and the directory's
+    owner, the robot id written in that file.
+
+    Two robotd sharing a state directory would resume from and save over one map (a second rover's
+    map overwriting the first's, or the first's rotated away as an earlier map), and share one reset
+    counter. So a second robotd on a directory in use is refused, and so is a robot whose id is not
+    the directory's owner's (a rover's id is its state's name: hand the directory over by deleting the
+    lock file). A directory that cannot be written (read-only) is not locked: nothing will be saved
+    there either."""
+
+    def __init__(self, state_dir: Path, robot_id: str) -> None:
+        self.dir = Path(state_dir)
+        self.path = self.dir / LOCK_FILENAME
+        self.robot_id = robot_id
+        self._fd: int | None = None
+
+    def __enter__(self) -> StateDirLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def acquire(self) -> None:
+        import fcntl
+
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            logger.info("state directory %s not locked (%s): nothing will be saved there", self.dir, exc.strerror)
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            owner, pid = self._read(fd)
+            os.close(fd)
+            raise PersistenceError(
+                f"persistence.state_dir {self.dir} is in use by robotd {owner or '?'} (pid {pid or '?'}): two robotd "
+                f"must not share a state directory (each would resume from and save over the other's map); give "
+                f'this one its own, e.g. persistence.state_dir = "{self.dir / self.robot_id}"'
+            ) from None
+        owner, _ = self._read(fd)
+        if owner and owner != self.robot_id:
+            os.close(fd)
+            raise PersistenceError(
+                f"persistence.state_dir {self.dir} holds the state of robot {owner!r}, not of {self.robot_id!r} "
+                f"(robot.id): give this robot its own state_dir, e.g. {self.dir / self.robot_id}, or delete "
+                f"{self.path} to hand the directory over"
+            )
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{self.robot_id} {os.getpid()}\n".encode(), 0)
+        except OSError as exc:
+            logger.warning("%s: could not record the owner (%s)", self.path, exc.strerror or exc)
+        self._fd = fd
+
+    @staticmethod
+    def _read(fd: int) -> tuple[str | None, str | None]:
+        try:
+            words = os.pread(fd, 256, 0).decode("utf-8", "replace").split()
+        except OSError:
+            return None, None
+        return (words[0] if words else None), (words[1] if len(words) > 1 else None)
+
+    def release(self) -> None:
+        # the file stays (it names the directory's owner); only the lock goes
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = None
 
 
 class CounterFile:

@@ -50,7 +50,7 @@ from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pos
 from robotd.outputs.base import shortest_period
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
-from robotd.persist import CounterFile, default_state_dir
+from robotd.persist import CounterFile, StateDirLock, default_state_dir
 from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
 
@@ -191,6 +191,8 @@ class Daemon:
         )
         # the device URLs' schemes and parameters before anything slow (the CLI checked them too)
         check_device_urls(cfg)
+        if self.keep_state:  # one robotd per state directory, before anything slow (robotd.persist)
+            stack.enter_context(StateDirLock(default_state_dir(cfg.persistence.state_dir), cfg.robot.id))
         # the kernels first: compiling them (a cold numba cache) takes a while, and the devices are
         # opened only then, so no camera streams into a queue nobody reads (and sim:// starts its
         # path when the daemon can follow it). The compile is announced only when numba finds no

@@ -16,7 +16,7 @@ from robotd.codec import decode_map, encode_map
 from robotd.daemon.sdnotify import Notifier
 from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap
-from robotd.persist import MAGIC, STATE_SCHEMA, CounterFile, MapStore
+from robotd.persist import LOCK_FILENAME, MAGIC, STATE_SCHEMA, CounterFile, MapStore, StateDirLock
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 
@@ -164,3 +164,30 @@ def test_the_reset_counter_file_round_trips_and_forgives_what_it_cannot_read(tmp
     ro = CounterFile(tmp_path / "file-not-dir")
     (tmp_path / "file-not-dir").write_text("x")
     assert not ro.save(1) and ro.failures == 1
+
+
+def test_one_robotd_per_state_directory_and_the_directory_keeps_its_robot(tmp_path: Path) -> None:
+    """Two robotd on one state directory would resume from and save over one map: the second one is
+    refused naming the first (its robot and pid), and so is another robot once the first is gone."""
+    state = tmp_path / "state"
+    with StateDirLock(state, "r1"):
+        assert (state / LOCK_FILENAME).read_text() == f"r1 {os.getpid()}\n"
+        with pytest.raises(PersistenceError, match=rf"is in use by robotd r1 \(pid {os.getpid()}\)") as err:
+            StateDirLock(state, "r2").acquire()
+        assert f'persistence.state_dir = "{state / "r2"}"' in str(err.value)
+        with pytest.raises(PersistenceError, match="is in use by robotd r1"):
+            StateDirLock(state, "r1").acquire()  # the same robot twice, too
+    with StateDirLock(state, "r1"):  # released: the same robot runs again
+        pass
+    with pytest.raises(PersistenceError, match=r"holds the state of robot 'r1', not of 'r2' \(robot.id\)"):
+        StateDirLock(state, "r2").acquire()
+    (state / LOCK_FILENAME).unlink()  # handed over
+    with StateDirLock(state, "r2"):
+        assert (state / LOCK_FILENAME).read_text().split()[0] == "r2"
+
+
+def test_a_state_directory_that_cannot_be_written_is_not_locked(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("not a directory")
+    lock = StateDirLock(tmp_path / "file", "r1")
+    lock.acquire()  # logged, not raised: nothing can be saved there either
+    lock.release()
