@@ -137,3 +137,41 @@ def test_three_rovers_through_one_router_each_under_its_own_id(tmp_path: Path) -
         assert MapStore(state, rid).load()["state"], rid  # the map there is this robot's (else refused)
         assert (state / "robotd.lock").read_text().split()[0] == rid
         assert not list(state.glob("map.robotd.bad-*")) and not list(state.glob("map.2*.robotd"))
+
+
+def test_the_fleet_configurations_load_and_the_rover_limits_what_crosses_its_radio(tmp_path: Path) -> None:
+    """config/zenoh-base-station.json5 and config/zenoh-rover.json5 are valid for this Zenoh; the
+    rover's radio rules (here on loopback instead of wlan0) let through the pose at 5 Hz, the map at
+    0.1 Hz and every health message."""
+    import time
+
+    for name in ("zenoh-base-station.json5", "zenoh-rover.json5"):
+        zenoh.Config.from_file(str(REPO / "config" / name))
+    rover_file = tmp_path / "rover-lo.json5"
+    rover_file.write_text((REPO / "config" / "zenoh-rover.json5").read_text().replace('"wlan0"', '"lo"'))
+    port = free_port()
+    conf = zenoh.Config.from_file(str(rover_file))
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
+    router = zenoh.Config()
+    router.insert_json5("mode", '"router"')
+    router.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    router.insert_json5("scouting/multicast/enabled", "false")
+    got: dict[str, int] = {}
+    with zenoh.open(router), zenoh.open(zenoh_client(port)) as ground:
+        ground.declare_subscriber(
+            "robotd/**", lambda s: got.__setitem__(str(s.key_expr), got.get(str(s.key_expr), 0) + 1)
+        )
+        with zenoh.open(conf) as rover:
+            pubs = {k: rover.declare_publisher(f"robotd/r1/{k}") for k in ("pose", "map", "health")}
+            assert wait_for(lambda: (pubs["health"].put("x"), got.get("robotd/r1/health", 0) > 0)[1], 10.0)
+            got.clear()
+            t0 = time.monotonic()
+            for _ in range(60):  # 2 s at 30 Hz
+                for p in pubs.values():
+                    p.put("x")
+                time.sleep(1 / 30)
+            elapsed = time.monotonic() - t0
+            assert wait_for(lambda: got.get("robotd/r1/health", 0) >= 60, 10.0), got
+    assert 1 <= got.get("robotd/r1/pose", 0) <= 5.0 * elapsed + 2, (got, elapsed)
+    assert got.get("robotd/r1/map", 0) <= 0.1 * elapsed + 2, (got, elapsed)
