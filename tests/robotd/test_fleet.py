@@ -109,7 +109,8 @@ def test_three_rovers_through_one_router_each_under_its_own_id(tmp_path: Path) -
             assert r["xyz_m"] is not None and r["fps"] is not None
 
         # a fourth robotd on r1's state directory is refused in one line, before anything slow
-        fourth = _robotd("run", "--config", str(_config(tmp_path, "r4", port, state_dir=tmp_path / "state-r1")))
+        r4 = _config(tmp_path, "r4", port, state_dir=tmp_path / "state-r1")
+        fourth = _robotd("run", "--config", str(r4), "--duration", "30")  # bounded, should it run
         out4, _ = fourth.communicate(timeout=120)
         errors = [ln for ln in out4.splitlines() if "ERROR" in ln]
         assert fourth.returncode == 2 and len(errors) == 1, out4[-3000:]
