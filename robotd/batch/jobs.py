@@ -195,9 +195,19 @@ def events_of(summary: dict[str, Any], tail: _LogTail | None = None) -> list[str
     return ev
 
 
+def _thread_lock_for_tqdm() -> None:
+    """tqdm's default lock is a multiprocessing lock, a semaphore that the resource tracker reports as
+    leaked when a worker is killed mid-replay (a limit, Ctrl-C); a worker needs a thread lock only."""
+    from tqdm import tqdm
+
+    if getattr(tqdm, "_lock", None) is None:
+        tqdm.set_lock(threading.RLock())
+
+
 def run_job(job: dict[str, Any]) -> dict[str, Any]:
     """One replay (module docstring); the row, whatever happens."""
     t0 = time.monotonic()
+    _thread_lock_for_tqdm()
     row: dict[str, Any] = {
         "key": job["key"],
         "source": job["source"],

@@ -72,6 +72,8 @@ class ResultStore:
             raise InputError(f"--out {self.dir}: another replay-many is writing there; give this one its own") from None
         self.rows: dict[str, dict[str, Any]] = {r["key"]: r for r in read_rows(self.dir / ROWS)}
         self._file = open(self.dir / ROWS, "a", encoding="utf-8")  # closed in close()
+        if self._file.tell() > 0 and not (self.dir / ROWS).read_bytes().endswith(b"\n"):
+            self._file.write("\n")  # a line torn by a killed run stays alone (read_rows skips it)
 
     def close(self) -> None:
         with contextlib.suppress(OSError):

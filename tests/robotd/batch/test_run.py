@@ -117,3 +117,45 @@ def test_the_local_default_needs_no_ray(tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| ok |" in proc.stdout
+
+
+def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
+    """SIGINT to the command's process group, as a terminal's Ctrl-C sends it: the finished replays
+    stay in the folder and the table, the unfinished ones are rows marked interrupted (run again next
+    time), exit status 130."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from tests.support.paths import REPO
+    from tests.support.waiting import wait_for
+
+    endless = "sim://yard?duration=600&realtime=1&width=160&height=100&fps=5&seed=8"
+    out = tmp_path / "out"
+    argv = ["replay-many", sim_url(2), endless, "--out", str(out), "--workers", "2", "--quiet", "--json"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "robotd", *argv],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    try:
+        rows = out / "rows.jsonl"
+        assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 60.0), "no row finished"
+        os.killpg(proc.pid, signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, stderr[-3000:]
+    doc = json.loads(stdout.strip().splitlines()[-1])
+    status = {r["url"]: r["status"] for r in doc["rows"]}
+    assert status == {sim_url(2): "ok", endless: "interrupted"} and doc["interrupted"]
+    assert "interrupted" in stderr.splitlines()[-1]
+    code, again = run_cli(["replay-many", sim_url(2), "--out", str(out), "--quiet", "--json"])
+    assert code == 0 and again["counts"]["reused"] == 1  # the finished row was kept
