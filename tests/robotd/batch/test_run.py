@@ -159,3 +159,14 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
     assert "interrupted" in stderr.splitlines()[-1]
     code, again = run_cli(["replay-many", sim_url(2), "--out", str(out), "--quiet", "--json"])
     assert code == 0 and again["counts"]["reused"] == 1  # the finished row was kept
+
+
+def test_a_terminal_gets_a_progress_bar(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import sys
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # capsys's stderr stands in for a terminal
+    assert main(["replay-many", sim_url(9), sim_url(10), "--out", str(tmp_path / "o"), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "replay-many: 100%" in err and "2/2" in err and "ok 2 failed 0" in err, err
