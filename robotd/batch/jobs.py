@@ -226,13 +226,15 @@ def run_job(job: dict[str, Any]) -> dict[str, Any]:
             wall_s=0.0,
         )
         return row
+    # imported before the watchdog starts: a limit interrupts the replay, never an import half done
+    # (a module left half imported would fail this worker's next replays)
+    from robotd.batch.configs import Configuration
+    from robotd.replay import replay
+    from robotd.research.evaluate import cov_path_for
+
     watchdog = _Watchdog(float(job.get("timeout_s") or 0.0), float(job.get("memory_mb") or 0.0))
     try:
         with _captured_logs() as tail, watchdog, tempfile.TemporaryDirectory(prefix="robotd-batch-") as td:
-            from robotd.batch.configs import Configuration
-            from robotd.replay import replay
-            from robotd.research.evaluate import cov_path_for
-
             cfg = Configuration(job["config_name"], job["config"], job["config_digest"]).config()
             traj = Path(td) / "trajectory.txt"
             truth = Path(td) / "truth.txt"

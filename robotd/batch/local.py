@@ -6,7 +6,8 @@ imports and numba kernels between jobs. The parent hands out jobs, receives rows
 limits a job cannot enforce itself: a worker that dies (a crash, the kernel's OOM killer) costs
 only its row ("died"), one that overruns its job's time or memory by ``KILL_GRACE_S`` (stuck in
 native code, where the job's own watchdog cannot reach it) is killed and its row says so; a new
-worker takes its place. Ctrl-C (SIGINT to the process group: workers ignore it) stops handing out
+worker takes its place, as it does after any time or memory limit (an interrupted worker is not
+reused). Ctrl-C (SIGINT to the process group: workers ignore it) stops handing out
 jobs, kills the workers, records the unfinished jobs as "interrupted" and raises
 KeyboardInterrupt: every finished row was already handed to ``on_row``.
 
@@ -132,8 +133,10 @@ class LocalEngine:
                     row = self._check(s)
                     if row is None:
                         continue
-                    if row.get("status") == MEMORY and s.proc.is_alive():
-                        self._kill(s)  # its heap stays large: a fresh worker takes the next job
+                    if row.get("status") in (MEMORY, TIMEOUT) and s.proc.is_alive():
+                        # interrupted mid-replay (its heap large, who knows what half done): a fresh
+                        # worker takes the next job
+                        self._kill(s)
                     if not s.proc.is_alive():
                         slots[i] = self._spawn()
                         self.replaced += 1

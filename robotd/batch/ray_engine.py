@@ -73,6 +73,7 @@ class RayEngine:
         try:
             if self.address == "local":
                 ray.init(
+                    address="local",  # a new instance, even where another one runs (ray start)
                     num_cpus=self.workers or None,
                     include_dashboard=False,
                     _node_ip_address="127.0.0.1",

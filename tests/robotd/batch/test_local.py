@@ -62,4 +62,4 @@ def test_time_and_memory_limits_and_a_dead_worker_are_rows_and_the_rest_go_on() 
     assert killed and rows["dies"]["status"] == DIED, rows["dies"]
     assert rows["dies"]["error"] == "worker process died: killed by signal 9"
     assert rows["fine"]["status"] == OK and rows["fine"]["summary"]["frames"] == 10
-    assert engine.replaced >= 2  # after the dead worker and the one over its memory
+    assert engine.replaced >= 3  # after the dead worker and the ones over their time and memory
