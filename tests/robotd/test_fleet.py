@@ -51,6 +51,14 @@ def _fleet(router: int) -> dict[str, Any]:
     return json.loads(buf.getvalue().strip().splitlines()[-1])
 
 
+def _exited(proc: subprocess.Popen[str], timeout_s: float) -> bool:
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return False
+    return True
+
+
 def _stop(proc: subprocess.Popen[str]) -> str:
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
@@ -111,7 +119,7 @@ def test_three_rovers_through_one_router_each_under_its_own_id(tmp_path: Path) -
         # a fourth robotd on r1's state directory is refused in one line, before anything slow
         r4 = _config(tmp_path, "r4", port, state_dir=tmp_path / "state-r1")
         fourth = _robotd("run", "--config", str(r4), "--duration", "30")  # bounded, should it run
-        out4, _ = fourth.communicate(timeout=120)
+        out4 = _stop(fourth) if not _exited(fourth, 120.0) else fourth.communicate()[0]
         errors = [ln for ln in out4.splitlines() if "ERROR" in ln]
         assert fourth.returncode == 2 and len(errors) == 1, out4[-3000:]
         assert f"persistence.state_dir {tmp_path / 'state-r1'} is in use by robotd r1" in errors[0]
