@@ -38,11 +38,12 @@ def test_accuracy_runs_on_the_engine_with_the_figures_of_a_replay(
     r = rows["robotd"]
     assert r["source"].endswith("duration=0.2") and r["frames"] == 6
     direct = replay(load_config(None), r["source"], progress=False)
-    assert (r["ate_m"], r["drift_m"], r["lost_frames"]) == (
-        direct["truth_ate_rmse_m"],
-        direct["truth_drift_m"],
-        direct["lost_frames"],
-    )
+    # the figures of the same replay: to rounding (this test process's thread settings, left by
+    # earlier tests, may reorder a sum; the batch tests check bit-identical trajectories between
+    # replay-many and single `robotd replay` processes)
+    assert r["ate_m"] == pytest.approx(direct["truth_ate_rmse_m"], rel=1e-9, abs=1e-12)
+    assert r["drift_m"] == pytest.approx(direct["truth_drift_m"], rel=1e-9, abs=1e-12)
+    assert r["lost_frames"] == direct["lost_frames"]
     rows_file = tmp_path / "out" / "rows.jsonl"
     n = len(rows_file.read_text().splitlines())
     assert bench.main(argv) == 0  # the rerun reuses the folder's row
