@@ -204,9 +204,6 @@ class Pipeline:
         clock, fe, est = StageClock(), self.frontend, self.estimator
         if self._restart_gap:
             self._resume_across_gap()
-            # the vehicle's increment covers only the last frame interval, not the time since
-            # the map's last frame: the gap decides
-            increment = None
         landmarks = est.landmarks()
         relocalising = self.relocaliser.active and landmarks.n > 0
         # measure: features in both images, stereo matches triangulated with their covariance
