@@ -59,9 +59,8 @@ GRAVITY_BIAS_MAX_RAD = math.radians(3.0)
 
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
-# a map resumed at most this long after its last frame, and not found in its own map by the
-# relocaliser, crosses the time since as a gap (the last speed within the vehicle's bounds);
-# longer, it carries on from the saved pose (robotd.relocalise)
+# a map resumed at most this long after its last frame crosses the time robotd was down as a gap
+# (the last speed within the vehicle's bounds); longer, it is found in the map (robotd.relocalise)
 MAX_RESTART_GAP_S = 10.0
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
 # the filter's noise for a motion it is given as a guess (a gap nothing measured): the nominal
@@ -183,7 +182,6 @@ class Pipeline:
         self._velocity: tuple[np.ndarray, np.ndarray, float, float, float] | None = None
         # a loaded map's last frame time and motion, until the first frame after the load
         self._resumed_motion: tuple[int, tuple[np.ndarray, np.ndarray, float, float, float]] | None = None
-        self._restart_gap = False  # relocalisation gave up: cross the time since the map's last frame
         self._measured: MotionIncrement | None = None
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
@@ -202,8 +200,8 @@ class Pipeline:
         outliers, predict, update. ``increment``: the vehicle's motion since the previous frame
         (None: visual only). Each stage is timed by one clock (``StepResult.timings_ms``)."""
         clock, fe, est = StageClock(), self.frontend, self.estimator
-        if self._restart_gap:
-            self._resume_across_gap()
+        if self._resumed_motion is not None:
+            self._resume_across_gap(frame.t_ns)
         landmarks = est.landmarks()
         relocalising = self.relocaliser.active and landmarks.n > 0
         # measure: features in both images, stereo matches triangulated with their covariance
@@ -234,7 +232,7 @@ class Pipeline:
         ident = clock.run("identify", fe.identify, meas, landmarks, view)
         screen = clock.run("outliers", fe.screen, meas, ident)
         counts = fe.counts(feats, meas, ident, screen, visual)
-        if relocalising and not clock.run("relocalise", self._relocalise, screen, frame.t_ns):
+        if relocalising and not clock.run("relocalise", self._relocalise, screen):
             fe.commit(meas, ident, frame.t_ns, NO_NEW)  # not found in the map yet: leave the map as it is
             return self._result(frame, clock, counts, UpdateReport(), est.estimate(), self.tracker.suspend(), 0)
         # points seen to move since the previous frame are not mapped; on vision alone, when the
@@ -385,19 +383,23 @@ class Pipeline:
             self._velocity = (so3_exp(omega * dt), vel * dt, dt, dt / math.sqrt(wt.sum()), dt / math.sqrt(wr.sum()))
         self._last_pose = (t_ns, T)
 
-    def _resume_across_gap(self) -> None:
-        """The frame after relocalisation in a loaded map gave up, when the map saved its last
-        frame's time and motion and that frame is at most ``MAX_RESTART_GAP_S`` old: the time
-        since then (robotd down, then relocalising) is crossed as a stall's gap (the map, else
-        the last speed within the vehicle's bounds; robotd.stall), not left at the saved pose
-        however far the rover drove meanwhile (a restart mid-drive in the SITL loop: 2.8 m off)."""
+    def _resume_across_gap(self, t_ns: int) -> None:
+        """The first frame after a map load, when the map saved the last frame's time and motion
+        and robotd was down at most ``MAX_RESTART_GAP_S``: the time it was down is a gap like a
+        stall's (the map, else the last speed within the vehicle's bounds; robotd.stall), not a
+        whole-map relocalisation that, failing, would carry on from the saved pose however far
+        the rover drove meanwhile (a restart mid-drive in the SITL loop: 2.8 m off)."""
         assert self._resumed_motion is not None
         t_saved, velocity = self._resumed_motion
-        self._resumed_motion, self._restart_gap = None, False
+        self._resumed_motion = None
+        dt = (t_ns - t_saved) * 1e-9
+        if not 0.0 < dt <= MAX_RESTART_GAP_S:
+            return  # another boot's clock, or down too long for a guess: relocalise in the map
+        self.relocaliser.arm(0)
         self._last_t_ns = t_saved
         self._velocity = velocity
         self._last_pose = (t_saved, self.estimator.estimate().T_world_robot)
-        logger.info("crossing the time since the map's last frame as a gap, from the vehicle's motion then")
+        logger.info("map resumed %.1f s after its last frame: the time robotd was down is bridged as a gap", dt)
 
     def _view_prior(self, landmarks: LandmarkMap, inc: MotionIncrement | None) -> np.ndarray | None:
         """The predicted pose (the last estimate moved by the motion prior) that restricts
@@ -409,20 +411,13 @@ class Pipeline:
             T = T @ se3(so3_exp(inc.drot_R_rad), inc.dp_R_m)
         return T
 
-    def _relocalise(self, screen: Screening, t_ns: int) -> bool:
+    def _relocalise(self, screen: Screening) -> bool:
         fixed = self.relocaliser.attempt(screen.result, screen.similarity, self.estimator)
         self._last_pose, self._velocity, self._rates = None, None, []
         if fixed:
             self.counters.relocalisations += 1
-            self._resumed_motion = None
         elif not self.relocaliser.active:
             self.counters.relocalisation_failures += 1
-            # gave up: a map saved moments ago crosses the time since as a gap (next frame)
-            m = self._resumed_motion
-            self._restart_gap = m is not None and 0.0 < (t_ns - m[0]) * 1e-9 <= MAX_RESTART_GAP_S
-            if not self._restart_gap:
-                self._resumed_motion = None
-                logger.warning("continuing from the saved pose")
         return fixed
 
     def _select(
@@ -702,6 +697,6 @@ class Pipeline:
         # a restart is a gap: with the saved last frame's time and motion, when the whole-map
         # search fails the pose is carried across the time robotd was down as across a stall
         # (robotd.stall: the map, else the last speed within the vehicle's physical bounds)
-        self._resumed_motion, self._restart_gap = motion, False
+        self._resumed_motion = motion
         # the saved map is the world now: its landmarks anchor at zero covariance
         self.covariance.reset()

@@ -57,7 +57,10 @@ class Relocaliser:
             self.frames_left -= 1
             if self.frames_left == 0:
                 logger.warning(
-                    "relocalisation against the loaded map failed for %d frames (last: %d inliers)", MAX_FRAMES, n_in
+                    "relocalisation against the loaded map failed for %d frames (last: %d inliers); "
+                    "continuing from the saved pose",
+                    MAX_FRAMES,
+                    n_in,
                 )
             return False
         estimator.reset_pose(fix, RESET_COV)
