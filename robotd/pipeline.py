@@ -42,7 +42,7 @@ from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
 from robotd.stall import GapDetector, Reach, blind_motion, plausible, reach, still_prior
-from robotd.statecheck import StateTable, check_finite
+from robotd.statecheck import StateTable
 from robotd.stereo import RectifiedStereo
 from robotd.timing import StageClock
 
@@ -59,9 +59,6 @@ GRAVITY_BIAS_MAX_RAD = math.radians(3.0)
 
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
-# a map resumed at most this long after its last frame crosses the time robotd was down as a gap
-# (the last speed within the vehicle's bounds); longer, it is found in the map (robotd.relocalise)
-MAX_RESTART_GAP_S = 10.0
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
 # the filter's noise for a motion it is given as a guess (a gap nothing measured): the nominal
 # 1 cm and 0.5° of one interval, so the particles move together (robotd.stall)
@@ -180,8 +177,6 @@ class Pipeline:
         # over the last measured interval (R, t, dt_s); whether this frame's prior was measured
         self._last_pose: tuple[int, np.ndarray] | None = None
         self._velocity: tuple[np.ndarray, np.ndarray, float, float, float] | None = None
-        # a loaded map's last frame time and motion, until the first frame after the load
-        self._resumed_motion: tuple[int, tuple[np.ndarray, np.ndarray, float, float, float]] | None = None
         self._measured: MotionIncrement | None = None
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
@@ -200,8 +195,6 @@ class Pipeline:
         outliers, predict, update. ``increment``: the vehicle's motion since the previous frame
         (None: visual only). Each stage is timed by one clock (``StepResult.timings_ms``)."""
         clock, fe, est = StageClock(), self.frontend, self.estimator
-        if self._resumed_motion is not None:
-            self._resume_across_gap(frame.t_ns)
         landmarks = est.landmarks()
         relocalising = self.relocaliser.active and landmarks.n > 0
         # measure: features in both images, stereo matches triangulated with their covariance
@@ -382,24 +375,6 @@ class Pipeline:
             # over the last interval, with the σ of the weighted means
             self._velocity = (so3_exp(omega * dt), vel * dt, dt, dt / math.sqrt(wt.sum()), dt / math.sqrt(wr.sum()))
         self._last_pose = (t_ns, T)
-
-    def _resume_across_gap(self, t_ns: int) -> None:
-        """The first frame after a map load, when the map saved the last frame's time and motion
-        and robotd was down at most ``MAX_RESTART_GAP_S``: the time it was down is a gap like a
-        stall's (the map, else the last speed within the vehicle's bounds; robotd.stall), not a
-        whole-map relocalisation that, failing, would carry on from the saved pose however far
-        the rover drove meanwhile (a restart mid-drive in the SITL loop: 2.8 m off)."""
-        assert self._resumed_motion is not None
-        t_saved, velocity = self._resumed_motion
-        self._resumed_motion = None
-        dt = (t_ns - t_saved) * 1e-9
-        if not 0.0 < dt <= MAX_RESTART_GAP_S:
-            return  # another boot's clock, or down too long for a guess: relocalise in the map
-        self.relocaliser.arm(0)
-        self._last_t_ns = t_saved
-        self._velocity = velocity
-        self._last_pose = (t_saved, self.estimator.estimate().T_world_robot)
-        logger.info("map resumed %.1f s after its last frame: the time robotd was down is bridged as a gap", dt)
 
     def _view_prior(self, landmarks: LandmarkMap, inc: MotionIncrement | None) -> np.ndarray | None:
         """The predicted pose (the last estimate moved by the motion prior) that restricts
@@ -605,42 +580,12 @@ class Pipeline:
 
     def state_dict(self) -> dict[str, Any]:
         descriptors = self.frontend.descriptors
-        state = {
+        return {
             "estimator_name": self.estimator.name,
             "dim": self.estimator.dim,
             "estimator": self.estimator.state_dict(),
             "database": descriptors.state_dict() if descriptors is not None else {},
         }
-        if self._last_t_ns is not None and self._velocity is not None:
-            # the last frame's time and the vehicle's motion then: a restart is a gap (load_state_dict)
-            R, t, dt_s, sd_t, sd_r = self._velocity
-            state["motion"] = {
-                "t_ns": int(self._last_t_ns),
-                "R": np.asarray(R, float).copy(),
-                "t": np.asarray(t, float).copy(),
-                "dt_s": float(dt_s),
-                "sd_t": float(sd_t),
-                "sd_r": float(sd_r),
-            }
-        return state
-
-    @staticmethod
-    def _check_motion(st: StateTable) -> tuple[int, tuple[np.ndarray, np.ndarray, float, float, float]] | None:
-        """The saved ``motion`` (absent in maps saved before it existed): (t_ns, velocity tuple)."""
-        if not st.has("motion"):
-            return None
-        m = st.table("motion")
-        t_ns = m.integer("t_ns", 0, 2**63 - 1)
-        R = m.array("R", "float64", (3, 3))
-        t = m.array("t", "float64", (3,))
-        check_finite(m.name("R"), R)
-        check_finite(m.name("t"), t, 1e6)
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
-            raise PersistenceError(f"{m.name('R')}: not a rotation")
-        dt_s = m.number("dt_s", 1e-6, 1e3)
-        sd_t = m.number("sd_t", 0.0, 1e6)
-        sd_r = m.number("sd_r", 0.0, 1e6)
-        return t_ns, (R, t, dt_s, sd_t, sd_r)
 
     def check_state_dict(self, state: Any) -> tuple[dict[str, Any], LandmarkDescriptors | None]:
         """Check a saved state (:meth:`state_dict`) whole, every key, type, shape and range, and
@@ -650,7 +595,6 @@ class Pipeline:
         filter's checked values (``Estimator.restore``) and the saved descriptor store (None when
         the map has none)."""
         st = StateTable(state, "state")
-        self._check_motion(st)
         name = st.choice("estimator_name", FILTERS)
         dim = st.choice("dim", (2, 3))
         if name != self.estimator.name or dim != self.estimator.dim:
@@ -684,7 +628,6 @@ class Pipeline:
         """Resume from a saved state, checked whole first (:meth:`check_state_dict`): when it
         fails, nothing of this pipeline has changed."""
         checked, descriptors = self.check_state_dict(state)
-        motion = self._check_motion(StateTable(state, "state"))
         self.estimator.restore(checked)
         if descriptors is not None:
             self.frontend.descriptors = descriptors
@@ -694,9 +637,5 @@ class Pipeline:
         self._last_t_ns = None
         self.gaps.reset()
         self._last_pose, self._velocity, self._rates = None, None, []
-        # a restart is a gap: with the saved last frame's time and motion, when the whole-map
-        # search fails the pose is carried across the time robotd was down as across a stall
-        # (robotd.stall: the map, else the last speed within the vehicle's physical bounds)
-        self._resumed_motion = motion
         # the saved map is the world now: its landmarks anchor at zero covariance
         self.covariance.reset()

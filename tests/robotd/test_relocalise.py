@@ -9,8 +9,6 @@ bounded number of frames.
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 
@@ -96,59 +94,3 @@ def test_planar_resume_continues_from_the_saved_pose():
     r = b.step(frames[25], None)
     assert b.counters.relocalisations == 0 and b.counters.relocalisation_failures == 0
     assert r.tracking and r.counts["identified"] > 0
-
-
-@pytest.fixture(scope="module")
-def driven():
-    """A map saved at frame 90 of a drive, the first run's poses to frame 119, and the frames."""
-    frames, rig = _frames(1, 120)
-    a = _pipeline(rig)
-    poses = []
-    state = None
-    for k, f in enumerate(frames):
-        poses.append(a.step(f, None).pose.T_world_robot)
-        if k == 89:
-            state = copy.deepcopy(a.state_dict())
-    return frames, rig, poses, state
-
-
-def test_a_restart_mid_drive_is_a_gap_not_a_stale_pose(driven):
-    # robotd was down for 1 s while the rover drove on (frames 90-118 never seen): the loaded map
-    # knows its last frame's time and motion, so the pose is carried across the gap at the last
-    # speed, not left where the map was saved (1 m behind)
-    frames, rig, poses, state = driven
-    assert "motion" in state and state["motion"]["t_ns"] == frames[89].t_ns
-    b = _pipeline(rig)
-    b.load_state_dict(state)
-    r = b.step(frames[119], None)
-    assert b.counters.gaps == 1 and b.counters.relocalisations == 0 and r.tracking
-    stale = np.linalg.norm(poses[89][:3, 3] - poses[119][:3, 3])
-    err = np.linalg.norm(r.pose.T_world_robot[:3, 3] - poses[119][:3, 3])
-    assert stale > 0.8 and err < 0.25 * stale, (stale, err)
-
-
-def test_a_map_saved_long_ago_is_relocalised_in_the_map(driven, monkeypatch):
-    # down longer than MAX_RESTART_GAP_S (or another boot's clock): the whole-map search, as before
-    from robotd import pipeline as pl
-
-    frames, rig, _, state = driven
-    monkeypatch.setattr(pl, "MAX_RESTART_GAP_S", 0.5)
-    b = _pipeline(rig)
-    b.load_state_dict(state)
-    b.step(frames[119], None)
-    assert b.counters.gaps == 0  # not a gap: the relocaliser searched the whole map
-
-
-def test_a_bad_saved_motion_is_refused_by_name(driven):
-    from robotd.errors import PersistenceError
-
-    _, rig, _, state = driven
-    for key, value, match in (
-        ("R", np.eye(3) * 2.0, "state.motion.R: not a rotation"),
-        ("dt_s", -1.0, "state.motion.dt_s"),
-        ("t", np.array([np.nan, 0.0, 0.0]), "state.motion.t"),
-    ):
-        bad = copy.deepcopy(state)
-        bad["motion"][key] = value
-        with pytest.raises(PersistenceError, match=match):
-            _pipeline(rig).load_state_dict(bad)
