@@ -11,6 +11,7 @@ of those links report.
 from __future__ import annotations
 
 import abc
+import ipaddress
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -105,3 +106,14 @@ class QueuedVehicleLink(Driver):
     def latest_controls(self) -> ControlSample | None:
         """The last throttle/steering the vehicle reported, or None."""
         return self._controls
+
+
+def is_loopback(host: str) -> bool:
+    """``host`` names this machine only (``localhost``, 127.0.0.0/8, ::1): what a link may listen
+    on without the user's explicit permission to face the network."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -61,7 +61,7 @@ os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import: OD
 import numpy as np
 from pymavlink import mavutil
 
-from drivers.base import ControlSample, QueuedVehicleLink
+from drivers.base import ControlSample, QueuedVehicleLink, is_loopback
 from drivers.link_state import LOST, LinkState, LinkStateParams
 from drivers.mavlink_guard import NO_ACK, BootClock, RateLimit, RateOutcome, RateRequests
 from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
@@ -301,7 +301,7 @@ def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
             raise DriverError(f"{url!r}: expected mavlink+udp://HOST:PORT")
         if opts.mode not in ("in", "out"):
             raise DriverError(f"{url!r}: mode={opts.mode!r}, expected 'in' or 'out'")
-        if opts.mode == "in" and not opts.allow_remote and not _is_loopback(host):
+        if opts.mode == "in" and not opts.allow_remote and not is_loopback(host):
             raise DriverError(f"{url!r}: refusing to listen on {host}: loopback only unless allow_remote=1")
         return f"udp{opts.mode}:{host}:{port}", opts
     if parts.scheme == "mavlink+serial":
@@ -309,15 +309,6 @@ def parse_mavlink_url(url: str, **options: Any) -> tuple[str, MavlinkOptions]:
             raise DriverError(f"{url!r}: expected mavlink+serial:///dev/ttyX?baud=921600")
         return parts.path, opts
     raise DriverError(f"{url!r}: expected mavlink+udp:// or mavlink+serial://")
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class _DatagramSource:

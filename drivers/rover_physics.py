@@ -90,7 +90,6 @@ own capture time with the velocity and rates.
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import json
 import logging
 import math
@@ -105,6 +104,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.base import is_loopback
 from robotd.errors import DriverError, ProtocolError
 
 logger = logging.getLogger(__name__)
@@ -365,15 +365,6 @@ def decode_truth(data: bytes) -> TruthSample:
 
 
 # -- the server --------------------------------------------------------------------------------
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _family(host: str) -> socket.AddressFamily:
