@@ -141,6 +141,7 @@ def replay_many(
                     engine.run(list(jobs.values()), on_row)
                 except KeyboardInterrupt:
                     interrupted = True
+                    store.reload()  # what the folder kept is what the table shows
         rows_by_key = {k: ({**r, "reused": True} if k in reused else r) for k, r in store.rows.items()}
         rows = table.build(rows_by_key, sources, configurations, keys)
         wall = time.monotonic() - t0

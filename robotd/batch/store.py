@@ -75,6 +75,12 @@ class ResultStore:
         if self._file.tell() > 0 and not (self.dir / ROWS).read_bytes().endswith(b"\n"):
             self._file.write("\n")  # a line torn by a killed run stays alone (read_rows skips it)
 
+    def reload(self) -> None:
+        """The rows as rows.jsonl has them: a Ctrl-C between a row's fsync and its entry here
+        (``add``) must not leave the table without a replay the folder keeps."""
+        self._file.flush()
+        self.rows.update({r["key"]: r for r in read_rows(self.dir / ROWS)})
+
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self._file.close()
