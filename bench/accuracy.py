@@ -152,7 +152,13 @@ def run_task(
     except Exception as exc:  # one failed run is a row saying so, not the end of the benchmark
         row["error"] = f"{type(exc).__name__}: {exc}"
         return row
-    row.update(
+    row.update(_figures(s))
+    return row
+
+
+def _figures(s: dict[str, Any]) -> dict[str, Any]:
+    """A replay summary's figures as a row's columns (one run in process or on the engine)."""
+    return dict(
         frames=s["frames"],
         lost_frames=s["lost_frames"],
         drift_pct=s.get("truth_drift_pct"),
@@ -166,7 +172,6 @@ def run_task(
         wall_s=s["wall_s"],
         odometry=bool(s.get("odometry_priors", 0)),
     )
-    return row
 
 
 def limit_frames(place: Place, max_frames: int) -> Place:
@@ -221,20 +226,7 @@ def robotd_rows(
                 if r["status"] != "ok" or not s:
                     row["error"] = r.get("error") or r["status"]
                 else:
-                    row.update(
-                        frames=s["frames"],
-                        lost_frames=s["lost_frames"],
-                        drift_pct=s.get("truth_drift_pct"),
-                        drift_m=s.get("truth_drift_m"),
-                        ate_m=s.get("truth_ate_rmse_m"),
-                        rpe_m=s.get("truth_rpe_trans_m"),
-                        rpe_rot_deg=s.get("truth_rpe_rot_deg"),
-                        path_length_m=s.get("truth_path_length_m"),
-                        ms_per_frame=s["step_ms_p50"],
-                        ms_per_frame_p95=s["step_ms_p95"],
-                        wall_s=s["wall_s"],
-                        odometry=bool(s.get("odometry_priors", 0)),
-                    )
+                    row.update(_figures(s))
                 rows.append(row)
     return rows
 
