@@ -1,4 +1,4 @@
-"""numba kernels of the outlier stage (algorithms.md §5.2–§5.3); numpy twins: tests/support/reference_outliers.py.
+"""numba kernels of the outlier stage (docs/math.md §5.2–§5.3); numpy twins: tests/support/reference_outliers.py.
 
 - :func:`similarity_d2_kernel`: the Mahalanobis consensus of a batch of hypotheses × all pairs.
   numpy builds (K, N, 3, 3) covariance stacks and several (K, N, 3) temporaries for it; here

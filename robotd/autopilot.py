@@ -1,9 +1,10 @@
 """SLAM pose -> MAVLink external-navigation field values (pure; no pymavlink here).
 
-Implements interfaces.md §1.2–§1.6: ``ODOMETRY`` with ``frame_id = MAV_FRAME_LOCAL_FRD`` (20) and
-``child_frame_id = MAV_FRAME_BODY_FRD`` (12). robotd's world frame is LOCAL_FRD and its robot frame
-is BODY_FRD (algorithms.md §1.2), so position and attitude pass through without axis changes:
-``q`` (w, x, y, z) is the quaternion of R(rpy) = Rz(yaw) Ry(pitch) Rx(roll).
+Implements docs/interfaces.md §1.2–§1.6 (robotd's choices: docs/mavlink.md §2, §5): ``ODOMETRY``
+with ``frame_id = MAV_FRAME_LOCAL_FRD`` (20) and ``child_frame_id = MAV_FRAME_BODY_FRD`` (12).
+robotd's world frame is LOCAL_FRD and its robot frame is BODY_FRD (docs/math.md §1.2), so position
+and attitude pass through without axis changes: ``q`` (w, x, y, z) is the quaternion of
+R(rpy) = Rz(yaw) Ry(pitch) Rx(roll).
 
 Also here, as pure functions or thin state over them:
 

@@ -65,7 +65,7 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
 
 def slam_params_from_config(cfg: Config, rig: RectifiedStereo | None = None) -> SlamParams:
     """``slam.*`` keys (and the particle floor of ``budget.min_particles``); with a ``rig``, the
-    pruning field of view and range follow the rig and the disparity limits (§2.2). The pixel
+    pruning field of view and range follow the rig and the disparity limits (docs/math.md §2.2). The pixel
     measurement model (``slam.measurement = "pixel"``) needs the rig: it projects with its
     intrinsics, with the front end's pixel noise σ·√cov_inflation."""
     n_min = max(1, min(cfg.budget.min_particles, cfg.slam.n_particles))

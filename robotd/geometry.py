@@ -1,6 +1,6 @@
 """Rigid-body geometry: SE(2), SE(3), rotations, ZYX Euler angles, quaternions, Jacobian helpers.
 
-Conventions, declared once here (algorithms.md §1):
+Conventions, declared once here (docs/math.md §1):
 
 - Robot frame ``R``: forward-right-down (FRD) at the baseline centre of the rectified rig.
   World frame ``W``: the robot frame at start-up, levelled (MAVLink LOCAL_FRD).
@@ -34,7 +34,7 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# Elementary rotations and their derivatives (algorithms.md §1.3). Inputs (...,), outputs (..., 3, 3)
+# Elementary rotations and their derivatives (docs/math.md §1.3). Inputs (...,), outputs (..., 3, 3)
 
 
 def rot_x(a: np.ndarray | float) -> np.ndarray:
@@ -98,7 +98,7 @@ def euler_to_R(rpy: np.ndarray) -> np.ndarray:
 
 
 def euler_to_R_derivatives(rpy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """∂R/∂roll, ∂R/∂pitch, ∂R/∂yaw, each (..., 3, 3) (algorithms.md §1.3)."""
+    """∂R/∂roll, ∂R/∂pitch, ∂R/∂yaw, each (..., 3, 3) (docs/math.md §1.3)."""
     rpy = np.asarray(rpy, dtype=float)
     rx, ry, rz = rot_x(rpy[..., 0]), rot_y(rpy[..., 1]), rot_z(rpy[..., 2])
     return (
@@ -118,7 +118,7 @@ def R_to_euler(R: np.ndarray) -> np.ndarray:
 
 
 def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
-    """E(roll, pitch): body rates -> ZYX Euler-angle rates, (..., 3, 3) (algorithms.md §6.3).
+    """E(roll, pitch): body rates -> ZYX Euler-angle rates, (..., 3, 3) (docs/math.md §6.3).
 
     Singular at pitch = ±90°; callers on a ground vehicle guard against it.
     """
@@ -137,7 +137,7 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
 
 
 def euler_rate_jacobian(rpy: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """∂(E(rpy) ω)/∂rpy, (..., 3, 3); the yaw column is zero (algorithms.md §6.3)."""
+    """∂(E(rpy) ω)/∂rpy, (..., 3, 3); the yaw column is zero (docs/math.md §6.3)."""
     rpy = np.asarray(rpy, dtype=float)
     omega = np.asarray(omega, dtype=float)
     r, p = rpy[..., 0], rpy[..., 1]
@@ -446,7 +446,7 @@ def optical_to_robot_points(xyz_C: np.ndarray) -> np.ndarray:
 def T_optical_to_robot(T_C0_C: np.ndarray) -> np.ndarray:
     """Re-express a camera-optical pose (e.g. KITTI, EuRoC left camera) in FRD axes.
 
-    Both sides are transformed (interfaces.md §1.3): T_R0_R = A T_C0_C A^T with A the axis map.
+    Both sides are transformed (docs/interfaces.md §1.3): T_R0_R = A T_C0_C A^T with A the axis map.
     """
     A = se3(R_ROBOT_OPTICAL, np.zeros(3))
     return A @ np.asarray(T_C0_C, dtype=float) @ se3_inverse(A)
@@ -472,7 +472,7 @@ def numerical_jacobian(f, x: np.ndarray, eps: float = 1e-6, wrap: np.ndarray | N
 
 
 # --------------------------------------------------------------------------------------------
-# Point-set alignment (Umeyama 1991), used by RANSAC (algorithms.md §5.1) and evaluation (§11)
+# Point-set alignment (Umeyama 1991), used by RANSAC (docs/math.md §5.1) and evaluation (§11)
 
 
 def umeyama(a: np.ndarray, b: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:

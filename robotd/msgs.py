@@ -118,7 +118,7 @@ class MotionIncrement:
     """The control input of the motion models: the motion between two frames.
 
     ``dp_R_m`` is the translation expressed in the robot frame at ``t0_ns``; ``drot_R_rad`` the
-    body rotation increment (body rate × Δt; algorithms.md §6.3). ``cov`` is the 6×6 covariance
+    body rotation increment (body rate × Δt; docs/math.md §6.3). ``cov`` is the 6×6 covariance
     of (dp, drot) in control space (M_t). The 2D filters use (dp[0], dp[1], drot[2]).
     """
 

@@ -1,4 +1,4 @@
-"""Outlier detection for landmark correspondences: RANSAC (algorithms.md §5).
+"""Outlier detection for landmark correspondences: RANSAC (docs/math.md §5).
 
 A stage of its own, usable with any detector and any filter: it sees only the matched landmark
 sets, never the filter's pose.
@@ -50,7 +50,7 @@ GN_STEP_TOL = 1e-7
 
 @dataclass(frozen=True, slots=True)
 class OutlierParams:
-    """Outlier-stage configuration (config key ``frontend.outliers``; defaults of algorithms.md §5.5).
+    """Outlier-stage configuration (config key ``frontend.outliers``; defaults of docs/math.md §5.5).
 
     method: one of ``OUTLIER_METHODS``.
     confidence: χ² level 1−α of the Mahalanobis test (0.99 → 11.345 in 3-D, 9.210 in 2-D).
@@ -178,7 +178,7 @@ def sample_indices(rng: np.random.Generator, n: int, m: int, k: int) -> np.ndarr
 
 
 def iteration_budget(w: float, m: int, p: float, cap: int) -> int:
-    """K = ⌈log(1−p) / log(1−w^m)⌉ (algorithms.md §5.3), within [1, cap]."""
+    """K = ⌈log(1−p) / log(1−w^m)⌉ (docs/math.md §5.3), within [1, cap]."""
     if w <= 0.0:
         return cap
     wm = w**m

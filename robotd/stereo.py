@@ -2,11 +2,11 @@
 
 Two halves:
 
-- The **rectified** rig (thesis §3.2.4, algorithms.md §2.2–§3.2): :class:`RectifiedStereo`,
+- The **rectified** rig (thesis §3.2.4, docs/math.md §2.2–§3.2): :class:`RectifiedStereo`,
   :func:`triangulate` (eq. 3.2.14), :func:`project`, and the first-order covariance. Points are
-  returned in the robot frame (algorithms.md §1.2): origin at the baseline centre, X forward
+  returned in the robot frame (docs/math.md §1.2): origin at the baseline centre, X forward
   (depth), Y right along the baseline, Z down. All functions are vectorised over N points.
-- The **raw** rig (thesis §3.1–§3.2.3, algorithms.md §2.1): a pinhole camera with skew (eq. 3.1.8)
+- The **raw** rig (thesis §3.1–§3.2.3, docs/math.md §2.1): a pinhole camera with skew (eq. 3.1.8)
   and OpenCV's distortion models (radial-tangential with 4/5 coefficients, the 8/12/14-coefficient
   rational model with thin-prism and tilt terms that the OAK-D factory calibration uses), the
   :class:`StereoCalibration` of two such cameras, and rectification either as the thesis derives
@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, slots=True)
 class RectifiedStereo:
-    """A rectified rig is described by f, p_x, p_y, b and the image size (algorithms.md §2.1).
+    """A rectified rig is described by f, p_x, p_y, b and the image size (docs/math.md §2.1).
 
     This is what the front end needs; how it was obtained (calibration, OAK factory data,
     dataset files) is the business of the calibration code.
@@ -54,7 +54,7 @@ class RectifiedStereo:
         return self.f_px * self.baseline_m
 
     def disparity_bounds(self, depth_min_m: float = 0.3, d_min_px: float = 5.0) -> tuple[float, float]:
-        """(d_min, d_max) from the configured near limit and disparity floor (algorithms.md §2.2)."""
+        """(d_min, d_max) from the configured near limit and disparity floor (docs/math.md §2.2)."""
         return d_min_px, self.fb / depth_min_m
 
 
@@ -78,7 +78,7 @@ def triangulate(xl: np.ndarray, xr: np.ndarray, y: np.ndarray, f: float, px: flo
 def triangulation_jacobian(
     xl: np.ndarray, xr: np.ndarray, y: np.ndarray, f: float, px: float, py: float, b: float
 ) -> np.ndarray:
-    """∂(X, Y, Z)/∂(x_L, x_R, y), (N, 3, 3) (algorithms.md §3.1)."""
+    """∂(X, Y, Z)/∂(x_L, x_R, y), (N, 3, 3) (docs/math.md §3.1)."""
     xl = np.asarray(xl, dtype=float)
     xr = np.asarray(xr, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -110,7 +110,7 @@ def triangulation_covariance(
 ) -> np.ndarray:
     """First-order covariance Q = J Σ_px J^T of each triangulated point, (N, 3, 3) [m²].
 
-    Σ_px = diag(σx², σx², σy²) for (x_L, x_R, y) (algorithms.md §3.1); ``inflation`` multiplies Q
+    Σ_px = diag(σx², σx², σy²) for (x_L, x_R, y) (docs/math.md §3.1); ``inflation`` multiplies Q
     (§3.3, default 1).
     """
     J = triangulation_jacobian(xl, xr, y, f, px, py, b)
@@ -122,7 +122,7 @@ def triangulation_covariance(
 def covariance_from_points(
     xyz_R: np.ndarray, f: float, b: float, sigma_x_px: float = 0.5, sigma_y_px: float = 0.5 / np.sqrt(2.0)
 ) -> np.ndarray:
-    """Closed form of the same covariance from the triangulated points (algorithms.md §3.2).
+    """Closed form of the same covariance from the triangulated points (docs/math.md §3.2).
 
     Q = X²/(f²b²) (2σx² z zᵀ + diag(0, σx² b²/2, σy² b²)), (N, 3, 3). Used by simulators that
     produce points directly; agrees with :func:`triangulation_covariance`.
@@ -421,7 +421,7 @@ class Rectification:
 
     @property
     def model(self) -> RectifiedStereo:
-        """f, p_x, p_y from P1 and b = -P2[0,3]/P2[0,0] (algorithms.md §2.1)."""
+        """f, p_x, p_y from P1 and b = -P2[0,3]/P2[0,0] (docs/math.md §2.1)."""
         return RectifiedStereo(
             f_px=float(self.P1[0, 0]),
             px=float(self.P1[0, 2]),
@@ -628,7 +628,7 @@ def gate_selection_shift(disparity_px: np.ndarray, d_min_px: float, d_max_px: fl
 
 
 def debias_points(xyz_R: np.ndarray, disparity_px: np.ndarray, sigma_x_px: float = 0.5) -> np.ndarray:
-    """Second-order correction of the triangulation bias (Sibley et al. 2005; algorithms.md §3.3).
+    """Second-order correction of the triangulation bias (Sibley et al. 2005; docs/math.md §3.3).
 
     With disparity noise of variance σ_d² = 2σx², E[fb/d̂] ≈ (fb/d)(1 + σ_d²/d²): points come out
     too far, and a stereo odometry built on them overestimates distance travelled by the same
