@@ -138,7 +138,8 @@ class SlamConfig:
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(
         "sequential",
-        "FastSLAM 2.0 weight: chain rule over the proposal's innovations, or §10's product at the prior",
+        "FastSLAM 2.0 weight: chain rule over the proposal's innovations, or the product at the prior of"
+        ' docs/math.md §10 "Importance weight"',
         choices=("sequential", "prior"),
     )
     max_updates_per_frame: int = _f(
