@@ -1,4 +1,4 @@
-"""Landmark identification: match a frame's measurements to map landmarks by descriptor (algorithms.md §4.3).
+"""Landmark identification: match a frame's measurements to map landmarks by descriptor (docs/math.md §4.3).
 
 The :class:`LandmarkDescriptors` store holds what is global to the map and shared by every
 FastSLAM particle: landmark ids and one descriptor per landmark (the left descriptor of its most
@@ -33,7 +33,7 @@ IDENTIFIED, NEW, REJECTED = 0, 1, 2
 
 @dataclass(frozen=True, slots=True)
 class AssociationParams:
-    """Map-matching configuration (config key ``frontend.association``; algorithms.md §4.3, §5.5).
+    """Map-matching configuration (config key ``frontend.association``; docs/math.md §4.3, §5.5).
 
     ratio: τ_r (None: 0.8 float descriptors, 0.75 binary). max_dist_float / max_dist_binary:
       absolute limit on the best distance (unit-normalised Euclidean; Hamming bits); a measurement
@@ -72,7 +72,7 @@ class AssociationParams:
 
 @dataclass(slots=True, eq=False)
 class Correspondences:
-    """The correspondence vector c_t of one frame (algorithms.md §4.3).
+    """The correspondence vector c_t of one frame (docs/math.md §4.3).
 
     status: (N,) int8 IDENTIFIED / NEW / REJECTED per measurement; ids: (N,) int64 global landmark
     id (the matched landmark for IDENTIFIED and REJECTED-after-match, the new id for a NEW

@@ -1,6 +1,6 @@
 """Feature detectors behind one interface: ORB (fast default), SIFT (OpenCV), SURF (robotd's own).
 
-``make_detector(params).detect(image, max_features) -> Features`` (algorithms.md §4.1). A per-frame
+``make_detector(params).detect(image, max_features) -> Features`` (docs/math.md §4.1). A per-frame
 cap keeps the cost bounded; grid bucketing spreads the kept features over the image, which matters
 for the outlier stage and the filters: a cluster of features on one parked car constrains the pose
 far less than the same number spread over the view.

@@ -1,4 +1,4 @@
-"""The front end: a rectified stereo pair -> identified landmark measurements (algorithms.md §2–§5).
+"""The front end: a rectified stereo pair -> identified landmark measurements (docs/math.md §2–§5).
 
 Its stages are methods that the pipeline calls one by one, in data-flow order:
 

@@ -1,4 +1,4 @@
-"""Stereo matching on rectified images (algorithms.md §4.1–§4.2) and triangulation (§2.2, §3.1).
+"""Stereo matching on rectified images (docs/math.md §4.1–§4.2) and triangulation (§2.2, §3.1).
 
 Candidates for a left feature are the right features that satisfy every stereo constraint:
 row |y_L − y_R| ≤ ε_y, disparity d_min ≤ x_L − x_R ≤ d_max = fb / X_min, and (SURF) the same
@@ -97,7 +97,7 @@ def ratio_and_cross_check(
     max_single: float,
     cross_check: bool = True,
 ) -> tuple[np.ndarray, dict[str, int]]:
-    """Select mutual best matches from sparse candidate pairs (algorithms.md §4.1–§4.2).
+    """Select mutual best matches from sparse candidate pairs (docs/math.md §4.1–§4.2).
 
     ``i``, ``j``: (P,) indices of candidate pairs; ``dist``: (P,) their descriptor distances.
     For each i the best pair is kept if dist < ratio · second-best distance, or, when it is the
@@ -142,7 +142,7 @@ def ratio_and_cross_check(
 
 @dataclass(frozen=True, slots=True)
 class StereoMatchParams:
-    """Stereo matching configuration (config key ``frontend.stereo``; defaults of algorithms.md §5.5).
+    """Stereo matching configuration (config key ``frontend.stereo``; defaults of docs/math.md §5.5).
 
     row_tol_px: ε_y of the row constraint. d_min_px, depth_min_m: disparity bounds (d_max = fb/X_min).
     ratio: τ_r; None picks 0.8 for float descriptors (SIFT, SURF) and 0.75 for binary (ORB).
@@ -382,7 +382,7 @@ def match_stereo(
     left_img: np.ndarray | None = None,
     right_img: np.ndarray | None = None,
 ) -> StereoMatches:
-    """Match rectified left/right features and triangulate them (algorithms.md §2.2, §3.1, §4.2).
+    """Match rectified left/right features and triangulate them (docs/math.md §2.2, §3.1, §4.2).
 
     ``left``/``right``: Features of the rectified images (one detector); ``left_img``/``right_img``:
     (H, W) uint8 rectified images, needed for ``refine="patch"`` (without them the keypoint
