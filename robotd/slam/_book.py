@@ -1,7 +1,7 @@
 """Landmark bookkeeping shared by the filters: global id -> storage slot, existence counters.
 
 Ids are global (shared by all particles) and may be arbitrary int64 values, so they map to dense
-storage slots through a dict. Existence counter (algorithms.md §8, Thrun et al. 2005 §10.3.3):
+storage slots through a dict. Existence counter (docs/math.md §8, Thrun et al. 2005 §10.3.3):
 +1 when a landmark is observed, −1 when it is predicted inside the field of view and range but not
 observed; a landmark is deleted when its counter falls below 0 after the frame that created it.
 """

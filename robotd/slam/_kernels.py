@@ -1,7 +1,7 @@
 """numba kernels for the FastSLAM hot path (Cartesian and stereo pixel measurements, 2D and 3D).
 
 ``fastslam_step_numba`` has the signature and the effects of
-:func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (algorithms.md §7.1, §7.2)
+:func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (docs/math.md §7.1, §7.2)
 and the stereo pixel models (``intrinsics``; docs/slam.md "Measurement models", with their
 constant noise), and agrees with it and with its readable twin ``fastslam_step_reference``
 (tests/support/reference_fastslam.py) to 1e-9 given the same ``eps``. Each
@@ -85,7 +85,7 @@ def _cholesky_into(A, L, n: int) -> bool:  # type: ignore[no-untyped-def]
 #
 # With R = R(x) and d = m - p, the measurement is z = R^T d, H_m = R^T and H_x = R^T Ĥ with
 # Ĥ = [-I | A], A[:, a] = d × W_a, where W_a is the world-frame axis of Euler angle a
-# (∂R/∂a = [W_a]× R for ZYX angles: W_roll = R e_x, W_pitch = R_z e_y, W_yaw = e_z; algorithms.md
+# (∂R/∂a = [W_a]× R for ZYX angles: W_roll = R e_x, W_pitch = R_z e_y, W_yaw = e_z; docs/math.md
 # §1.3). Every robot-frame innovation covariance is then Ψ = R^T Ψ_w R with
 # Ψ_w = Ĥ Σ Ĥ^T + C + R Q R^T, and with ν_w = R ν = R z - d the formulas of §9/§10 become
 #   ν^T Ψ^{-1} ν = ν_w^T Ψ_w^{-1} ν_w,  det Ψ = det Ψ_w,
@@ -1042,7 +1042,7 @@ def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # typ
 def predict3_numba(
     pose: np.ndarray, u: np.ndarray, M: np.ndarray, extra: np.ndarray, want_S: bool, cos_pitch_min: float
 ) -> tuple[np.ndarray, np.ndarray | None, int]:
-    """3D motion update of all particles (algorithms.md §6.3), as :func:`robotd.slam.models.motion3d`.
+    """3D motion update of all particles (docs/math.md §6.3), as :func:`robotd.slam.models.motion3d`.
 
     Args:
         pose: (P, 6) poses; u: (6,) or (P, 6) controls (Δp_b [m], ω [rad]); M: (6, 6) control

@@ -1,4 +1,4 @@
-"""Copy-on-write landmark storage for the FastSLAM particles (design.md §4, algorithms.md §10).
+"""Copy-on-write landmark storage for FastSLAM's particles (docs/architecture.md "Performance shape", docs/math.md §10).
 
 Landmark slots are grouped in blocks of ``B`` consecutive slots. Each particle holds a row of block
 indices into a shared pool:

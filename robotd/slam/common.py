@@ -113,7 +113,7 @@ def split_observations(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(z (N, dz), Q (N, dz, dz), ids (N,) int64, is_new (N,) bool) for a ``dim``-D filter.
 
-    Cartesian (``model`` None or without intrinsics, §3.3): z = the first ``dim`` coordinates of
+    Cartesian (``model`` None or without intrinsics, docs/math.md §3.3): z = the first ``dim`` coordinates of
     the points, Q the matching block of their covariances. Pixel model: z = ``obs.uv_px`` (the
     projection of ``xyz_R_m`` when the message has no pixels), 2D its two columns, Q = ``Q_px``
     (dz, dz) for every row. Raises InputError on non-finite values, duplicate ids within the frame,

@@ -1,4 +1,4 @@
-"""EKF SLAM with known correspondences (algorithms.md §8; Thrun et al. 2005 ch. 10).
+"""EKF SLAM with known correspondences (docs/math.md §8; Thrun et al. 2005 ch. 10).
 
 State ``y = (x, m_1, …, m_M)`` of size ``dx + dm·M`` (2D: 3 + 2M, 3D: 6 + 3M) with full covariance.
 Landmark ``k`` of the book occupies ``y[dx + dm·k : dx + dm·(k+1)]``; deletion compacts the state.

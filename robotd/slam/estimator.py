@@ -18,7 +18,7 @@ from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate
 
 @runtime_checkable
 class Estimator(Protocol):
-    """A SLAM filter with known correspondences (algorithms.md §8–§10)."""
+    """A SLAM filter with known correspondences (docs/math.md §8–§10)."""
 
     name: str  # "ekf" | "fastslam1" | "fastslam2"
     dim: int  # 2 | 3

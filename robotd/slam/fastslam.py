@@ -1,4 +1,4 @@
-"""FastSLAM 1.0 and 2.0 with known correspondences, 2D and 3D (algorithms.md §9, §10).
+"""FastSLAM 1.0 and 2.0 with known correspondences, 2D and 3D (docs/math.md §9, §10).
 
 One particle store, a struct of arrays:
 

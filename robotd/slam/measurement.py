@@ -27,7 +27,7 @@ def covariance_at_prediction(
 ) -> Observations:
     """The observations with each re-observation's covariance evaluated at its *predicted* point.
 
-    A front end evaluates the first-order stereo covariance (algorithms.md §3.2) at the measured,
+    A front end evaluates the first-order stereo covariance (docs/math.md §3.2) at the measured,
     noisy pixels: a point whose disparity came out too large (too near) gets a smaller Q and so
     more weight, which biases every estimator towards nearer landmarks. For a landmark already in
     the map the filter's prediction ẑ = R(η)ᵀ(m − p) is a far better estimate of the true depth,

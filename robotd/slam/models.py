@@ -1,8 +1,8 @@
-"""Motion and measurement models of the SLAM filters, with every Jacobian (algorithms.md §6, §7).
+"""Motion and measurement models of the SLAM filters, with every Jacobian (docs/math.md §6, §7).
 
 All functions are pure and vectorised over a leading batch axis ``B`` (particles, or particles ×
 observations); the EKF calls them with ``B = 1``. Frames: poses are robot-in-world
-(``x = (x, y, yaw)`` in 2D, ``(x, y, z, roll, pitch, yaw)`` in 3D, ZYX Euler, algorithms.md §1.3);
+(``x = (x, y, yaw)`` in 2D, ``(x, y, z, roll, pitch, yaw)`` in 3D, ZYX Euler, docs/math.md §1.3);
 landmarks ``m`` are world-frame points; measurements ``z`` are in the robot frame (Cartesian models)
 or pixels of the rectified stereo pair (the pixel models).
 
@@ -32,16 +32,16 @@ from robotd.geometry import (
 MeasResult = tuple[np.ndarray, np.ndarray, np.ndarray]
 MeasFn = Callable[[np.ndarray, np.ndarray], MeasResult]
 
-# ω below this is a straight line for the velocity model (algorithms.md §6.1)
+# ω below this is a straight line for the velocity model (docs/math.md §6.1)
 OMEGA_STRAIGHT = 1e-6
-# |cos(pitch)| below this makes E(θ, φ) singular (pitch ±90°, algorithms.md §6.3)
+# |cos(pitch)| below this makes E(θ, φ) singular (pitch ±90°, docs/math.md §6.3)
 COS_PITCH_MIN = 1e-3
 
 
 def _rot3_all(eta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """R(η) = Rz Ry Rx and ∂R/∂roll, ∂R/∂pitch, ∂R/∂yaw for η (B, 3); each (B, 3, 3).
 
-    The products of algorithms.md §1.3 expanded in closed form and written into preallocated
+    The products of docs/math.md §1.3 expanded in closed form and written into preallocated
     arrays: on the filters' hot path this is ~5× cheaper than composing stacked elementary
     rotations (``robotd.geometry.euler_to_R_derivatives``, which the tests compare against).
     """
@@ -70,7 +70,7 @@ def _rot3_all(eta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
 
 def velocity2d(x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """2D velocity motion model (algorithms.md §6.1, Thrun et al. 2005 ch. 5).
+    """2D velocity motion model (docs/math.md §6.1, Thrun et al. 2005 ch. 5).
 
     Args:
         x: (B, 3) poses (x, y, yaw) [m, m, rad] at t-1, world frame.
@@ -108,7 +108,7 @@ def velocity2d(x: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.
 
 
 def velocity2d_noise(v: float, w: float, dt: float, alpha: tuple[float, ...]) -> tuple[np.ndarray, float]:
-    """Control noise of the velocity model (algorithms.md §6.1).
+    """Control noise of the velocity model (docs/math.md §6.1).
 
     Args:
         alpha: (α1, …, α6) as in Thrun et al. (2005) Table 5.3.
@@ -124,7 +124,7 @@ def velocity2d_noise(v: float, w: float, dt: float, alpha: tuple[float, ...]) ->
 
 
 def odometry2d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """2D odometry-increment model (algorithms.md §6.2).
+    """2D odometry-increment model (docs/math.md §6.2).
 
     Args:
         x: (B, 3) poses (x, y, yaw) at t-1, world frame.
@@ -155,7 +155,7 @@ def odometry2d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
 
 
 def odometry2d_noise(u: np.ndarray, a: tuple[float, ...]) -> np.ndarray:
-    """M_t of the odometry-increment model (algorithms.md §6.2).
+    """M_t of the odometry-increment model (docs/math.md §6.2).
 
     ``M = diag((a1|Δx|+a0)², (a2|Δx|+a0)², (a3|Δx|+a4|Δψ|+a5)²)`` with ``a = (a0, …, a5)``.
     Returns (3, 3).
@@ -170,7 +170,7 @@ def odometry2d_noise(u: np.ndarray, a: tuple[float, ...]) -> np.ndarray:
 
 
 def motion3d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """6-DOF increment model (algorithms.md §6.3).
+    """6-DOF increment model (docs/math.md §6.3).
 
     ``p_t = p + R(η) Δp_b``, ``η_t = η + E(θ, φ) ω``.
 
@@ -221,7 +221,7 @@ def motion3d_noise(
     """M_t (6, 6) for the 3D model: per-axis standard deviations that grow with the increment.
 
     ``σ_dp,i = dp_rel_i·|Δp| + sigma_dp_m_i`` and
-    ``σ_ω,i = rot_per_m_i·|Δp| + rot_rel·|ω_i| + sigma_rot_rad_i`` (algorithms.md §6.3 leaves the
+    ``σ_ω,i = rot_per_m_i·|Δp| + rot_rel·|ω_i| + sigma_rot_rad_i`` (docs/math.md §6.3 leaves the
     coefficients open; robotd's defaults are in :class:`robotd.slam.estimator.SlamParams`).
     """
     u = np.asarray(u, dtype=float)
@@ -273,11 +273,11 @@ def gravity3d_tilt(x: np.ndarray, g_W: np.ndarray, yaw: float | None = None) -> 
 
 
 # --------------------------------------------------------------------------------------------
-# Measurement models (algorithms.md §7)
+# Measurement models (docs/math.md §7)
 
 
 def meas3d(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """3D point measurement ``z = R(η)^T (m - p)`` (algorithms.md §7.1).
+    """3D point measurement ``z = R(η)^T (m - p)`` (docs/math.md §7.1).
 
     Args:
         x: (B, 6) poses; m: (B, 3) world landmarks.
@@ -301,7 +301,7 @@ def meas3d(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def meas3d_inverse(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Landmark initialisation ``m = p + R z`` (algorithms.md §7.1).
+    """Landmark initialisation ``m = p + R z`` (docs/math.md §7.1).
 
     Returns m (B, 3) world, J_x = [I, R_θ z, R_φ z, R_ψ z] (B, 3, 6), J_z = R (B, 3, 3).
     """
@@ -318,7 +318,7 @@ def meas3d_inverse(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def meas2d(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """2D Cartesian measurement ``z = R2(ψ)^T (m - p)`` (algorithms.md §7.2).
+    """2D Cartesian measurement ``z = R2(ψ)^T (m - p)`` (docs/math.md §7.2).
 
     Args:
         x: (B, 3) poses; m: (B, 2) landmarks.
@@ -356,7 +356,7 @@ def meas2d_inverse(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def range_bearing(x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Range–bearing ``(r, β) = (|Δ|, atan2(Δy, Δx) - ψ)`` (algorithms.md §7.2), β wrapped.
+    """Range–bearing ``(r, β) = (|Δ|, atan2(Δy, Δx) - ψ)`` (docs/math.md §7.2), β wrapped.
 
     Returns z (B, 2), H_x (B, 2, 3), H_m (B, 2, 2). Undefined at r = 0 (landmark on the robot).
     """
@@ -439,7 +439,7 @@ def stereo_triangulation(z: np.ndarray, f: float, px: float, py: float, b: float
     """π⁻¹ and its Jacobian: z (B, 3) (x_L, x_R, y) -> q (B, 3), J (B, 3, 3) = ∂q/∂z (= J_π⁻¹);
     z (B, 2) (x_L, x_R) -> (X, Y) (B, 2), J (B, 2, 2). The disparity x_L − x_R must be positive.
 
-    robotd.stereo.triangulate (eq. 3.2.14) and its Jacobian (algorithms.md §3.1) written in q:
+    robotd.stereo.triangulate (eq. 3.2.14) and its Jacobian (docs/math.md §3.1) written in q:
     J = X/(f b) · [[−X, X, 0], [−(Y − b/2), Y + b/2, 0], [−Z, Z, b]].
     """
     z = np.asarray(z, dtype=float)

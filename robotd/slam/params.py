@@ -4,7 +4,7 @@ names, and the default field-of-view test the filters prune landmarks with.
 Which motion covariance wins (``SlamParams.motion_cov_source``):
 
 - ``"auto"`` (default): the ``MotionIncrement.cov`` of the message when it has any non-zero
-  entry, otherwise the parametric noise model of algorithms.md §6.2 (2D) / §6.3 (3D);
+  entry, otherwise the parametric noise model of docs/math.md §6.2 (2D) / §6.3 (3D);
 - ``"message"``: always the message's covariance (zeros allowed: a deterministic motion);
 - ``"model"``: always the parametric model.
 """
@@ -36,7 +36,7 @@ class SlamParams:
 
     filter: str = "fastslam2"  # "ekf" | "fastslam1" | "fastslam2"
     dim: int = 3  # 2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)
-    n_particles: int = 100  # FastSLAM particle count N (algorithms.md §10)
+    n_particles: int = 100  # FastSLAM particle count N (docs/math.md §10)
     n_particles_min: int = 10  # floor for set_particles: min(n_particles_min, n_particles)
     resample_neff_ratio: float = 0.5  # resample when N_eff < ratio·N
     motion_cov_source: str = "auto"  # "auto" | "message" | "model" (see module docstring)

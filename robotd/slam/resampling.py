@@ -1,6 +1,6 @@
 """Particle weights, effective sample size, low-variance resampling, weighted pose statistics.
 
-algorithms.md §10 "Resampling" and "Output"; Thrun et al. (2005) ch. 4 (low-variance sampler).
+docs/math.md §10 "Resampling" and "Output"; Thrun et al. (2005) ch. 4 (low-variance sampler).
 Weights are kept in the log domain and normalised with log-sum-exp.
 """
 
