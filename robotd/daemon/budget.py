@@ -1,7 +1,8 @@
 """Latency budget: stage timings, a per-frame deadline and a degradation policy that recovers.
 
-Degradation order (design.md §4): (1) cap features, halving down to ``min_features``; (2) reduce
-particles, halving down to ``min_particles``; (3) skip frames (process one in 2, then 1 in 3, …).
+Degradation order (docs/architecture.md "Performance shape"): (1) cap features, halving down to
+``min_features``; (2) reduce particles, halving down to ``min_particles``; (3) skip frames
+(process one in 2, then 1 in 3, …).
 
 One step down the ladder when the rung does not fit: a smoothed load above 90 % of the time a
 frame may take, or overruns too frequent for a p99 within the deadline (``MISSES_TO_DEGRADE`` in

@@ -1,4 +1,4 @@
-"""The daemon: signals → startup → loop → graceful shutdown (design.md §5.10, interfaces.md §4).
+"""The daemon: signals → startup → loop → graceful shutdown (docs/architecture.md "House style", docs/interfaces.md §4).
 
 Threads:
 
@@ -333,7 +333,7 @@ class Daemon:
             event = ResetEvent.RELOCALISATION if result.relocalised else None
             if stalled and inc is None:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
-                # the autopilot must not fuse the jump as motion (interfaces.md §1.5)
+                # the autopilot must not fuse the jump as motion (docs/interfaces.md §1.5)
                 event = event or ResetEvent.STALL
             self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot, t_ref_ns))
         self.pub_q.close()

@@ -1,4 +1,4 @@
-"""sd_notify over $NOTIFY_SOCKET without a library (interfaces.md §4.1); a no-op outside systemd."""
+"""sd_notify over $NOTIFY_SOCKET without a library (docs/interfaces.md §4.1); a no-op outside systemd."""
 
 from __future__ import annotations
 

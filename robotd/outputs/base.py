@@ -41,7 +41,7 @@ class StepReport:
 
     seq: publish sequence number (1, 2, …); frame_seq: the camera's sequence number of the frame.
     quality: MAVLink convention, −1 lost, 1..100 (:func:`pose_quality`). reset_counter: bumps at
-    every pose discontinuity (interfaces.md §1.5). latency_ms: capture to hand-over to the
+    every pose discontinuity (docs/interfaces.md §1.5). latency_ms: capture to hand-over to the
     outputs. health: "tracking" | "degraded" (the latency budget is trading accuracy for time) |
     "failed" (tracking lost). landmarks / state: the snapshots taken for outputs that asked for
     them (``map_period_s`` / ``state_period_s``), else None.

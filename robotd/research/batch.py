@@ -1,6 +1,6 @@
 """Batch least-squares SLAM: the whole trajectory and map from all measurements at once.
 
-This is the reference a filter is judged against (algorithms.md §12): on the same controls and
+This is the reference a filter is judged against (docs/math.md §12): on the same controls and
 measurements, the maximum-a-posteriori trajectory and map under the filters' own Gaussian models
 (full smoothing, no linearisation history) is the best a filter can do. The experiments report
 every filter's ATE as a ratio to it.

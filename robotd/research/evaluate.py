@@ -1,4 +1,4 @@
-"""Evaluation metrics and trajectory files (algorithms.md §11).
+"""Evaluation metrics and trajectory files (docs/math.md §11).
 
 Pure functions over arrays of poses; the only I/O is the explicit file readers/writers and
 :func:`plot_trajectory` (matplotlib, Agg backend, imported lazily).

@@ -1,11 +1,11 @@
-"""Landmark-world simulation for the filters (algorithms.md §12): worlds, trajectories, stereo noise, odometry.
+"""Landmark-world simulation for the filters (docs/math.md §12): worlds, trajectories, stereo noise, odometry.
 
 This is the point-landmark simulator the filter experiments use (not the rendered-image rover of
 ``drivers/sim.py``). It produces, per frame, exactly what the estimator consumes — a
 :class:`robotd.msgs.MotionIncrement` and :class:`robotd.msgs.Observations` — plus the truth kept
 alongside for evaluation (true pose, true landmark ids, which correspondences are wrong).
 
-Frames (algorithms.md §1.2): world ``W`` is the robot frame at the first pose (forward-right-down,
+Frames (docs/math.md §1.2): world ``W`` is the robot frame at the first pose (forward-right-down,
 so the start pose is the identity); robot ``R`` is FRD at the baseline centre. Poses are 6-vectors
 ``(x, y, z, roll, pitch, yaw)`` with R = Rz(yaw) Ry(pitch) Rx(roll) (ZYX); 2D worlds keep
 z = roll = pitch = 0 and landmarks in the camera's plane (Z_W = 0).
@@ -56,7 +56,7 @@ _UNUSED_VAR = 1e-12
 
 @dataclass(frozen=True, slots=True)
 class SimConfig:
-    """Everything that defines a simulated run (defaults: algorithms.md §12, "Simulation world").
+    """Everything that defines a simulated run (defaults: docs/math.md §12 "Simulation world").
 
     Lengths in metres, angles in degrees where the name says ``_deg``, pixel quantities in px.
     """

@@ -1,6 +1,6 @@
 """Synthetic landmark correspondences with known truth, for the outlier stage's tests and benchmark.
 
-One frame of algorithms.md §12.3: a robot at a random pose sees ``n`` landmarks; each measurement
+One frame of docs/math.md §12.3: a robot at a random pose sees ``n`` landmarks; each measurement
 is made the stereo way (project to pixels, add σ = 0.5 px noise, triangulate, covariance of §3.1),
 so its noise is the true stereo noise, not a 3-D Gaussian. Map landmarks carry their own
 covariance A_i (a fused estimate: the stereo covariance of an earlier, closer view, in the world
@@ -19,7 +19,7 @@ import numpy as np
 from robotd.geometry import euler_to_R, se3, se3_inverse
 from robotd.stereo import RectifiedStereo, project, triangulate, triangulation_covariance
 
-# the project's OAK-D rig at 640×400 (algorithms.md §12)
+# the project's OAK-D rig at 640×400 (docs/math.md §12)
 OAKD_RIG = RectifiedStereo(f_px=430.0, px=319.5, py=199.5, baseline_m=0.0755, width=640, height=400)
 
 

@@ -7,7 +7,7 @@ headers; columns are separated by tabs and spaces. Subjects 1–5 are robots, 6�
 Measurements quote barcodes, which are mapped to subjects here; observations of robots are dropped.
 
 The data is planar in the dataset's own frame (x, y, counter-clockwise θ; ω > 0 turns left).
-The 2D formulas of algorithms.md §6.1 and §7.2 hold in any right-handed planar frame (§1.2), so the
+The 2D formulas of docs/math.md §6.1 and §7.2 hold in any right-handed planar frame (§1.2), so the
 run stays in that frame and never mixes it with robotd's FRD frames.
 """
 
