@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Filter consistency study (algorithms.md §11 NEES, §12 simulation world, 2D and 3D loops).
+"""Filter consistency study (docs/math.md §11 NEES, §12 simulation world, 2D and 3D loops).
 
 Runs EKF SLAM and FastSLAM 2.0 on the same simulated 2D loops under three measurement-noise models
 (robotd.research.landmark_sim ``noise_model``):
@@ -17,7 +17,7 @@ particles, option): ATE / batch bound (mean, max), the ANEES over the runs again
 NEES is over the filter's pose state: (x, y, yaw) in 2D (n = 3), all six of (x, y, z, roll,
 pitch, yaw) in 3D (n = 6), each row with the band of its n. ``--options`` adds FastSLAM 2.0 variants given as
 SlamParams overrides, e.g. ``fs2_weights=sequential``, plus two study-only keys: ``q_scale`` and
-``m_scale`` multiply the measurement (Q) and motion (M) covariances the filter is given (algorithms.md
+``m_scale`` multiply the measurement (Q) and motion (M) covariances the filter is given (docs/math.md
 §11's inflation remedy; the simulated noise is unchanged). The JSON also holds each case's mean
 NEES in each tenth of the run (``nees_tenths``), printed as a second table.
 

@@ -1,4 +1,4 @@
-"""Front end on real KITTI frames: SIFT, SURF and ORB at full and OAK-D resolution (algorithms.md §12.6).
+"""Front end on real KITTI frames: SIFT, SURF and ORB at full and OAK-D resolution (docs/math.md §12.6).
 
 For each detector and resolution the 51-frame sequence runs through ``Frontend.process`` with the
 previous frame as the identification reference (no filter). Reported per frame: features (left),

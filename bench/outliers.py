@@ -1,4 +1,4 @@
-"""Outlier detectors under injected mismatches (algorithms.md §12.3, simulated part).
+"""Outlier detectors under injected mismatches (docs/math.md §12.3, simulated part).
 
 For each mismatch rate and seed, one frame of putative correspondences from
 ``robotd.research.synthetic_pairs.simulate_pairs`` (OAK-D rig, stereo-consistent noise, half of the

@@ -1,7 +1,7 @@
 """Calibration checks on real images: rectify a pair and measure how well matches share rows.
 
 After a correct rectification, a true left/right correspondence lies on the same row
-(algorithms.md §2.1: median |y_L - y_R| of good matches below ~0.3 px). The check matches
+(docs/math.md §2.1: median |y_L - y_R| of good matches below ~0.3 px). The check matches
 features between the rectified images **without** any row constraint (that is what is being
 tested), with Lowe's ratio test and a mutual cross-check, then removes mismatches with RANSAC on
 the fundamental matrix (thesis eq. 3.2.2: x_Rᵀ F x_L = 0 for some F; it assumes nothing about the
@@ -47,7 +47,7 @@ def match_features(
     disparity_px: tuple[float, float] | None = None,
     cross_check: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (il, ir) of accepted left/right matches (algorithms.md §4.1–4.2).
+    """Indices (il, ir) of accepted left/right matches (docs/math.md §4.1–§4.2).
 
     Candidates may be restricted by the row constraint |y_L - y_R| <= ``max_dy_px`` and the
     disparity window d = x_L - x_R in ``disparity_px``; Lowe's ratio test is applied among the

@@ -2,7 +2,7 @@
 
 The raw-rig model (:class:`robotd.stereo.StereoCalibration`) and the remap-table
 :class:`robotd.stereo.Rectifier` live in ``robotd.stereo``; they are re-exported here so the
-drivers have one import site. Conventions (algorithms.md §2.1): optical frames,
+drivers have one import site. Conventions (docs/math.md §2.1): optical frames,
 ``x_right = R x_left + T`` with ``T`` in metres, ``b = -P2[0,3]/P2[0,0]``.
 """
 
@@ -21,7 +21,7 @@ def T_robot_leftraw(R1: np.ndarray, baseline_m: float) -> np.ndarray:
 
     The rectified left camera frame is ``x_Cr = R1 x_C`` (``R1`` from stereoRectify); the robot
     frame sits at the baseline centre, i.e. at (b/2, 0, 0) in the rectified left frame, with FRD
-    axes (algorithms.md §1.2): ``x_R = A (R1 x_C - (b/2, 0, 0))`` with A the optical->FRD axis map.
+    axes (docs/math.md §1.2): ``x_R = A (R1 x_C - (b/2, 0, 0))`` with A the optical->FRD axis map.
     """
     R = R_ROBOT_OPTICAL @ np.asarray(R1, dtype=float)
     t = -R_ROBOT_OPTICAL @ np.array([baseline_m / 2.0, 0.0, 0.0])

@@ -340,7 +340,7 @@ def kitti_pose_rows(rows: np.ndarray) -> np.ndarray:
 def kitti_truth_to_robot(T_C0_C: np.ndarray, baseline_m: float) -> np.ndarray:
     """KITTI left-camera poses (..., 4, 4), optical frame -> robot-frame poses T_R0_R (FRD, baseline centre).
 
-    ``T_optical_to_robot`` re-expresses both sides in FRD axes (interfaces.md §1.3); the robot
+    ``T_optical_to_robot`` re-expresses both sides in FRD axes (docs/interfaces.md §1.3); the robot
     origin is the baseline centre, b/2 to the right of the left camera: with S the shift
     x_R = x_Rleft - (0, b/2, 0), T_R0_R = S T_Rl0_Rl S⁻¹.
     """

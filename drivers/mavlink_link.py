@@ -36,7 +36,7 @@ ATTITUDE nearest each sample's stamp, its yaw carried to the stamp: ``_attitude_
 ``SERVO_OUTPUT_RAW``/``RC_CHANNELS`` are the control inputs. Autopilot stamps are mapped onto
 the host clock with the TIMESYNC offset (arrival time until the first round trip).
 
-Threads (interfaces.md §1.9): one receive thread (``recv_match`` with a 0.1 s timeout), one
+Threads (docs/interfaces.md §1.9): one receive thread (``recv_match`` with a 0.1 s timeout), one
 transmit thread that owns every ``*_send`` (the pose role's included: it only parks the pose).
 """
 
@@ -641,7 +641,7 @@ class MavlinkVehicle(QueuedVehicleLink):
 
     def _on_system_time(self, msg: Any, t_ns: int) -> None:
         # a reboot is a new boot clock seen consistently, with heartbeats, while the old one fell
-        # silent (drivers.mavlink_guard.BootClock; interfaces.md §1.6): never one SYSTEM_TIME
+        # silent (drivers.mavlink_guard.BootClock; docs/mavlink.md §7): never one SYSTEM_TIME
         if self._boot.observe(int(msg.time_boot_ms), t_ns):
             self.c["autopilot_reboots"] += 1
             logger.warning("%s: autopilot rebooted (time_boot_ms now %d)", self.url, int(msg.time_boot_ms))

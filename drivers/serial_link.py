@@ -8,7 +8,7 @@ Threads: one reader owns ``read_until`` and the decoder and puts :class:`robotd.
 samples into a bounded drop-oldest queue (drops counted); writes (version requests, forwarded
 poses) go through one lock. On ``SerialException``/``OSError`` the reader closes the port, backs
 off (doubling up to ``backoff_max_s``), reopens, and reports ``state = "degraded"`` meanwhile
-(interfaces.md §5.2). ``stats()["state"]`` comes from the recent good frames
+(docs/interfaces.md §5.2). ``stats()["state"]`` comes from the recent good frames
 (:mod:`drivers.link_state`): a silent port, or one that delivers only bad-CRC frames, is
 ``degraded`` and then ``lost``, never ``ok``. Wheel ticks are converted at this border with the configured geometry:
 Δx = (Δs_l + Δs_r)/2, FRD yaw Δψ = (Δs_l − Δs_r)/W, divided by the MCU-clock interval, stamped

@@ -1,6 +1,6 @@
 """The framed binary protocol between robotd and the vehicle MCU: pure encode/decode, no I/O.
 
-Wire format (interfaces.md §5.1; the full spec, with C snippets for the MCU side, is
+Wire format (docs/interfaces.md §5.1; the full spec, with C snippets for the MCU side, is
 ``docs/serial-protocol.md``)::
 
     body  = ver:u8 | type:u8 | seq:u16 | t_mcu_us:u32 | payload      (little-endian)
@@ -14,7 +14,7 @@ on. Nothing here imports pyserial; ``drivers.serial_link`` owns the port.
 Also here, because they are pure and shared with the MCU simulator and the MAVLink link:
 the MCU-to-host clock mapping (:class:`ClockMapper`, a minimum-latency filter over a sliding
 window with the 32-bit microsecond wrap) and the differential-drive conversion of wheel
-ticks/velocities to body velocity and yaw rate (interfaces.md §1.8).
+ticks/velocities to body velocity and yaw rate (docs/interfaces.md §1.8).
 """
 
 from __future__ import annotations
@@ -376,7 +376,7 @@ def seq_gap(prev: int, seq: int) -> int:
 class ClockMapper:
     """Map MCU timestamps (u32 µs, wrapping every ~71.6 min) onto the host monotonic clock [ns].
 
-    Minimum-latency filter (interfaces.md §5.2): every frame gives a sample
+    Minimum-latency filter (docs/interfaces.md §5.2): every frame gives a sample
     ``o = t_host_arrival − t_mcu`` = true offset + transport latency (≥ 0); the smallest ``o`` in a
     sliding window is the best offset estimate, since the fastest frame had the least delay. The
     window (default 5 s) is short enough that a 100 ppm crystal drifts only 0.5 ms within it.
@@ -440,7 +440,7 @@ class ClockMapper:
 
 
 # ---------------------------------------------------------------------------------------------
-# Differential drive (interfaces.md §1.8; algorithms.md §1.2: FRD, positive yaw turns right)
+# Differential drive (docs/interfaces.md §1.8; docs/math.md §1.2: FRD, positive yaw turns right)
 
 
 @dataclass(frozen=True, slots=True)

@@ -258,7 +258,7 @@ def _truth(
     """The truth of a rover at ``xy`` [m] (yard frame) heading ``yaw`` [rad], driving forward at
     ``v`` [m/s] and turning at ``yaw_rate`` [rad/s] (no slip), rocked by the terrain at distance
     driven ``s`` [m]: the velocity along the ground tangent goes into the (tilted) body frame and
-    the body rates are E⁻¹ · (Euler rates) (algorithms.md §6.3)."""
+    the body rates are E⁻¹ · (Euler rates) (docs/math.md §6.3)."""
     rp, drp = _tilt(tilt_rad, s)
     rpy = np.array([rp[0], rp[1], yaw])
     R_yard = euler_to_R(rpy)
@@ -277,7 +277,7 @@ class LoopTrajectory:
     tangent (no slip), so body velocity is (v, 0, 0) and yaw rate is κ v with κ the signed
     curvature (x′y″ − y′x″)/|p′|³ (positive = right turn in FRD). ``tilt_deg`` adds a gentle
     terrain-like rocking: roll and pitch of that amplitude varying along the path; body rates then
-    come from the Euler rates through E⁻¹ (algorithms.md §6.3). ``start_m`` is where on the loop
+    come from the Euler rates through E⁻¹ (docs/math.md §6.3). ``start_m`` is where on the loop
     the rover is at t = 0 (arc length from φ = 0, the tip at +x, heading +y).
     """
 

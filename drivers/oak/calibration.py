@@ -1,7 +1,7 @@
 """OAK-D factory calibration -> :class:`robotd.stereo.StereoCalibration` (the only depthai import).
 
 depthai reports lengths in **centimetres** and intrinsics for the sensor's full resolution unless
-asked for an output size (interfaces.md §2.3). This module is the border: it converts to metres
+asked for an output size (docs/interfaces.md §2.3). This module is the border: it converts to metres
 once and always requests intrinsics for the output size. CAM_B is the left mono camera, CAM_C the
 right one; ``getCameraExtrinsics(CAM_B, CAM_C)`` is the 4×4 transform x_C = R x_B + t [cm], the
 convention of :class:`StereoCalibration`. Distortion is OpenCV's 14-coefficient rational model.

@@ -1,4 +1,4 @@
-"""``oak://[device-id]``: the OAK-D stereo pair through depthai v3 (interfaces.md §2).
+"""``oak://[device-id]``: the OAK-D stereo pair through depthai v3 (docs/interfaces.md §2).
 
 Pipeline: two mono ``Camera`` nodes (CAM_B left, CAM_C right, GRAY8 at ``width``×``height`` and
 ``fps``; default 640×400 @ 30) -> ``Sync`` (threshold well under half a frame period: default
@@ -218,7 +218,7 @@ def group_to_frame(group: Any, gate: PairGate, rectifier: Any | None) -> StereoF
 def calibration_from_handler(handler: Any, size: tuple[int, int]) -> StereoCalibration:
     """``dai.CalibrationHandler`` -> StereoCalibration of CAM_B (left) / CAM_C (right) at ``size``, metres.
 
-    Intrinsics are requested for the output size (interfaces.md §2.3: otherwise fx is for
+    Intrinsics are requested for the output size (docs/interfaces.md §2.3: otherwise fx is for
     1280×800); extrinsics come in centimetres and are converted here, once.
     """
     import depthai as dai
@@ -329,7 +329,7 @@ class DeviceSession:
                 stereo.rectifiedLeft.link(sync.inputs[LEFT])
                 stereo.rectifiedRight.link(sync.inputs[RIGHT])
                 # the device's rectified geometry is assumed equal to OpenCV's from the same
-                # calibration; verify once with a target at known range (algorithms.md §2.1)
+                # calibration; verify once with a target at known range (docs/math.md §2.1)
                 self.model = Rectifier(calib, alpha=opts.alpha).model
             else:
                 outs[LEFT].link(sync.inputs[LEFT])
