@@ -1,4 +1,4 @@
-"""The layers of design.md §1, enforced by walking the imports (docs/architecture.md).
+"""The layers of docs/architecture.md "Module map", enforced by walking the imports.
 
 - core (geometry, stereo, msgs, statecheck, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
 - pipeline (pipeline, relocalise, config_params): the core and the config, no I/O;

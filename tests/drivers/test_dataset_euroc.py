@@ -49,7 +49,7 @@ def test_euroc_rectification_aligns_rows(euroc_frames) -> None:
             if mt.distance < 40 and 0 < xl - xr < 100:
                 dy.append(yl - yr)
     assert len(dy) > 100
-    assert abs(float(np.median(dy))) < 0.3  # algorithms.md §2.1 check
+    assert abs(float(np.median(dy))) < 0.3  # docs/math.md §2.1 check
 
 
 def test_euroc_truth_is_stationary_in_robot_frame(euroc_frames) -> None:

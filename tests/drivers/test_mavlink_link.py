@@ -1,6 +1,6 @@
 """The MAVLink link against a mock ArduPilot Rover over loopback UDP (ephemeral ports).
 
-The mock records what robotd sends; the tests check what ArduPilot checks (interfaces.md §1).
+The mock records what robotd sends; the tests check what ArduPilot checks (docs/interfaces.md §1).
 """
 
 from __future__ import annotations

@@ -128,7 +128,7 @@ def test_corrupted_frames_counted_and_skipped_and_seq_gaps() -> None:
 
 
 def test_embedded_zero_frame_through_a_real_pty() -> None:
-    # interfaces.md §5.3: what the MCU writes is what read_until gives back, zeros included
+    # docs/interfaces.md §5.3: what the MCU writes is what read_until gives back, zeros included
     import serial
 
     master, slave, path = open_pty()

@@ -33,7 +33,7 @@ def pose(xyz=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0), t_ns=1_000_000_000, cov=None)
 
 
 def test_hand_test() -> None:
-    # interfaces.md §1.3 and §6.1: forward +x, right +y, lifting decreases z, identity q = [1,0,0,0]
+    # docs/interfaces.md §1.3 and §6 item 1: forward +x, right +y, lifting decreases z, identity q = [1,0,0,0]
     f = odometry_fields(pose(), 50, 0)
     assert f.q == (1.0, 0.0, 0.0, 0.0)
     assert (f.frame_id, f.child_frame_id) == (20, 12)

@@ -1,4 +1,4 @@
-"""The outlier stage (algorithms.md §5): similarity solver, consensus statistics, RANSAC, F baseline."""
+"""The outlier stage (docs/math.md §5): similarity solver, consensus statistics, RANSAC, F baseline."""
 
 from __future__ import annotations
 

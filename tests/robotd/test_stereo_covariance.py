@@ -1,4 +1,4 @@
-"""The first-order triangulation covariance (algorithms.md §3.1–3.2) against simulated pixel noise."""
+"""The first-order triangulation covariance (docs/math.md §3.1–§3.2) against simulated pixel noise."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from robotd.stereo import project, triangulate, triangulation_covariance
 
-# The project's OAK-D at 640x400 (algorithms.md §2.2): f ≈ 430 px, b = 0.0755 m, fb ≈ 32.5 px·m.
+# The project's OAK-D at 640x400 (docs/math.md §2.2): f ≈ 430 px, b = 0.0755 m, fb ≈ 32.5 px·m.
 F, PX, PY, B = 430.0, 320.0, 200.0, 0.0755
 SX = 0.5  # σ per column coordinate [px]
 SY_ROW = 0.5  # σ of each row; the model's σ_y is that of their mean, 0.5/√2
@@ -42,7 +42,7 @@ def test_nees_is_chi2_3_where_first_order_holds(X: float, rng: np.random.Generat
 
 def test_first_order_breaks_down_at_small_disparity(rng: np.random.Generator) -> None:
     """At d ≈ 4 px (X = 8 m, below the 5 px floor) depth is biased far and the χ² tail is too heavy
-    (algorithms.md §3.3); measured: mean depth error +0.29 m, 7.6 % of NEES above the 95 % quantile."""
+    (docs/math.md §3.3); measured: mean depth error +0.29 m, 7.6 % of NEES above the 95 % quantile."""
     e, Q = _simulate(8.0, rng)
     nees = np.einsum("ni,ni->n", e, np.linalg.solve(Q, e[..., None])[..., 0])
     assert np.mean(nees > 7.815) > 0.065
@@ -54,5 +54,5 @@ def test_depth_sigma_grows_with_range_squared(rng: np.random.Generator) -> None:
     sig = np.array([_simulate(X, rng)[0][:, 0].std() for X in ranges])
     slope = np.polyfit(np.log(ranges), np.log(sig), 1)[0]
     assert slope == pytest.approx(2.0, abs=0.06)
-    # closed form σ_X = √2 X² σ_x / (f b) (algorithms.md §3.2)
+    # closed form σ_X = √2 X² σ_x / (f b) (docs/math.md §3.2)
     assert np.allclose(sig, np.sqrt(2) * ranges**2 * SX / (F * B), rtol=0.05)

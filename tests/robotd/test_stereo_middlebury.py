@@ -2,7 +2,7 @@
 
 Tolerance: a match is correct when |d - d_gt| <= 1 px, with d = x_L - x_R of SIFT matches found
 with the row constraint |y_L - y_R| <= 2 px, positive disparity, the ratio test (0.8) and the
-cross-check (algorithms.md §4.1-4.2); d_gt is read at the left keypoint's nearest pixel (0 = unknown,
+cross-check (docs/math.md §4.1–§4.2); d_gt is read at the left keypoint's nearest pixel (0 = unknown,
 skipped). Measured with OpenCV 5.0: aloe 84.6 % of 1751 matches, cones 86.9 % of 610 matches.
 """
 

@@ -1,4 +1,4 @@
-"""Plain per-particle FastSLAM (algorithms.md §9, §10): the readable reference for the fast paths.
+"""Plain per-particle FastSLAM (docs/math.md §9, §10): the readable reference for the fast paths.
 
 One particle and one observation at a time, general ``np.linalg`` solves, no closed-form inverses.
 ``fastslam_step_reference`` has the signature of :func:`robotd.slam.fastslam.fastslam_step` and is

@@ -36,7 +36,7 @@ def test_eeprom_json_at_640x400(shared_data) -> None:
     # at full resolution fx doubles: intrinsics really follow the requested size
     full = load_oak_eeprom_json(shared_data(*OAK_JSON), 1280, 800)
     assert full.K_left[0, 0] == pytest.approx(2 * c.K_left[0, 0], rel=FLOAT32_ROUNDING_TOL)  # float32 EEPROM
-    # the rectified rig is the one algorithms.md §2.2 quotes: fb ≈ 32.5 px·m
+    # the rectified rig is the one docs/math.md §2.2 quotes: fb ≈ 32.5 px·m
     assert Rectifier(c, method="thesis").model.fb == pytest.approx(32.5, rel=0.03)
 
 

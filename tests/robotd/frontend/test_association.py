@@ -1,4 +1,4 @@
-"""Landmark descriptors and identification (algorithms.md §4.3)."""
+"""Landmark descriptors and identification (docs/math.md §4.3)."""
 
 from __future__ import annotations
 

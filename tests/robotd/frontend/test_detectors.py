@@ -1,4 +1,4 @@
-"""Detectors (algorithms.md §2.2): the common interface, input errors, grid bucketing."""
+"""Detectors (docs/math.md §4.1): the common interface, input errors, grid bucketing."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Stereo matching (algorithms.md §4.1–§4.2): distances, ratio and cross check, candidates, refinement."""
+"""Stereo matching (docs/math.md §4.1–§4.2): distances, ratio and cross check, candidates, refinement."""
 
 from __future__ import annotations
 

@@ -248,7 +248,7 @@ def _warp_eval(img: np.ndarray, angle_deg: float, scale: float) -> tuple[float, 
     the warped image) whose warped position has a feature of the warped image within
     max(3 px, 0.3 s) and with size within a factor 1.3 of the warped size. Descriptor rate: share
     of those repeated features whose nearest neighbour among all descriptors of the warped image,
-    accepted by Lowe's ratio test at 0.8 (algorithms.md §4.1), is one of the corresponding features.
+    accepted by Lowe's ratio test at 0.8 (docs/math.md §4.1), is one of the corresponding features.
     """
     h, w = img.shape
     A = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), angle_deg, scale)

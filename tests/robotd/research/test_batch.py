@@ -58,7 +58,7 @@ def test_noiseless_data_recovers_truth(dim):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_batch_beats_dead_reckoning_and_is_consistent(dim):
-    # d_min = 10 px (≤ 3.25 m): at the default 5 px the triangulation bias of §3.3 (depth too far)
+    # d_min = 10 px (≤ 3.25 m): at the default 5 px the triangulation bias of docs/math.md §3.3 (depth too far)
     # scales the whole solution by 2–4 %, which on a 60 m run is as large as the odometry drift
     cfg = SimConfig(dim=dim, path_length_m=60.0, trajectory="loop", d_min_px=10.0)
     run = simulate(cfg, np.random.default_rng(5))

@@ -1,4 +1,4 @@
-"""Evaluation metrics and trajectory files (robotd.research.evaluate, algorithms.md §11)."""
+"""Evaluation metrics and trajectory files (robotd.research.evaluate, docs/math.md §11)."""
 
 from __future__ import annotations
 

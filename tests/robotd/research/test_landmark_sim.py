@@ -61,7 +61,7 @@ def test_measurement_noise_has_covariance_q(cfg):
         eps.append(np.einsum("ni,ni->n", e, np.linalg.solve(o.cov_R, e[..., None])[..., 0]))
     eps_all = np.concatenate(eps)
     assert len(eps_all) > 3000
-    # first-order Q is slightly optimistic at small disparity (§3.3): allow +8 %
+    # first-order Q is slightly optimistic at small disparity (docs/math.md §3.3): allow +8 %
     assert 2.85 < eps_all.mean() < 3.25
     assert 7.0 < np.quantile(eps_all, 0.95) < 9.0
 

@@ -30,7 +30,7 @@ def test_covariance_stays_symmetric_psd(dim: int) -> None:
 
 
 def test_update_matches_dense_joseph_ekf() -> None:
-    """The O(n²) sparse-H Joseph update equals the textbook dense one (§8)."""
+    """The O(n²) sparse-H Joseph update equals the textbook dense one (docs/math.md §8)."""
     world = World(3, np.random.default_rng(1), sigma_z=0.03, sigma_odo=0.01)
     est = make_estimator(SlamParams(filter="ekf", dim=3, prune_enabled=False), np.random.default_rng(0))
     assert isinstance(est, EkfSlam)

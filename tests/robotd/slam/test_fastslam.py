@@ -161,7 +161,7 @@ def test_noisy_scenario_bounded_error(filt: str, dim: int) -> None:
     world = World(dim, np.random.default_rng(2), sigma_z=0.02, sigma_odo=0.01)
     _, errs = _run(filt, dim, 40, world, n_particles=50, prune_enabled=False)
     # 40 steps of 0.2 m with 1 cm odometry noise; a working filter stays within a few cm. FastSLAM 1.0
-    # samples the 6-D pose from the motion model alone and is known to do worse in 3D (§12.4).
+    # samples the 6-D pose from the motion model alone and is known to do worse in 3D (docs/math.md §12.4).
     bound = 0.25 if (filt == "fastslam1" and dim == 3) else 0.1
     assert errs[-1] < bound, errs[-1]
 

@@ -1,8 +1,8 @@
 """The 2D filters on real data: MRCLAM dataset 1, robot 1 (wheel-odometry v, ω; landmark range/bearing).
 
 The first 300 s are run through ``predict_velocity`` and ``update_range_bearing``; the map is aligned
-to the surveyed landmarks with one rigid SE(2) transform (algorithms.md §11) and scored. The data run
-in their own (forward-left-up) planar frame, which the 2D formulas allow (algorithms.md §1.2).
+to the surveyed landmarks with one rigid SE(2) transform (docs/math.md §11) and scored. The data run
+in their own (forward-left-up) planar frame, which the 2D formulas allow (docs/math.md §1.2).
 
 Data quirk found here: the surveyed positions of landmarks 11 and 17 are swapped with respect to the
 barcode table (each estimate lies ~0.1 m from the other's surveyed position, ~6 m from its own), so

@@ -22,7 +22,7 @@ def test_ekf_matches_batch_on_a_small_map() -> None:
 
 
 def test_ekf_nees_in_band_when_the_noise_matches_its_model() -> None:
-    """§11: with measurement noise the filter's model describes exactly (isotropic Gaussian in the
+    """docs/math.md §11: with measurement noise the filter's model describes exactly (isotropic Gaussian in the
     robot frame, correct correspondences), EKF SLAM is consistent: the ANEES of R runs lies in the
     two-sided 95 % band, and ~95 % of single-step NEES values in the single-run interval. (With the
     stereo noise of §12 it is not: the triangulated depth is skewed and its first-order covariance

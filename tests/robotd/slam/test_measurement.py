@@ -57,7 +57,7 @@ def test_unknown_ids_keep_their_covariance_and_depth_is_clamped() -> None:
 
 
 def test_predicted_covariance_removes_most_of_the_stereo_bias() -> None:
-    """§12's stereo noise with Q from the noisy pixels biases every estimator; Q at the prediction
+    """docs/math.md §12's stereo noise with Q from the noisy pixels biases every estimator; Q at the prediction
     makes EKF SLAM and the batch solution several times more accurate on the same data."""
     cfg = SimConfig(dim=2, trajectory="loop", path_length_m=20.0, landmark_density_per_m2=0.5)
     for seed in (0, 1):

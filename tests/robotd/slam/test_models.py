@@ -1,4 +1,4 @@
-"""Analytic Jacobians of the SLAM models against central differences (algorithms.md §6, §7)."""
+"""Analytic Jacobians of the SLAM models against central differences (docs/math.md §6, §7)."""
 
 from __future__ import annotations
 
