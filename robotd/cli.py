@@ -229,6 +229,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.segments or args.segment_lengths:
         lengths = args.segment_lengths or KITTI_SEGMENT_LENGTHS_M
         result.update(segment_drift(est.T[ie], gt.T[ig], lengths, planar=args.planar))
+        if result["segment_note"] and not args.segment_lengths:
+            result["segment_note"] += "; --segment-lengths sets shorter ones (e.g. 10,20,40)"
     if cov is not None:
         result["nees_pos_frames"] = int(result["nees_pos_frames"])
         eps = None

@@ -347,6 +347,11 @@ def drift_pct(est_T: np.ndarray, gt_T: np.ndarray) -> float:
     return float(100.0 * np.linalg.norm(P[-1, :3, 3] - Q[-1, :3, 3]) / L)
 
 
+def _metres_text(v: float) -> str:
+    """A path length for a sentence: to 0.1 m, or to the millimetre below a metre."""
+    return f"{v:.1f}" if v >= 1.0 else f"{v:.3f}"
+
+
 def cumulative_path(xyz: np.ndarray) -> np.ndarray:
     """(N,) path length [m] from the first position to each position of a polyline (N, d)."""
     xyz = np.asarray(xyz, dtype=float)
@@ -418,7 +423,10 @@ def segment_drift(
     trans_cat, rot_cat = np.concatenate(trans_all), np.concatenate(rot_all)
     note = None
     if not len(trans_cat):
-        note = f"no segment: the true path ({s[-1]:.1f} m) is shorter than the shortest segment ({min(lengths):g} m)"
+        note = (
+            f"no segment: the true path ({_metres_text(s[-1])} m) is shorter than the shortest segment "
+            f"({min(lengths):g} m)"
+        )
     return {
         "segment_drift_pct": float(np.mean(trans_cat)) if len(trans_cat) else math.nan,
         "segment_rot_deg_per_m": float(np.mean(rot_cat)) if len(rot_cat) else math.nan,
@@ -535,7 +543,7 @@ def align_by_positions(est_T: np.ndarray, gt_T: np.ndarray, over_m: float) -> Po
         )
         return PositionAlignment(T, fit, over_m, "positions+first-pose-roll", note)
     if kind == "stationary":
-        why = f"{where} stay within {0.1:g} m: positions fix no rotation"
+        why = f"{where} stay within 0.1 m (RMS about their mean): positions fix no rotation"
     else:
         why = f"no pose but the first within the first {over_m:g} m of true path"
     return PositionAlignment(Q[0] @ se3_inverse(P[0]), fit, over_m, "first-pose", f"{why}; aligned by the first pose")
@@ -577,7 +585,10 @@ def positions_aligned_nees(
     s = nees_summary(eps)
     note = al.note
     if al.fit.all():
-        note += f"; the true path ({path_length(Q[:, :3, 3]):.2f} m) does not go past {over_m:g} m: no pose to judge"
+        note += (
+            f"; the true path ({_metres_text(path_length(Q[:, :3, 3]))} m) does not go past {over_m:g} m: "
+            "no pose to judge"
+        )
     out: dict[str, Any] = {f"aligned_{k}": v for k, v in s.items()}
     out["aligned_nees_pos_frames"] = int(s["nees_pos_frames"])
     out.update(

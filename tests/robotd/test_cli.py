@@ -373,7 +373,10 @@ def test_eval_segments_on_a_short_path_none_of_kittis_and_the_lengths_asked_for(
     assert main(["eval", str(est), str(gt), "--segments", "--json"]) == 0
     m = _json_out(capsys)
     assert m["segment_drift_pct"] is None and m["segment_rot_deg_per_m"] is None and m["segment_count"] == 0
-    assert m["segment_note"] == "no segment: the true path (30.0 m) is shorter than the shortest segment (100 m)"
+    assert m["segment_note"] == (
+        "no segment: the true path (30.0 m) is shorter than the shortest segment (100 m); "
+        "--segment-lengths sets shorter ones (e.g. 10,20,40)"
+    )
     assert [r["length_m"] for r in m["segments"]] == [100.0 * k for k in range(1, 9)]
     assert all(r["count"] == 0 and r["drift_pct"] is None for r in m["segments"])
     assert main(["eval", str(est), str(gt), "--segments"]) == 0
@@ -417,7 +420,7 @@ def test_eval_align_positions_says_how_it_aligned(tmp_path: Path, capsys: pytest
     assert main(["eval", str(est), str(gt), "--align-positions", "40", "--json"]) == 0
     m = _json_out(capsys)
     assert m["aligned_nees_pos_mean"] is None and m["aligned_nees_pos_frames"] == 0
-    assert m["alignment_note"].endswith("the true path (30.00 m) does not go past 40 m: no pose to judge")
+    assert m["alignment_note"].endswith("the true path (30.0 m) does not go past 40 m: no pose to judge")
 
 
 def test_eval_on_a_stationary_path_reports_null_drift_pct(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
