@@ -430,7 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
 Progress on stderr when it is a terminal; one summary line on stderr at the end. With --json,
 a JSON summary on stdout; when the source carries ground truth it holds the keys of
 `robotd eval` prefixed truth_ (truth_drift_m, truth_drift_pct, truth_ate_rmse_m, ...),
-truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m.
+truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m; also those of
+`robotd eval --segments` (truth_segment_drift_pct, truth_segment_rot_deg_per_m,
+truth_segment_count: 100-800 m segments, null on a shorter path) and of `--align-positions 10`
+(truth_aligned_nees_pos_mean, truth_aligned_nees_pos_in_band_frac, truth_aligned_nees_pos_frames,
+truth_alignment; null when nothing lies past the first 10 m).
 
 --out T.txt writes the trajectory and T.cov.txt (the pose covariance, stamped). TUM (the default):
 robotd's robot frame (FRD, origin at the stereo baseline centre), world = the robot at the first
@@ -565,8 +569,8 @@ metres: aligned_nees_pos_mean, aligned_nees_pos_in_band_frac (same band), aligne
 aligned_fit_frames (the poses fitted), alignment and alignment_note (how, and why). alignment is
 "positions"; "positions+first-pose-roll" when the first M metres are straight (collinear
 positions fix every rotation but the one about the line, taken from the first pose's orientation);
-or "first-pose" when they move less than 0.1 m or hold no pose but the first (aligned by the first
-pose, as nees_pos_*). A true path no longer than M leaves no pose to judge: the figures are n/a
+or "first-pose" when they stay within 0.1 m (RMS about their mean) or hold no pose but the first
+(aligned by the first pose, as nees_pos_*). A true path no longer than M leaves no pose to judge: the figures are n/a
 (JSON null) and alignment_note says so (a stationary sequence). With --nees-plot the plot shows
 this NEES.
 
