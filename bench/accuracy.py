@@ -7,7 +7,13 @@ configuration (or ``--config FILE``, loaded as ``robotd replay --config`` does) 
 (robotd/research/pnp_baseline.py) runs on the same frames in the same invocation, as a row of its
 own per place. Per run: drift in % of the path (first pose aligned), ATE after a rigid alignment,
 RPE over one frame (translation), lost frames, milliseconds per frame (p50 of the step's total;
-only meaningful with --jobs 1 on an otherwise idle machine), and ATE / PnP ATE.
+only meaningful with --jobs 1 on an otherwise idle machine), and ATE / PnP ATE. Also (issue 26):
+KITTI-style segment drift over 100-800 m segments (``robotd eval --segments``; "–" on a path
+shorter than 100 m, which every shared folder is), and the share of poses whose position NEES lies
+in the 95 % χ²(3) band after aligning by positions over the first ``ALIGN_POSITIONS_M`` metres
+(``robotd eval --align-positions``; robotd rows only, the PnP baseline reports no covariance; "–"
+on a path no longer than that, e.g. the stationary EuRoC piece). Both come from the replay's
+summary (truth_segment_*, truth_aligned_*), which computes them with these settings.
 
 Verdicts (KITTI rows; issue 13's targets): 0 lost frames, ATE < 0.10 m, ATE at most half the PnP
 baseline's on the same folder, and drift < 1.0 % where the truth is the KITTI odometry benchmark's.
@@ -54,6 +60,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from robotd.choices import DETECTORS, FILTERS  # noqa: E402
+from robotd.research.evaluate import ALIGN_POSITIONS_M  # noqa: E402
+
+# ALIGN_POSITIONS_M (10 m): the positions-aligned NEES column aligns the estimate to the truth by
+# the positions over the first 10 m of true path and judges the poses after them; it is the M a
+# replay's summary uses (robotd.research.evaluate), named here so the table can say it.
 
 DEFAULT_DATA = Path(os.environ.get("ROBOTD_SHARED_DATA", REPO.parent / "shared" / "data"))
 SIM_DURATION_S = 4.0  # a world name's default run: 120 frames at the sim's 30 fps
@@ -167,6 +178,13 @@ def _figures(s: dict[str, Any]) -> dict[str, Any]:
         rpe_m=s.get("truth_rpe_trans_m"),
         rpe_rot_deg=s.get("truth_rpe_rot_deg"),
         path_length_m=s.get("truth_path_length_m"),
+        segment_drift_pct=s.get("truth_segment_drift_pct"),
+        segment_rot_deg_per_m=s.get("truth_segment_rot_deg_per_m"),
+        segment_count=s.get("truth_segment_count"),
+        nees_aligned_in_band_frac=s.get("truth_aligned_nees_pos_in_band_frac"),
+        nees_aligned_mean=s.get("truth_aligned_nees_pos_mean"),
+        nees_aligned_frames=s.get("truth_aligned_nees_pos_frames"),
+        alignment=s.get("truth_alignment"),
         ms_per_frame=s["step_ms_p50"],
         ms_per_frame_p95=s["step_ms_p95"],
         wall_s=s["wall_s"],
@@ -267,6 +285,18 @@ def _f(v: Any, fmt: str) -> str:
     return "–" if v is None else format(v, fmt)
 
 
+def _nees_cell(r: dict[str, Any]) -> str:
+    """The share in band over how many poses, marked when a straight start took its rotation about
+    the path from the first pose ("roll from pose 0") or positions could not align at all."""
+    frac = r.get("nees_aligned_in_band_frac")
+    if frac is None:
+        return "–"
+    how = {"positions+first-pose-roll": ", roll from pose 0", "first-pose": ", first pose"}.get(
+        r.get("alignment") or ""
+    )
+    return f"{frac:.2f} of {r.get('nees_aligned_frames')}{how or ''}"
+
+
 def _verdict(r: dict[str, Any]) -> str:
     if r.get("verdict") is None:
         return ""
@@ -280,13 +310,14 @@ def print_table(out: dict[str, Any]) -> None:
     print(f"Accuracy, default configuration ({out['config']}), commit {out['commit']}, {out['host']}\n")
     print(
         "| place | method | detector | filter | input | frames | lost | drift % | ATE m | RPE m "
+        f"| seg. drift % | seg. deg/m | NEES in band, aligned {ALIGN_POSITIONS_M:g} m "
         "| ms/frame p50 | ATE / PnP ATE | target | verdict |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in out["rows"]:
         if "error" in r:
             print(
-                f"| {r['place']} | {r['method']} | {r['detector'] or ''} | {r['filter'] or ''} | | | | | | | | | "
+                f"| {r['place']} | {r['method']} | {r['detector'] or ''} | {r['filter'] or ''} | | | | | | | | | | | | "
                 f"{'yes' if r.get('target') else ''} | error: {r['error']} |"
             )
             continue
@@ -295,7 +326,8 @@ def print_table(out: dict[str, Any]) -> None:
         print(
             f"| {r['place']} | {name} | {r['detector'] or 'orb (cv2)'} | {r['filter'] or '–'} "
             f"| {'vision+odometry' if r['odometry'] else 'vision'} | {r['frames']} | {r['lost_frames']} | {drift} "
-            f"| {_f(r['ate_m'], '.3f')} | {_f(r['rpe_m'], '.4f')} | {r['ms_per_frame']:.1f} "
+            f"| {_f(r['ate_m'], '.3f')} | {_f(r['rpe_m'], '.4f')} | {_f(r.get('segment_drift_pct'), '.2f')} "
+            f"| {_f(r.get('segment_rot_deg_per_m'), '.4f')} | {_nees_cell(r)} | {r['ms_per_frame']:.1f} "
             f"| {_f(r.get('ate_vs_pnp'), '.2f')} | {'yes' if r.get('target') else ''} | {_verdict(r)} |"
         )
     t = [r for r in out["rows"] if r.get("target")]
@@ -307,6 +339,11 @@ def print_table(out: dict[str, Any]) -> None:
     print(
         f"criteria: 0 lost, ATE < {MAX_ATE_M} m, ATE / PnP ATE <= {MAX_ATE_RATIO}, drift < {MAX_DRIFT_PCT} % "
         "(KITTI odometry truth only; raw-derived truth: reported)"
+    )
+    print(
+        "seg.: KITTI-style segment drift over 100-800 m segments (– under 100 m of path); NEES: share of "
+        f"poses in the 95 % chi2(3) band [0.216, 9.35] after aligning by positions over the first "
+        f"{ALIGN_POSITIONS_M:g} m, on the poses after them (reported, not judged)"
     )
     if out["skipped"]:
         print(f"skipped: {'; '.join(out['skipped'])}")
@@ -428,6 +465,7 @@ def main(argv: list[str] | None = None) -> int:
         "jobs": args.jobs,
         "engine": f"ray {args.ray}" if args.ray else f"local, {args.jobs} worker process(es)",
         "criteria": {"max_ate_m": MAX_ATE_M, "max_drift_pct": MAX_DRIFT_PCT, "max_ate_vs_pnp": MAX_ATE_RATIO},
+        "align_positions_m": ALIGN_POSITIONS_M,
         "places": [{"name": p.name, "kind": p.kind, "source": p.source, "judge_drift": p.judge_drift} for p in places],
         "skipped": skipped,
         "wall_s": time.perf_counter() - t0,

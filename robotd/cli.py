@@ -202,12 +202,15 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from robotd.research.evaluate import (
+        KITTI_SEGMENT_LENGTHS_M,
         associate_trajectories,
         evaluate_trajectories,
         plot_nees,
         plot_trajectory,
         position_nees,
+        positions_aligned_nees,
         read_trajectory,
+        segment_drift,
     )
 
     configure_logging(args.log_level or "WARNING")
@@ -223,24 +226,73 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result: dict[str, Any] = dict(evaluate_trajectories(est, gt, planar=args.planar, cov=cov))
     result["frames"] = int(result["frames"])
     ie, ig, result["association"] = associate_trajectories(est, gt)
+    if args.segments or args.segment_lengths:
+        lengths = args.segment_lengths or KITTI_SEGMENT_LENGTHS_M
+        result.update(segment_drift(est.T[ie], gt.T[ig], lengths, planar=args.planar))
+        if result["segment_note"] and not args.segment_lengths:
+            result["segment_note"] += "; --segment-lengths sets shorter ones (e.g. 10,20,40)"
     if cov is not None:
         result["nees_pos_frames"] = int(result["nees_pos_frames"])
+        eps = None
+        if args.align_positions is not None:
+            eps, aligned = positions_aligned_nees(est.T[ie], gt.T[ig], cov[ie], args.align_positions)
+            result.update(aligned)
         if args.nees_plot:
-            eps = position_nees(est.T[ie], gt.T[ig], cov[ie])
+            if eps is None:
+                eps = position_nees(est.T[ie], gt.T[ig], cov[ie])
             plot_nees(est.t_s[ie] - est.t_s[ie][0], eps, args.nees_plot, title=Path(args.traj).name)
             result["nees_plot"] = args.nees_plot
-    elif args.nees_plot:
-        raise InputError(f"eval --nees-plot: no pose covariance beside {args.traj} (robotd replay --out writes one)")
+    elif args.nees_plot or args.align_positions is not None:
+        what = "--nees-plot" if args.nees_plot else "--align-positions"
+        raise InputError(f"eval {what}: no pose covariance beside {args.traj} (robotd replay --out writes one)")
     if args.plot:
         plot_trajectory(est.T[ie], gt.T[ig], None, args.plot, title=f"{Path(args.traj).name} vs {Path(args.gt).name}")
         result["plot"] = args.plot
     if args.json:
         # full precision; NaN (an undefined figure, e.g. drift_pct on a stationary path) as null
-        print(json.dumps({k: _json_number(v) for k, v in result.items()}, sort_keys=True))
+        print(json.dumps(_json_number(result), sort_keys=True))
     else:
+        width = max(22, *(len(k) for k in result))
         for k in sorted(result):
-            print(f"{k:>22}: {_human_number(k, result[k])}")
+            if k == "segments" or (k.endswith("_note") and result[k] is None):
+                continue
+            print(f"{k:>{width}}: {_human_number(k, result[k])}")
+        if "segments" in result:
+            _print_segments(result)
     return 0
+
+
+def _print_segments(result: dict[str, Any]) -> None:
+    """The per-length rows of ``eval --segments`` as a small table."""
+    print(f"segments (one starting every {result['segment_step_frames']} frames):")
+    print(f"{'length m':>10} {'count':>6} {'drift %':>9} {'rot deg/m':>10}")
+    for r in result["segments"]:
+        print(
+            f"{r['length_m']:>10g} {r['count']:>6d} {_human_number('drift_pct', r['drift_pct']):>9} "
+            f"{_human_number('rot_deg_per_m', r['rot_deg_per_m']):>10}"
+        )
+
+
+def _segment_lengths(text: str) -> list[float]:
+    """``--segment-lengths``: comma-separated metres > 0."""
+    try:
+        v = [float(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres separated by commas, e.g. 10,20,40, got {text!r}") from None
+    if not v or not all(math.isfinite(x) and x > 0 for x in v):
+        raise argparse.ArgumentTypeError(f"expected positive metres separated by commas, got {text!r}")
+    return v
+
+
+def _metres(text: str) -> float:
+    """A positive length in metres."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive length in metres, got {text!r}")
+    return v
 
 
 def _pose_covariance(args: argparse.Namespace, est: Any) -> Any:
@@ -265,16 +317,25 @@ def _pose_covariance(args: argparse.Namespace, est: Any) -> Any:
 
 
 def _json_number(v: Any) -> Any:
+    """NaN and infinities as None (JSON null), in nested lists and dicts too."""
+    if isinstance(v, dict):
+        return {k: _json_number(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_number(x) for x in v]
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 def _human_number(key: str, v: Any) -> str:
     """A figure as a person reads it: metres to 0.1 mm, degrees to 0.001°, percentages and ratios
     to 3 significant digits, counts as integers; an undefined figure as "n/a" (see --help)."""
+    if isinstance(v, list | tuple):
+        return ",".join(f"{x:g}" for x in v)
     if not isinstance(v, float):
         return str(v)
     if not math.isfinite(v):
         return "n/a"
+    if key.endswith("_per_m"):
+        return f"{v:.3g}"
     if key.endswith("_m"):
         return f"{v:.4f}"
     if key.endswith("_deg"):
@@ -369,7 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
 Progress on stderr when it is a terminal; one summary line on stderr at the end. With --json,
 a JSON summary on stdout; when the source carries ground truth it holds the keys of
 `robotd eval` prefixed truth_ (truth_drift_m, truth_drift_pct, truth_ate_rmse_m, ...),
-truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m.
+truth_drift_pct and truth_similarity_scale null on a path shorter than 1 m; also those of
+`robotd eval --segments` (truth_segment_drift_pct, truth_segment_rot_deg_per_m,
+truth_segment_count: 100-800 m segments, null on a shorter path) and of `--align-positions 10`
+(truth_aligned_nees_pos_mean, truth_aligned_nees_pos_in_band_frac, truth_aligned_nees_pos_frames,
+truth_alignment; null when nothing lies past the first 10 m).
 
 --out T.txt writes the trajectory and T.cov.txt (the pose covariance, stamped). TUM (the default):
 robotd's robot frame (FRD, origin at the stereo baseline centre), world = the robot at the first
@@ -497,6 +562,26 @@ covariance, rotated with the alignment), nees_pos_in_band_frac, the share of pos
 two-sided 95 % chi2(3) interval [0.216, 9.35], and nees_pos_frames (the start, known exactly, has
 none). A consistent covariance puts about 95 % inside.
 
+--align-positions M judges the same NEES without resting on the first pose's orientation: the
+estimate is aligned to the truth by the positions of the poses within the first M metres of true
+path only (rigid least squares, no scale), and the NEES is taken on the poses after those M
+metres: aligned_nees_pos_mean, aligned_nees_pos_in_band_frac (same band), aligned_nees_pos_frames,
+aligned_fit_frames (the poses fitted), alignment and alignment_note (how, and why). alignment is
+"positions"; "positions+first-pose-roll" when the first M metres are straight (collinear
+positions fix every rotation but the one about the line, taken from the first pose's orientation);
+or "first-pose" when they stay within 0.1 m (RMS about their mean) or hold no pose but the first
+(aligned by the first pose, as nees_pos_*). A true path no longer than M leaves no pose to judge: the figures are n/a
+(JSON null) and alignment_note says so (a stationary sequence). With --nees-plot the plot shows
+this NEES.
+
+--segments: KITTI-style segment drift. From every 10th pose, for each length L (default 100, 200,
+..., 800 m; --segment-lengths 10,20,40 sets others and implies --segments), a segment ends at the
+first pose at which the true path from its start reaches L; its error is the relative pose error
+between start and end: translation in % of L, rotation in deg per metre of L. segments: per length
+its count, drift_pct and rot_deg_per_m (means); segment_drift_pct, segment_rot_deg_per_m: the means
+over every segment of every length; segment_count. A true path shorter than the shortest length
+has no segment: the figures are n/a (JSON null) and segment_note says why.
+
 A KITTI poses.txt is read as a replay of its folder carries its truth: moved from the left
 camera's optical frame to the robot frame at the stereo baseline centre (baseline from the
 calib.txt beside it, else the one beside the other file) and stamped from the times.txt beside
@@ -512,6 +597,19 @@ DIR/poses.txt` gives the replay's own truth_* figures."""
         "--cov", metavar="FILE", help="the estimate's pose covariance (default: T.cov.txt beside T.txt, if any)"
     )
     sp.add_argument("--nees-plot", metavar="PNG", help="write the position NEES over time with its 95 %% band to PNG")
+    sp.add_argument(
+        "--align-positions",
+        type=_metres,
+        metavar="M",
+        help="also the position NEES after aligning by positions over the first M metres of true path, on the rest",
+    )
+    sp.add_argument("--segments", action="store_true", help="also KITTI-style segment drift (100 ... 800 m segments)")
+    sp.add_argument(
+        "--segment-lengths",
+        type=_segment_lengths,
+        metavar="M,M,...",
+        help="segment lengths in metres for --segments (implies it), e.g. 10,20,40 on a short sequence",
+    )
     sp.add_argument("--planar", action="store_true", help="SE(2) alignment (2D runs)")
     sp.add_argument("--json", action="store_true")
 

@@ -312,22 +312,47 @@ def _write_truth(
 
 def _truth_metrics(
     stamps: np.ndarray, T: np.ndarray, truths: list[tuple[int, np.ndarray]], cov: np.ndarray | None = None
-) -> dict[str, float | None]:
+) -> dict[str, Any]:
     """ATE/drift against the ground truth the source carried (evaluation only); the keys of
     :func:`robotd.research.evaluate.evaluate_trajectories` prefixed ``truth_``. Undefined figures
     (drift % and similarity scale on a path shorter than ``MIN_PATH_FOR_RELATIVE_M``) are None,
-    JSON null, rather than NaN, which is not JSON."""
-    from robotd.research.evaluate import Trajectory, evaluate_trajectories
+    JSON null, rather than NaN, which is not JSON.
+
+    Also KITTI's segment drift over 100 ... 800 m (truth_segment_drift_pct, truth_segment_rot_deg_per_m,
+    truth_segment_count: ``robotd eval --segments``) and, with ``cov``, the position NEES after
+    aligning by positions over the first ``ALIGN_POSITIONS_M`` metres (truth_aligned_nees_pos_mean,
+    truth_aligned_nees_pos_in_band_frac, truth_aligned_nees_pos_frames, truth_alignment:
+    ``robotd eval --align-positions 10``)."""
+    from robotd.research.evaluate import (
+        ALIGN_POSITIONS_M,
+        Trajectory,
+        associate_trajectories,
+        evaluate_trajectories,
+        positions_aligned_nees,
+        segment_drift,
+    )
 
     t_gt = np.array([t for t, _ in truths], dtype=np.int64)
     G = np.stack([g for _, g in truths])
     G = np.linalg.inv(G[0]) @ G  # truth relative to the first truth pose, as the estimate is
+    est, gt = Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G)
     try:
-        m = evaluate_trajectories(Trajectory(stamps / 1e9, T), Trajectory(t_gt / 1e9, G), cov=cov)
+        m = evaluate_trajectories(est, gt, cov=cov)
     except RobotdError as exc:
         logger.warning("no truth metrics: %s", exc)
         return {}
-    out = {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
+    out: dict[str, Any] = {f"truth_{k}": (float(v) if math.isfinite(v) else None) for k, v in m.items()}
+    ie, ig, _ = associate_trajectories(est, gt)
+    seg = segment_drift(T[ie], G[ig])
+    extra: dict[str, Any] = {k: seg[k] for k in ("segment_drift_pct", "segment_rot_deg_per_m", "segment_count")}
+    if cov is not None:
+        _, aligned = positions_aligned_nees(T[ie], G[ig], cov[ie], ALIGN_POSITIONS_M)
+        extra.update(
+            {k: aligned[k] for k in ("aligned_nees_pos_mean", "aligned_nees_pos_in_band_frac", "alignment")},
+            aligned_nees_pos_frames=aligned["aligned_nees_pos_frames"],
+        )
+    for k, v in extra.items():
+        out[f"truth_{k}"] = None if isinstance(v, float) and not math.isfinite(v) else v
     out.update(_tilt_errors(stamps, T, t_gt, G))
     return out
 

@@ -9,7 +9,11 @@ evaluation uses the x, y and yaw of the same matrices. Times are float seconds.
 - ATE after a rigid alignment (Umeyama with s ≡ 1, §5.1/§11; Sturm et al. 2012).
 - RPE over a fixed frame offset Δ (translation RMSE [m], rotation RMSE [deg]).
 - Drift in % of the ground-truth path length after aligning the first pose only.
-- NEES per step and ANEES with its two-sided 95 % χ² band (Bar-Shalom et al. 2001).
+- Segment drift as KITTI's odometry benchmark defines it (:func:`segment_drift`): the relative
+  pose error over every stretch of L metres of true path, in % of L and deg/m.
+- NEES per step and ANEES with its two-sided 95 % χ² band (Bar-Shalom et al. 2001); the position
+  NEES after aligning the first pose, or by positions over the first M metres
+  (:func:`positions_aligned_nees`).
 - Map RMSE after alignment.
 - TUM trajectory files (``t x y z qx qy qz qw``, what evo reads) and KITTI pose files (12 numbers
   per row, the row-major 3×4 [R|t] of the left camera, optical frame), read as robot-frame truth
@@ -25,6 +29,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -342,6 +347,97 @@ def drift_pct(est_T: np.ndarray, gt_T: np.ndarray) -> float:
     return float(100.0 * np.linalg.norm(P[-1, :3, 3] - Q[-1, :3, 3]) / L)
 
 
+def _metres_text(v: float) -> str:
+    """A path length for a sentence: to 0.1 m, or to the millimetre below a metre."""
+    return f"{v:.1f}" if v >= 1.0 else f"{v:.3f}"
+
+
+def cumulative_path(xyz: np.ndarray) -> np.ndarray:
+    """(N,) path length [m] from the first position to each position of a polyline (N, d)."""
+    xyz = np.asarray(xyz, dtype=float)
+    steps = np.linalg.norm(np.diff(xyz, axis=0), axis=1) if len(xyz) > 1 else np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+# KITTI's odometry benchmark: segments of 100, 200, ..., 800 m of true path, one starting every 10 frames
+KITTI_SEGMENT_LENGTHS_M: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+SEGMENT_STEP_FRAMES = 10
+
+
+def segment_drift(
+    est_T: np.ndarray,
+    gt_T: np.ndarray,
+    lengths_m: Sequence[float] = KITTI_SEGMENT_LENGTHS_M,
+    step_frames: int = SEGMENT_STEP_FRAMES,
+    planar: bool = False,
+) -> dict[str, Any]:
+    """Segment drift as the KITTI odometry benchmark defines it, over associated poses (N, 4, 4).
+
+    A segment starts at every ``step_frames``-th pose i (0, 10, 20, ...) and, for each length L,
+    ends at the first pose j at which the true path length from i reaches L (none when the path
+    after i is shorter). Its error is the relative pose error E = (P_i⁻¹ P_j)⁻¹ (Q_i⁻¹ Q_j): the
+    translation ‖t(E)‖ in % of L and the rotation angle of E in degrees per metre of L. Each length
+    averages its segments; the overall figures average every segment of every length (so a length
+    with more segments weighs more, as in the benchmark's own summary).
+
+    Returns ``segment_drift_pct``, ``segment_rot_deg_per_m`` and ``segment_count`` (overall),
+    ``segments`` (one dict per length: ``length_m``, ``count``, ``drift_pct``, ``rot_deg_per_m``),
+    ``segment_lengths_m``, ``segment_step_frames`` and ``segment_note``: None, or why there is no
+    segment (a true path shorter than the shortest length). Undefined figures are NaN.
+    ``planar``: x, y and yaw only (SE(2) runs).
+    """
+    P = poses_to_T(est_T)
+    Q = poses_to_T(gt_T)
+    if P.shape != Q.shape or len(P) == 0:
+        raise InputError(f"segment_drift: expected two (N, 4, 4) arrays, got {P.shape} and {Q.shape}")
+    if planar:
+        P, Q = _planar(P), _planar(Q)
+    lengths = [float(v) for v in lengths_m]
+    if not lengths or not all(math.isfinite(v) and v > 0 for v in lengths):
+        raise InputError(f"segment lengths: expected positive metres, got {list(lengths_m)}")
+    if step_frames < 1:
+        raise InputError(f"segment step: expected at least 1 frame, got {step_frames}")
+    s = cumulative_path(Q[:, :3, 3])
+    starts = np.arange(0, len(Q), step_frames)
+    rows: list[dict[str, Any]] = []
+    trans_all: list[np.ndarray] = []
+    rot_all: list[np.ndarray] = []
+    for L in lengths:
+        # s never decreases, so the first pose at which the path from a start reaches L is a search
+        ends = np.searchsorted(s, s[starts] + L, side="left")
+        ok = ends < len(Q)
+        i, j = starts[ok], ends[ok]
+        E = se3_inverse(se3_inverse(P[i]) @ P[j]) @ (se3_inverse(Q[i]) @ Q[j])
+        trans = 100.0 * np.linalg.norm(E[:, :3, 3], axis=1) / L
+        rot = np.rad2deg(rotation_angle(E[:, :3, :3])) / L
+        trans_all.append(trans)
+        rot_all.append(rot)
+        rows.append(
+            {
+                "length_m": L,
+                "count": len(i),
+                "drift_pct": float(np.mean(trans)) if len(i) else math.nan,
+                "rot_deg_per_m": float(np.mean(rot)) if len(i) else math.nan,
+            }
+        )
+    trans_cat, rot_cat = np.concatenate(trans_all), np.concatenate(rot_all)
+    note = None
+    if not len(trans_cat):
+        note = (
+            f"no segment: the true path ({_metres_text(s[-1])} m) is shorter than the shortest segment "
+            f"({min(lengths):g} m)"
+        )
+    return {
+        "segment_drift_pct": float(np.mean(trans_cat)) if len(trans_cat) else math.nan,
+        "segment_rot_deg_per_m": float(np.mean(rot_cat)) if len(rot_cat) else math.nan,
+        "segment_count": len(trans_cat),
+        "segments": rows,
+        "segment_lengths_m": lengths,
+        "segment_step_frames": int(step_frames),
+        "segment_note": note,
+    }
+
+
 def nees(err: np.ndarray, cov: np.ndarray, angle_dims: Sequence[int] = ()) -> np.ndarray:
     """Normalised estimation error squared ε_t = e_tᵀ P_t⁻¹ e_t (§11), per step.
 
@@ -366,17 +462,139 @@ def position_nees(est_T: np.ndarray, gt_T: np.ndarray, cov: np.ndarray) -> np.nd
     """
     P = poses_to_T(est_T)
     Q = poses_to_T(gt_T)
+    skip = np.zeros(len(P), dtype=bool)
+    skip[0] = True
+    return _position_nees_aligned_by(Q[0] @ se3_inverse(P[0]), P, Q, cov, skip)
+
+
+def _position_nees_aligned_by(
+    A: np.ndarray, P: np.ndarray, Q: np.ndarray, cov: np.ndarray, skip: np.ndarray
+) -> np.ndarray:
+    """Per-pose position NEES after moving the estimate by the rigid A (4, 4) and rotating its
+    position covariance with it; NaN where ``skip`` or where that covariance is not positive
+    definite."""
     C = np.asarray(cov, dtype=float)[:, :3, :3]
-    A = Q[0] @ se3_inverse(P[0])
     e = Q[:, :3, 3] - (P[:, :3, 3] @ A[:3, :3].T + A[:3, 3])
     C = A[:3, :3] @ C @ A[:3, :3].T
     C = 0.5 * (C + np.swapaxes(C, 1, 2))
     out = np.full(len(P), np.nan)
     ok = np.linalg.eigvalsh(C)[:, 0] > 1e-12  # 1 µm standard deviation: anything less is "exact"
-    ok[0] = False
+    ok &= ~skip
     if np.any(ok):
         out[ok] = nees(e[ok], C[ok])
     return out
+
+
+# The M of the positions-aligned NEES in a replay's summary (truth_aligned_*) and so in
+# bench/accuracy.py's rows: 9-10 frames of a KITTI car (about 1.1 m a frame at 10 Hz), enough
+# positions for a fit, and most of a 50-frame piece (55-60 m) is left to judge.
+ALIGN_POSITIONS_M = 10.0
+
+
+@dataclass(frozen=True, slots=True)
+class PositionAlignment:
+    """How :func:`align_by_positions` aligned an estimate to the truth.
+
+    ``T`` (4, 4) maps the estimate's world to the truth's; ``fit`` (N,) marks the poses within the
+    first ``over_m`` metres of true path, the ones it was fitted to; ``kind`` is "positions",
+    "positions+first-pose-roll" or "first-pose" and ``note`` says why in words.
+    """
+
+    T: np.ndarray
+    fit: np.ndarray
+    over_m: float
+    kind: str
+    note: str
+
+
+def align_by_positions(est_T: np.ndarray, gt_T: np.ndarray, over_m: float) -> PositionAlignment:
+    """Rigid alignment (no scale) of an estimate to the truth by the positions of the poses within
+    the first ``over_m`` metres of true path only (associated poses (N, 4, 4)).
+
+    - Those positions span a plane or a volume: the least-squares rigid fit of positions
+      (Umeyama, s ≡ 1); kind "positions".
+    - They lie on a line (a straight start: the second singular value of the centred positions
+      under 5 % of the first): the fit fixes all but the rotation about that line, which then
+      comes from the first pose, whose orientation the estimate and the truth share by
+      construction: the twist about the line of the rotation between the aligned estimate's first
+      orientation and the truth's is removed; kind "positions+first-pose-roll".
+    - They stay within 0.1 m (RMS about their mean), or only the first pose is within ``over_m``:
+      positions fix no rotation, and the estimate is aligned by its first pose, as drift is
+      (A = Q₀ P₀⁻¹); kind "first-pose".
+    """
+    P = poses_to_T(est_T)
+    Q = poses_to_T(gt_T)
+    if P.shape != Q.shape or len(P) == 0:
+        raise InputError(f"align_by_positions: expected two (N, 4, 4) arrays, got {P.shape} and {Q.shape}")
+    if not (math.isfinite(over_m) and over_m > 0):
+        raise InputError(f"align by positions: expected a positive length in metres, got {over_m}")
+    fit = cumulative_path(Q[:, :3, 3]) <= over_m
+    n = int(np.sum(fit))
+    qf, pf = Q[fit, :3, 3], P[fit, :3, 3]
+    kind = _positions_degenerate(qf) if n >= 2 else "single"
+    where = f"the {n} poses of the first {over_m:g} m of true path"
+    if kind == "":
+        return PositionAlignment(align_rigid(pf, qf), fit, over_m, "positions", f"rigid fit of {where}")
+    if kind == "collinear":
+        T = _roll_from_first_pose(align_rigid(pf, qf), P[0], Q[0], qf)
+        note = (
+            f"{where} lie on a line: rigid fit of their positions, and the rotation about that line "
+            "from the first pose's orientation"
+        )
+        return PositionAlignment(T, fit, over_m, "positions+first-pose-roll", note)
+    if kind == "stationary":
+        why = f"{where} stay within 0.1 m (RMS about their mean): positions fix no rotation"
+    else:
+        why = f"no pose but the first within the first {over_m:g} m of true path"
+    return PositionAlignment(Q[0] @ se3_inverse(P[0]), fit, over_m, "first-pose", f"{why}; aligned by the first pose")
+
+
+def _roll_from_first_pose(T: np.ndarray, P0: np.ndarray, Q0: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """T with its rotation about the line through the positions ``line`` (M, 3), which collinear
+    positions leave open, set so that the aligned first estimated orientation has no twist about the
+    line relative to the true one (swing-twist split of the rotation between them)."""
+    c = line.mean(0)
+    axis = np.linalg.svd(line - c)[2][0]
+    W = Q0[:3, :3] @ (T[:3, :3] @ P0[:3, :3]).T  # the aligned estimate's first orientation -> the truth's
+    q = R_to_quat(W)  # (w, x, y, z); W = swing · twist, the twist about ``axis`` by this angle:
+    twist = 2.0 * math.atan2(float(q[1:] @ axis), float(q[0]))
+    R = so3_exp(axis * twist)
+    return se3(R, c - R @ c) @ T
+
+
+def positions_aligned_nees(
+    est_T: np.ndarray, gt_T: np.ndarray, cov: np.ndarray, over_m: float = ALIGN_POSITIONS_M
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Per-pose position NEES (N,) after :func:`align_by_positions` over the first ``over_m`` metres,
+    NaN on the poses it was fitted to, and its summary: ``aligned_nees_pos_mean``,
+    ``aligned_nees_pos_in_band_frac``, ``aligned_nees_pos_frames`` (:func:`nees_summary` over the
+    poses past ``over_m`` metres), ``aligned_fit_frames``, ``align_positions_m``, ``alignment``
+    (the kind) and ``alignment_note`` (why; also when no pose is left to judge).
+
+    ``cov`` (N, 6, 6): the estimate's reported covariance, position block first, rotated with the
+    alignment. Unlike :func:`position_nees` the figure does not rest on the first pose's orientation,
+    which a straight start can get wrong by a fraction of a degree that grows into decimetres.
+    """
+    P = poses_to_T(est_T)
+    Q = poses_to_T(gt_T)
+    C = np.asarray(cov, dtype=float)
+    if C.ndim != 3 or C.shape[0] != len(P) or C.shape[1] < 3 or C.shape[1] != C.shape[2]:
+        raise InputError(f"positions_aligned_nees: expected ({len(P)}, 6, 6) covariances, got {C.shape}")
+    al = align_by_positions(P, Q, over_m)
+    eps = _position_nees_aligned_by(al.T, P, Q, C, al.fit)
+    s = nees_summary(eps)
+    note = al.note
+    if al.fit.all():
+        note += (
+            f"; the true path ({_metres_text(path_length(Q[:, :3, 3]))} m) does not go past {over_m:g} m: "
+            "no pose to judge"
+        )
+    out: dict[str, Any] = {f"aligned_{k}": v for k, v in s.items()}
+    out["aligned_nees_pos_frames"] = int(s["nees_pos_frames"])
+    out.update(
+        aligned_fit_frames=int(np.sum(al.fit)), align_positions_m=float(over_m), alignment=al.kind, alignment_note=note
+    )
+    return eps, out
 
 
 def nees_band_3(p: float = 0.95) -> tuple[float, float]:

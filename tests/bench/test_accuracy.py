@@ -44,6 +44,10 @@ def test_accuracy_runs_on_the_engine_with_the_figures_of_a_replay(
     assert r["ate_m"] == pytest.approx(direct["truth_ate_rmse_m"], rel=1e-9, abs=1e-12)
     assert r["drift_m"] == pytest.approx(direct["truth_drift_m"], rel=1e-9, abs=1e-12)
     assert r["lost_frames"] == direct["lost_frames"]
+    # issue 26's figures ride along: none on this 0.2 s run (no 100 m segment, nothing past 10 m)
+    assert r["segment_count"] == direct["truth_segment_count"] == 0 and r["segment_drift_pct"] is None
+    assert r["alignment"] == direct["truth_alignment"] and r["nees_aligned_frames"] == 0
+    assert r["nees_aligned_in_band_frac"] is None and out["align_positions_m"] == 10.0
     rows_file = tmp_path / "out" / "rows.jsonl"
     n = len(rows_file.read_text().splitlines())
     assert bench.main(argv) == 0  # the rerun reuses the folder's row
@@ -57,4 +61,43 @@ def test_the_table_keeps_its_columns(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert bench.main(argv) == 0
     text = capsys.readouterr().out
     assert "| place | method | detector | filter | input | frames | lost | drift % | ATE m |" in text
+    assert "| RPE m | seg. drift % | seg. deg/m | NEES in band, aligned 10 m | ms/frame p50 |" in text
     assert "| sim:yard | robotd | orb | fastslam2 | vision+odometry | 4 |" in text
+
+
+def test_a_summarys_segment_drift_and_positions_aligned_nees_become_the_rows_columns(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The one mapping from a replay summary (in process or the engine's) to a row, and the cells."""
+    bench = _bench()
+    s = {
+        "frames": 51,
+        "lost_frames": 0,
+        "step_ms_p50": 30.0,
+        "step_ms_p95": 40.0,
+        "wall_s": 2.0,
+        "truth_drift_pct": 0.5,
+        "truth_ate_rmse_m": 0.06,
+        "truth_rpe_trans_m": 0.01,
+        "truth_segment_drift_pct": 0.75,
+        "truth_segment_rot_deg_per_m": 0.0123,
+        "truth_segment_count": 12,
+        "truth_aligned_nees_pos_in_band_frac": 0.214,
+        "truth_aligned_nees_pos_mean": 25.5,
+        "truth_aligned_nees_pos_frames": 42,
+        "truth_alignment": "positions+first-pose-roll",
+    }
+    f = bench._figures(s)
+    assert (f["segment_drift_pct"], f["segment_rot_deg_per_m"], f["segment_count"]) == (0.75, 0.0123, 12)
+    assert (f["nees_aligned_in_band_frac"], f["nees_aligned_mean"], f["nees_aligned_frames"]) == (0.214, 25.5, 42)
+    assert f["alignment"] == "positions+first-pose-roll"
+    row = {"place": "p", "method": "robotd", "detector": "orb", "filter": "fastslam2"}
+    row.update(f)
+    out = {"config": "c", "commit": "x", "host": "h", "rows": [row], "skipped": [], "jobs": 1, "wall_s": 1.0}
+    bench.print_table(out)
+    text = capsys.readouterr().out
+    assert "| 0.060 | 0.0100 | 0.75 | 0.0123 | 0.21 of 42, roll from pose 0 | 30.0 |" in text
+    # a summary without them (a path too short, or no covariance: the PnP baseline): dashes
+    f = bench._figures({k: v for k, v in s.items() if not k.startswith("truth_")})
+    assert f["segment_drift_pct"] is None and f["nees_aligned_in_band_frac"] is None
+    assert bench._nees_cell(f) == "–"

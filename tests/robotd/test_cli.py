@@ -59,15 +59,21 @@ def test_eval_of_a_replay_against_poses_txt_gives_the_replays_own_truth_figures(
     est = tmp_path / "est.txt"
     assert main(["replay", f"kitti://{root}", "--out", str(est), "--json", "--quiet"]) == 0
     s = _json_out(capsys)
-    assert main(["eval", str(est), str(root / "poses.txt"), "--json"]) == 0
+    assert main(["eval", str(est), str(root / "poses.txt"), "--json", "--segments", "--align-positions", "10"]) == 0
     m = _json_out(capsys)
     assert m["association"] == ("time" if (root / "times.txt").is_file() else "index")
     assert m["frames"] == s["frames"] == 51
     shared = [k for k in m if f"truth_{k}" in s]
     assert {"ate_rmse_m", "drift_pct", "rpe_trans_m", "rpe_rot_deg", "heading_rmse_deg"} <= set(shared)
+    # the replay's summary holds KITTI's segments and the NEES aligned over the first 10 m too
+    assert {"segment_drift_pct", "segment_count", "aligned_nees_pos_in_band_frac", "alignment"} <= set(shared)
+    assert m["segment_count"] == 0 and m["segment_drift_pct"] is None  # 55-60 m: no 100 m segment
     for k in shared:
-        # the TUM file keeps 9 significant digits: the figures agree far below any reported digit
-        assert m[k] == pytest.approx(s[f"truth_{k}"], rel=1e-6, abs=1e-7), k
+        if m[k] is None or isinstance(m[k], str):
+            assert m[k] == s[f"truth_{k}"], k
+        else:
+            # the TUM file keeps 9 significant digits: the figures agree far below any reported digit
+            assert m[k] == pytest.approx(s[f"truth_{k}"], rel=1e-6, abs=1e-7), k
 
 
 def _rpe_trans_rmse(P: np.ndarray, Q: np.ndarray) -> float:
@@ -343,6 +349,78 @@ def test_eval_text_is_rounded_and_json_full_precision(tmp_path: Path, capsys: py
     # the estimate ends 0.2 m long over 10 m: 2 % drift, in full precision in the JSON
     assert m["drift_m"] == pytest.approx(0.2, abs=TUM_POSE_ATOL_M)
     assert len(repr(m["drift_pct"])) > 6
+
+
+def _straight_pair(tmp_path: Path, n: int, scale: float) -> tuple[Path, Path]:
+    """TUM files along x in 0.5 m steps (exact segment ends): the estimate ``scale`` times long."""
+    from robotd.research.evaluate import write_tum
+
+    t = np.arange(n) * 0.1
+    gt = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+    gt[:, 0, 3] = 0.5 * np.arange(n)
+    est = gt.copy()
+    est[:, 0, 3] *= scale
+    est_p, gt_p = tmp_path / "est.txt", tmp_path / "gt.txt"
+    write_tum(est_p, t, est)
+    write_tum(gt_p, t, gt)
+    return est_p, gt_p
+
+
+def test_eval_segments_on_a_short_path_none_of_kittis_and_the_lengths_asked_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    est, gt = _straight_pair(tmp_path, 61, 1.01)  # 30 m, 1 % long
+    assert main(["eval", str(est), str(gt), "--segments", "--json"]) == 0
+    m = _json_out(capsys)
+    assert m["segment_drift_pct"] is None and m["segment_rot_deg_per_m"] is None and m["segment_count"] == 0
+    assert m["segment_note"] == (
+        "no segment: the true path (30.0 m) is shorter than the shortest segment (100 m); "
+        "--segment-lengths sets shorter ones (e.g. 10,20,40)"
+    )
+    assert [r["length_m"] for r in m["segments"]] == [100.0 * k for k in range(1, 9)]
+    assert all(r["count"] == 0 and r["drift_pct"] is None for r in m["segments"])
+    assert main(["eval", str(est), str(gt), "--segments"]) == 0
+    out = capsys.readouterr().out
+    assert "segment_drift_pct: n/a" in out and "segment_note: no segment: the true path (30.0 m)" in out
+    assert main(["eval", str(est), str(gt), "--segment-lengths", "10,20,40", "--json"]) == 0  # implies --segments
+    m = _json_out(capsys)
+    assert [(r["length_m"], r["count"]) for r in m["segments"]] == [(10.0, 5), (20.0, 3), (40.0, 0)]
+    assert m["segment_drift_pct"] == pytest.approx(1.0, rel=1e-6) and m["segment_note"] is None
+    assert m["segments"][2]["drift_pct"] is None
+    assert main(["eval", str(est), str(gt), "--segment-lengths", "10,20,40"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    table = lines[lines.index("segments (one starting every 10 frames):") + 2 :]
+    assert [line.split() for line in table] == [["10", "5", "1", "0"], ["20", "3", "1", "0"], ["40", "0", "n/a", "n/a"]]
+    with pytest.raises(SystemExit):
+        main(["eval", str(est), str(gt), "--segment-lengths", "10,-5"])
+    assert "expected positive metres" in capsys.readouterr().err
+
+
+def test_eval_align_positions_says_how_it_aligned(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A straight start: the text and the JSON say the rotation about it came from the first pose;
+    without a covariance beside the trajectory, --align-positions is an error."""
+    from robotd.research.evaluate import write_pose_cov
+
+    est, gt = _straight_pair(tmp_path, 61, 1.0)
+    assert main(["eval", str(est), str(gt), "--align-positions", "10"]) == 2
+    assert "eval --align-positions: no pose covariance beside" in capsys.readouterr().err
+    t = np.arange(61) * 0.1
+    write_pose_cov(tmp_path / "est.cov.txt", t, np.tile(np.eye(6) * 0.01, (61, 1, 1)))
+    assert main(["eval", str(est), str(gt), "--align-positions", "10", "--json"]) == 0
+    m = _json_out(capsys)
+    assert m["alignment"] == "positions+first-pose-roll" and m["align_positions_m"] == 10.0
+    assert m["aligned_fit_frames"] == 21 and m["aligned_nees_pos_frames"] == 40
+    assert m["aligned_nees_pos_mean"] < 1e-6 and m["aligned_nees_pos_in_band_frac"] == 0.0  # exact: below the band
+    assert m["nees_pos_frames"] == 60  # the first-pose NEES stays as it was
+    assert main(["eval", str(est), str(gt), "--align-positions", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "alignment: positions+first-pose-roll" in out
+    assert "alignment_note: the 21 poses of the first 10 m of true path lie on a line" in out
+    # a path no longer than M: nothing to judge, said in words and as null
+    assert main(["eval", str(est), str(gt), "--align-positions", "40", "--json"]) == 0
+    m = _json_out(capsys)
+    assert m["aligned_nees_pos_mean"] is None and m["aligned_nees_pos_frames"] == 0
+    assert m["alignment_note"].endswith("the true path (30.0 m) does not go past 40 m: no pose to judge")
 
 
 def test_eval_on_a_stationary_path_reports_null_drift_pct(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -66,6 +66,10 @@ def test_stationary_euroc_has_no_drift_percentage(shared_data, capsys: pytest.Ca
     assert s["truth_drift_pct"] is None and s["truth_similarity_scale"] is None
     assert 0.0 <= s["truth_drift_m"] < STATIONARY_DRIFT_BOUND_M
     assert s["truth_final_error_m"] < STATIONARY_DRIFT_BOUND_M
+    # no segment of KITTI's, and no pose past the first 10 m to judge the positions-aligned NEES on
+    assert s["truth_segment_count"] == 0 and s["truth_segment_drift_pct"] is None
+    assert s["truth_alignment"] == "first-pose" and s["truth_aligned_nees_pos_frames"] == 0
+    assert s["truth_aligned_nees_pos_mean"] is None and s["truth_aligned_nees_pos_in_band_frac"] is None
     assert re.search(r"drift [\d.]+ m \(path [\d.]+ m\), ATE [\d.]+ m$", cap.err.strip().splitlines()[-1])
 
 
