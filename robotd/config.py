@@ -113,6 +113,15 @@ class FrontendConfig:
     parallel_detect: bool = _f(
         True, "detect the left and right images on two threads (one thread: a steadier tail on a busy 2-core host)"
     )
+    disparity_offset: str = _f(
+        "online",
+        "the rig's constant disparity error: estimated online from the visual motion (near points fix the"
+        " translation, far ones then show the offset) and taken off every disparity, or off (docs/frontend.md)",
+        choices=("online", "off"),
+    )
+    disparity_offset_walk_px: float = _f(
+        0.01, "online disparity offset: random walk per estimated frame [px]", min=0.0, max=1.0
+    )
 
 
 @dataclass(frozen=True)

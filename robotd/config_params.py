@@ -14,6 +14,7 @@ from robotd.config import Config
 from robotd.errors import ConfigError
 from robotd.frontend.association import AssociationParams
 from robotd.frontend.detectors import DetectorParams
+from robotd.frontend.disparity_bias import DisparityBiasParams
 from robotd.frontend.frontend import FrontendParams
 from robotd.frontend.pnp import PnpParams
 from robotd.frontend.stereo_match import StereoMatchParams
@@ -60,6 +61,7 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         pnp=PnpParams(inlier_px=f.pnp_inlier_px, sigma_px=f.sigma_x_px),
         guided=f.guided_matching,
         planar_map=cfg.slam.dim == 2,
+        disparity_bias=DisparityBiasParams(mode=f.disparity_offset, walk_px=f.disparity_offset_walk_px),
     )
 
 

@@ -278,6 +278,7 @@ def replay(
         "gravity_rejected": pipeline.counters.gravity_rejected,
         "gravity_reopened": pipeline.counters.gravity_reopened,
         "gravity_implausible": pipeline.counters.gravity_implausible,
+        **pipeline.frontend.disparity_bias.stats(),
     }
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}

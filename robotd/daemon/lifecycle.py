@@ -434,6 +434,8 @@ class Daemon:
                 gravity_reopened=c.gravity_reopened,
                 gravity_implausible=c.gravity_implausible,
             )
+            # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
+            doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
         if self.maps is not None:
             doc["map_file"] = self.maps.stats()
         if self.recorder is not None:

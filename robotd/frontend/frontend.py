@@ -40,6 +40,7 @@ from robotd.frontend.association import (
     LandmarkDescriptors,
 )
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
+from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams
 from robotd.frontend.features import Features
 from robotd.frontend.pnp import MotionPrior, PnpParams, stereo_pnp
 from robotd.frontend.stereo_match import (
@@ -82,6 +83,8 @@ class FrontendParams:
     planar_map: the map has no heights (a 2-D filter): guided matching ignores the image row.
     fov_margin_px: a map landmark is predicted visible if it projects this far inside the image.
     parallel_detect: detect the left and right images on two threads (OpenCV and SURF release the GIL).
+    disparity_bias: the online estimate of the rig's constant disparity error (PnP motion only;
+      robotd.frontend.disparity_bias).
     """
 
     detector: DetectorParams = field(default_factory=DetectorParams)
@@ -97,6 +100,7 @@ class FrontendParams:
     pnp: PnpParams = field(default_factory=PnpParams)
     fov_margin_px: float = 0.0
     parallel_detect: bool = True
+    disparity_bias: DisparityBiasParams = field(default_factory=DisparityBiasParams)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -258,10 +262,12 @@ class Frontend:
         self.detector: Detector = make_detector(self.params.detector)
         self.descriptors = descriptors
         self._prev: _PrevFrame | None = None
+        self.disparity_bias = DisparityBias(self.params.disparity_bias)
 
     def reset(self) -> None:
         """Forget the previous frame (after a gap or a relocalisation); keeps the descriptors."""
         self._prev = None
+        self.disparity_bias.reset_tracks(None)
 
     # ---------------------------------------------------------------------------- the stages
     def detect(self, left: np.ndarray, right: np.ndarray) -> FeaturePair:
@@ -292,7 +298,9 @@ class Frontend:
 
     def match_stereo(self, feats: FeaturePair, left: np.ndarray, right: np.ndarray) -> StereoMatches:
         """Stereo matches of the pair, triangulated in the robot frame with their covariance."""
-        return match_stereo(feats.left, feats.right, self.rig, self.params.stereo, left, right)
+        return match_stereo(
+            feats.left, feats.right, self.rig, self.params.stereo, left, right, self.disparity_bias.value_px
+        )
 
     def identify(
         self,
@@ -386,10 +394,12 @@ class Frontend:
         prediction of this motion with its physical bounds (PnP only: it picks the static
         background over a moving vehicle, robotd.frontend.pnp)."""
         if not wanted:
+            self.disparity_bias.reset_tracks(None)
             return VisualMotion(None, None, {})
         counts = {"motion_matches": 0, "motion_inliers": 0}
         pv = self._prev
         if pv is None or pv.meas.n == 0 or meas.n == 0 or t_ns < pv.t_ns:
+            self.disparity_bias.reset_tracks(None)
             return VisualMotion(None, None, counts)
         p = self.params
         binary = meas.binary
@@ -409,9 +419,14 @@ class Frontend:
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
             pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng, prior)
             if pnp is None:
+                self.disparity_bias.reset_tracks(None)
                 return VisualMotion(None, None, counts, ic if ic.size else None)
             counts["motion_inliers"] = int(pnp.inliers.sum())
             R, t, cov_tr = pnp.R, pnp.t, pnp.cov
+            inl = pnp.inliers
+            self.disparity_bias.track(
+                np.c_[meas.xl, meas.xr, meas.y], ic[inl], ip[inl], R, t, self.rig, max(p.pnp.sigma_px, pnp.rms_px)
+            )
             moving: np.ndarray | None = ic[~pnp.inliers]
         else:
             fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)

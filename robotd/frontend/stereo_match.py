@@ -381,12 +381,15 @@ def match_stereo(
     params: StereoMatchParams | None = None,
     left_img: np.ndarray | None = None,
     right_img: np.ndarray | None = None,
+    disparity_offset_px: float = 0.0,
 ) -> StereoMatches:
     """Match rectified left/right features and triangulate them (docs/math.md §2.2, §3.1, §4.2).
 
     ``left``/``right``: Features of the rectified images (one detector); ``left_img``/``right_img``:
     (H, W) uint8 rectified images, needed for ``refine="patch"`` (without them the keypoint
-    positions are used). Returns :class:`StereoMatches` in the robot frame.
+    positions are used). ``disparity_offset_px``: the rig's estimated constant disparity error δ̂,
+    taken off every disparity before the limits and the triangulation (x_r ← x_r + δ̂;
+    robotd.frontend.disparity_bias). Returns :class:`StereoMatches` in the robot frame.
     """
     params = params or StereoMatchParams()
     if left.binary != right.binary or (left.n and right.n and left.desc.shape[1] != right.desc.shape[1]):
@@ -424,6 +427,11 @@ def match_stereo(
         y = np.where(refined, yl, y)
         keep = ~edge if params.refine_reject_edge else np.ones(i.size, bool)
         n_edge = int(np.sum(edge))
+    else:
+        keep = np.ones(i.size, bool)
+    if disparity_offset_px:
+        xr = xr + disparity_offset_px
+    if disparity_offset_px or (params.refine == "patch" and left_img is not None and right_img is not None):
         d_min, d_max = rig.disparity_bounds(params.depth_min_m, params.d_min_px)
         keep &= (xl - xr >= d_min) & (xl - xr <= d_max)
         i, j, dist, xl, xr, y, refined = i[keep], j[keep], dist[keep], xl[keep], xr[keep], y[keep], refined[keep]
