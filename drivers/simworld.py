@@ -35,6 +35,11 @@ class Surface:
     point ``origin_W + s * u_W + t * v_W``; ``u_W``/``v_W`` (3,) [m per texel] span the plane and
     ``normal_W`` (3,) is the unit normal of the visible side (surfaces are one-sided: seen from
     behind they are culled). ``corners_W`` (4, 3) [m] are the texture's outer texel edges.
+    ``alpha``: the coverage's mip chain (same shapes as ``mips``, 255 opaque, 0 transparent), or
+    empty for an opaque rectangle; where it is below 128 the surface is not there (a tree crown's
+    outline against what lies behind it). ``lod_nearest``: the renderer picks each depth band's mip
+    level for the band's nearest point instead of its centre (for large ground tiles, whose bands
+    reach far to the side: the centre's grazing view would blur the near part).
     """
 
     name: str
@@ -45,6 +50,15 @@ class Surface:
     corners_W: np.ndarray  # (4, 3) [m]
     texel_m: float
     mips: tuple[np.ndarray, ...]  # level L: (h / 2^L, w / 2^L) uint8, cv2.pyrDown chain
+    alpha: tuple[np.ndarray, ...] = ()  # coverage mips as ``mips``, or () for opaque
+    lod_nearest: bool = False
+
+
+def _mip_chain(texture: np.ndarray) -> tuple[np.ndarray, ...]:
+    mips = [np.ascontiguousarray(texture)]
+    while min(mips[-1].shape) >= 16 and len(mips) < 7:
+        mips.append(cv2.pyrDown(mips[-1]))
+    return tuple(mips)
 
 
 def make_surface(
@@ -54,12 +68,16 @@ def make_surface(
     edge_b_W: np.ndarray,
     outward_W: np.ndarray,
     texture: np.ndarray,
+    alpha: np.ndarray | None = None,
+    lod_nearest: bool = False,
 ) -> Surface:
     """A rectangle ``corner + α edge_a + β edge_b`` (α, β ∈ [0, 1]) wearing ``texture`` (h, w) uint8.
 
     The texture's columns run along ``edge_a`` and its rows along ``edge_b``, as an image seen
     from the ``outward_W`` side (like a camera: x right, y down, z into the surface), so letters
     read the right way round; if ``edge_a`` runs the other way for that side it is reversed.
+    ``alpha`` (h, w) uint8: the surface's coverage (255 where it is, 0 where it is not), if not
+    the whole rectangle. ``lod_nearest``: see :class:`Surface`.
     """
     corner = np.asarray(corner_W, float)
     a = np.asarray(edge_a_W, float)
@@ -75,17 +93,26 @@ def make_surface(
     # texel centres at integers: the texture's outer edges are at s = -0.5 and s = w - 0.5
     origin = corner + 0.5 * u + 0.5 * v
     corners = np.stack([corner, corner + a, corner + a + b, corner + b])
-    mips = [np.ascontiguousarray(texture)]
-    while min(mips[-1].shape) >= 16 and len(mips) < 7:
-        mips.append(cv2.pyrDown(mips[-1]))
-    return Surface(name, origin, u, v, n, corners, float(np.linalg.norm(u)), tuple(mips))
+    if alpha is not None and alpha.shape != texture.shape:
+        raise ValueError(f"make_surface {name}: alpha {alpha.shape} and texture {texture.shape} differ")
+    cover = _mip_chain(alpha) if alpha is not None else ()
+    return Surface(name, origin, u, v, n, corners, float(np.linalg.norm(u)), _mip_chain(texture), cover, lod_nearest)
 
 
 def transformed(s: Surface, T_new_old: np.ndarray) -> Surface:
     """The same surface with its geometry mapped by the rigid transform ``T_new_old`` (4, 4)."""
     R, t = T_new_old[:3, :3], T_new_old[:3, 3]
     return Surface(
-        s.name, R @ s.origin_W + t, R @ s.u_W, R @ s.v_W, R @ s.normal_W, s.corners_W @ R.T + t, s.texel_m, s.mips
+        s.name,
+        R @ s.origin_W + t,
+        R @ s.u_W,
+        R @ s.v_W,
+        R @ s.normal_W,
+        s.corners_W @ R.T + t,
+        s.texel_m,
+        s.mips,
+        s.alpha,
+        s.lod_nearest,
     )
 
 
@@ -269,7 +296,42 @@ def _truth(
     return TruthState(T_world_yard @ T_yard_robot, R_yard.T @ vel_yard, rate_R)
 
 
-class LoopTrajectory:
+class VaryingSpeed:
+    """A rover driving along a path at arc-length speed v(t) = speed (1 + ε sin(2π t / T_v)),
+    starting ``start_m`` [m] along it: the distance driven, its inverse and the speed, in closed
+    form. The subclass sets ``speed``, ``eps``, ``T_v`` and ``start_m``."""
+
+    speed: float
+    eps: float
+    T_v: float
+    start_m: float
+
+    def arc_length(self, t_s: float) -> float:
+        """Distance driven since t = 0: s(t) = ∫ v dt, in closed form."""
+        w = 2.0 * np.pi / self.T_v
+        return self.speed * (t_s + self.eps * (1.0 - math.cos(w * t_s)) / w)
+
+    def time_at(self, s_m: float) -> float:
+        """When the rover is at arc length ``s_m`` (≥ ``start_m``, counted on from lap to lap):
+        the inverse of :meth:`arc_length` by Newton's method (it increases monotonically);
+        +inf for a parked rover."""
+        ds = s_m - self.start_m
+        if self.speed <= 0.0:
+            return math.inf
+        w = 2.0 * np.pi / self.T_v
+        t = ds / self.speed
+        for _ in range(50):
+            step = (self.arc_length(t) - ds) / (self.speed * (1.0 + self.eps * math.sin(w * t)))
+            t -= step
+            if abs(step) < 1e-12 * max(1.0, abs(t)):
+                break
+        return t
+
+    def speed_at(self, t_s: float) -> float:
+        return self.speed * (1.0 + self.eps * math.sin(2.0 * np.pi * t_s / self.T_v))
+
+
+class LoopTrajectory(VaryingSpeed):
     """The rover drives a peanut-shaped loop (about 28.5 m) at a gently varying speed.
 
     Path in the yard frame: x(φ) = A r(φ) cos φ, y(φ) = B r(φ) sin φ, r = 1 + e cos 2φ; the rover
@@ -335,30 +397,6 @@ class LoopTrajectory:
         """(2,) [m]: the point of the loop at arc length ``s_m`` (yard frame)."""
         x, y = self._p(np.array(np.interp(s_m % self.length_m, self._s_tab, self._phi_tab)))
         return np.array([float(x), float(y)])
-
-    def arc_length(self, t_s: float) -> float:
-        """Distance driven since t = 0: s(t) = ∫ v dt, in closed form."""
-        w = 2.0 * np.pi / self.T_v
-        return self.speed * (t_s + self.eps * (1.0 - math.cos(w * t_s)) / w)
-
-    def time_at(self, s_m: float) -> float:
-        """When the rover is at arc length ``s_m`` (≥ ``start_m``, counted on from lap to lap):
-        the inverse of :meth:`arc_length` by Newton's method (it increases monotonically);
-        +inf for a parked rover."""
-        ds = s_m - self.start_m
-        if self.speed <= 0.0:
-            return math.inf
-        w = 2.0 * np.pi / self.T_v
-        t = ds / self.speed
-        for _ in range(50):
-            step = (self.arc_length(t) - ds) / (self.speed * (1.0 + self.eps * math.sin(w * t)))
-            t -= step
-            if abs(step) < 1e-12 * max(1.0, abs(t)):
-                break
-        return t
-
-    def speed_at(self, t_s: float) -> float:
-        return self.speed * (1.0 + self.eps * math.sin(2.0 * np.pi * t_s / self.T_v))
 
     def state(self, t_s: float) -> TruthState:
         """Truth at ``t_s`` seconds after the start (t ≥ 0)."""
@@ -730,7 +768,14 @@ def build_world(
     if stop[1] > 0.0:
         traj = StoppingTrajectory(traj, stop[0], stop[1])
     return World(
-        world, seed, tuple(transformed(s, T) for s in surfaces), traj, h, size, movers, _LAYOUTS[world].plain_from_x
+        world,
+        seed,
+        tuple(transformed(s, T) for s in surfaces),
+        traj,
+        h,
+        size,
+        movers,
+        _LAYOUTS[world].plain_from_x,
     )
 
 
