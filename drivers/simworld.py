@@ -699,7 +699,19 @@ class World:
         return tuple(s for m in self.movers for s in m.surfaces_at(t_s))
 
 
-WORLDS = ("yard", "turn_in_place", "moving_box", "low_texture")
+WORLDS = ("yard", "turn_in_place", "moving_box", "low_texture", "open_terrain")
+OAK_D_BASELINE_M = 0.0755
+
+
+def rig_baseline_m(world: str) -> float:
+    """The stereo baseline [m] a world's camera has unless the URL sets one: the OAK-D's, except
+    in ``open_terrain``, whose car-mounted rig has 0.9 m, so that at 640×400 a point has the
+    disparity it has in KITTI's images (drivers/simterrain.py)."""
+    if world == "open_terrain":
+        from drivers.simterrain import BASELINE_M
+
+        return BASELINE_M
+    return OAK_D_BASELINE_M
 
 
 @dataclass(frozen=True, slots=True)
@@ -729,6 +741,10 @@ _PLAIN_GREY = {"ground": (95.0, 4.0), "wall": (165.0, 4.0)}  # grey ± amplitude
 
 
 def _trajectory(world: str, speed_mps: float, tilt_deg: float) -> Trajectory:
+    if world == "open_terrain":
+        from drivers.simterrain import RoadLoop  # it builds on this module's surfaces and textures
+
+        return RoadLoop(speed_mps=speed_mps, tilt_deg=tilt_deg)
     if world == "turn_in_place":
         return TurnInPlaceTrajectory(speed_mps=speed_mps, tilt_deg=tilt_deg)
     return LoopTrajectory(speed_mps=speed_mps, tilt_deg=tilt_deg, start_m=_LAYOUTS[world].start_m)
@@ -751,14 +767,20 @@ def build_world(
     ``stop``: (at [s], for [s]): the rover stands still for a while (:class:`StoppingTrajectory`;
     (0, 0) or a duration of 0: no stop).
 
-    The surfaces and textures (about 12 Mpx, 1–2 s to generate) are built once per (seed, world)
-    and cached; speed and tilt only change the trajectory (and the moving box's schedule), whose
-    start pose (and so the world frame) does not depend on them.
+    The surfaces and textures (about 12 Mpx, 1–2 s to generate; ``open_terrain``: see
+    drivers/simterrain.py) are built once per (seed, world) and cached; speed and tilt only change
+    the trajectory (and the moving box's schedule), whose start pose (and so the world frame) does
+    not depend on them.
     """
     if world not in WORLDS:
         raise DriverError(f"sim world {world!r}: unknown; known: {', '.join(WORLDS)}")
     traj: Trajectory = _trajectory(world, speed_mps, tilt_deg)
-    surfaces, h, size = _yard_surfaces(seed, world)
+    if world == "open_terrain":
+        from drivers.simterrain import terrain_surfaces
+
+        surfaces, h, size = terrain_surfaces(seed)
+    else:
+        surfaces, h, size = _yard_surfaces(seed, world)
     T = traj.T_world_yard
     movers: tuple[Mover, ...] = ()
     if world == "moving_box":
@@ -775,7 +797,7 @@ def build_world(
         h,
         size,
         movers,
-        _LAYOUTS[world].plain_from_x,
+        _LAYOUTS[world].plain_from_x if world in _LAYOUTS else None,
     )
 
 
