@@ -20,7 +20,7 @@ import cv2
 import numba as nb
 import numpy as np
 
-from drivers.simworld import Surface
+from drivers.simbase import Surface
 
 Z_NEAR_M = 0.05
 # depth band edges [m]: a surface spanning several bands is drawn once per band

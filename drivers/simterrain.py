@@ -7,7 +7,7 @@ half are far points with a disparity of a few pixels, which bias the translation
 front end whose disparity error is not zero-mean (issue 26, sequence A: similarity scale 0.934).
 
 The layout, in the layout frame ``Y`` (FRD, origin on the ground plane's level at the path's
-centre, as the yard's frame of drivers/simworld.py):
+centre, as the yard's frame of drivers/simworld.py; the building blocks are drivers/simbase.py's):
 
 - **The path**: a closed road lap of about 763 m, straights joined by six turns of +98°, −60°,
   +120°, +90°, −45° and +157° (positive: right) with peak radii of 25–50 m; the curvature
@@ -24,7 +24,7 @@ centre, as the yard's frame of drivers/simworld.py):
 - **The far band**: 45 stands of trees (8–30 m wide, 8–18 m tall, at least 30 m from the path),
   a closed treeline (12–20 m tall) round the whole area 45 m beyond the path's farthest point,
   and hills (40–110 m high) on a ring 650 m out. Tree crowns and ridges have real outlines (a
-  coverage mask, :attr:`drivers.simworld.Surface.alpha`), so farther things show between them.
+  coverage mask, :attr:`drivers.simbase.Surface.alpha`), so farther things show between them.
 
 The camera rig of this world is a car's: the robot origin (the baseline's centre) is 1.65 m above
 the ground (KITTI's camera height) and the default baseline is 0.9 m. At the default 640×400
@@ -43,14 +43,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from drivers.simworld import (
-    Surface,
-    TruthState,
-    VaryingSpeed,
-    _truth,
-    make_surface,
-    value_noise,
-)
+from drivers.simbase import Surface, TruthState, VaryingSpeed, make_surface, rover_truth, value_noise
 from robotd.geometry import euler_to_R, se3, se3_inverse
 
 CAM_HEIGHT_M = 1.65  # robot origin above the ground [m] (KITTI's camera height)
@@ -210,7 +203,7 @@ class RoadLoop(VaryingSpeed):
         psi, kappa = self._psi_kappa(s)
         xy = self._xy(s)[0]
         v = self.speed_at(t_s)
-        return _truth(
+        return rover_truth(
             self.T_world_yard,
             (float(xy[0]), float(xy[1])),
             float(psi[0]),
