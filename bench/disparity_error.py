@@ -168,8 +168,8 @@ def print_table(res: dict) -> None:
     print(
         f"measured − true disparity [px] over |error| ≤ {res['gross_px']:g} px (± its standard error); gross: beyond\n"
     )
-    head = ("true d [px]", "depth [m]", "kept", "n", "mean", "std", "median", "gross")
-    head += ("one depth: n", "mean", "std", "edge: n", "mean", "std")
+    head = ["true d [px]", "depth [m]", "kept", "n", "mean", "std", "median", "gross"]
+    head += ["one depth: n", "mean", "std", "edge: n", "mean", "std"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     fb = res["fb_px_m"]
