@@ -8,7 +8,8 @@ threads (1 = the "one core" goal of ≥ 60 pairs/s at 640×400). Also reports th
 
 Prints a Markdown table, or exactly one JSON object with --json.
 
-    python bench/sim_render.py [--world yard] [--pairs 300] [--width 640] [--height 400] [--threads 1] [--json]
+    python bench/sim_render.py [--world yard] [--pairs 300] [--width 640] [--height 400] [--threads 1]
+        [--speed 1] [--fps 30] [--json]
 """
 
 from __future__ import annotations
@@ -30,12 +31,22 @@ from drivers.sim import SimParams, SimRig
 from drivers.simworld import WORLDS, build_world
 
 
-def run(pairs: int, width: int, height: int, threads: int, seed: int, world_name: str = "yard") -> dict:
+def run(
+    pairs: int,
+    width: int,
+    height: int,
+    threads: int,
+    seed: int,
+    world_name: str = "yard",
+    speed: float = 1.0,
+    fps: float = 30.0,
+) -> dict:
     cv2.setNumThreads(threads)
     t = time.perf_counter()
-    world = build_world(seed, world_name)
+    world = build_world(seed, world_name, speed)
     build_s = time.perf_counter() - t
-    rig = SimRig(world, SimParams(width=width, height=height, seed=seed, realtime=0, world=world_name))
+    params = SimParams(width=width, height=height, seed=seed, realtime=0, world=world_name, speed=speed, fps=fps)
+    rig = SimRig(world, params)
     rig.render(0, 0)  # warm-up: first touches of the textures
     ms = np.empty(pairs)
     for k in range(pairs):
@@ -46,6 +57,8 @@ def run(pairs: int, width: int, height: int, threads: int, seed: int, world_name
     feats = [len(orb.detect(rig.render(int(k), 0)[0].left, None)) for k in np.linspace(0, 850, 8).astype(int)]
     return {
         "world": world_name,
+        "speed": speed,
+        "fps": fps,
         "width": width,
         "height": height,
         "pairs": pairs,
@@ -70,14 +83,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="cv2.setNumThreads (0 = OpenCV default)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--world", choices=WORLDS, default="yard")
+    ap.add_argument("--speed", type=float, default=1.0, help="the rover's speed [m/s] (sim:// speed=)")
+    ap.add_argument("--fps", type=float, default=30.0, help="frame rate [Hz]: with --speed, how far the pairs reach")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    res = run(args.pairs, args.width, args.height, args.threads, args.seed, args.world)
+    res = run(args.pairs, args.width, args.height, args.threads, args.seed, args.world, args.speed, args.fps)
     if args.json:
         print(json.dumps(res))
         return 0
     print(
-        f"sim:// render, world {res['world']}, {res['width']}×{res['height']}, {res['pairs']} pairs, "
+        f"sim:// render, world {res['world']} (speed {res['speed']:g} m/s, {res['fps']:g} fps), "
+        f"{res['width']}×{res['height']}, {res['pairs']} pairs, "
         f"cv2 threads {res['cv2_threads']}, "
         f"{res['cpu_count']} CPUs, load {res['loadavg_1min']:.2f}\n"
     )

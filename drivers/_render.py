@@ -6,7 +6,8 @@ to the band's bounding box) and composited with a depth test. For a plane n·X =
 frame, a pixel (x, y) sees the point X = Z K⁻¹(x, y, 1)ᵀ, so 1/Z = n·K⁻¹(x, y, 1)ᵀ / d is affine
 in the pixel coordinates: the depth buffer stores 1/Z [1/m] and is filled analytically, no
 per-pixel ray casting. Depth bands let a long surface use a coarser mip level far away
-(minification without aliasing) and a sharp one close by.
+(minification without aliasing) and a sharp one close by. A surface with a coverage mask
+(``Surface.alpha``) is drawn only where the mask is set (a tree crown's outline).
 
 Camera optical frame: x right, y down, z forward (robotd.geometry); pixel centres at integers.
 """
@@ -19,11 +20,11 @@ import cv2
 import numba as nb
 import numpy as np
 
-from drivers.simworld import Surface
+from drivers.simbase import Surface
 
 Z_NEAR_M = 0.05
 # depth band edges [m]: a surface spanning several bands is drawn once per band
-_BANDS = (Z_NEAR_M, 1.0, 2.0, 4.0, 8.0, 16.0, 1e9)
+_BANDS = (Z_NEAR_M, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0, 256.0, 1e9)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -183,7 +184,19 @@ class ViewRenderer:
             # mip level: texels per pixel at the band's near edge, with foreshortening by the
             # viewing angle (geometric mean of the two footprint axes)
             zb = max(float(band[:, 2].min()), Z_NEAR_M)
-            centre = band.mean(0)
+            if s.lod_nearest:
+                # at the nearest corner of the band's visible window (a ground tile's band can
+                # reach far to the side, out of view: neither its nearest vertex nor its centre
+                # is what the image shows)
+                cx = np.array([x0, x1 - 1, x0, x1 - 1], float)
+                cy = np.array([y0, y0, y1 - 1, y1 - 1], float)
+                iz = a * cx + b * cy + c
+                j = int(np.argmax(iz))
+                if iz[j] > 0.0:
+                    zb = min(max(zb, 1.0 / float(iz[j])), z_hi)
+                centre = np.array([(cx[j] - self.px) / self.f, (cy[j] - self.py) / self.f, 1.0])
+            else:
+                centre = band.mean(0)
             cos_view = abs(float(n_c @ centre)) / max(float(np.linalg.norm(centre)), 1e-9)
             ratio = zb / (self.f * s.texel_m) / math.sqrt(max(cos_view, 0.05))
             level = min(nlev - 1, max(0, math.floor(math.log2(ratio) + 0.3))) if ratio > 1.0 else 0
@@ -198,4 +211,9 @@ class ViewRenderer:
             mask = np.zeros((bh, bw), np.uint8)
             fixed = np.round((pts - (x0, y0)) * 16.0).astype(np.int32)
             cv2.fillConvexPoly(mask, fixed, 1, cv2.LINE_8, 4)
+            if s.alpha:
+                cover = cv2.warpPerspective(
+                    s.alpha[level], M, (bw, bh), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                )
+                mask[cover < 128] = 0
             _composite(img, izbuf, warped, mask, x0, y0, a, b, c)

@@ -4,8 +4,8 @@ The daemon's built-in default source: ``robotd run`` with no configuration drive
 through a textured walled yard (drivers/simworld.py) and renders what its OAK-D-like stereo rig
 sees (drivers/_render.py). Every StereoFrame carries ``truth_T_world_robot``.
 
-Worlds (``world=``), each the walled yard with a trajectory; the last three are the hard cases
-real data is short of (docs/sim.md has the layouts and timings):
+Worlds (``world=``), the walled yard with a trajectory but for the last; all but the first are the
+hard cases real data is short of (docs/sim.md has the layouts and timings):
 
 - ``yard``: the default; a 28.5 m peanut-shaped loop, gentle curves, never stopping.
 - ``turn_in_place``: straight legs round a 6 × 3 m parallelogram; at each corner the rover
@@ -18,6 +18,11 @@ real data is short of (docs/sim.md has the layouts and timings):
   ``World.surfaces`` (the static scene).
 - ``low_texture``: the loop with the yard's east end bare (plain walls, bare concrete, no
   obstacles); the rover faces it for ≈ 1.5 s: fewer than 100 ORB features from t ≈ 3.9 to 5.4 s.
+- ``open_terrain``: not the yard: open country (drivers/simterrain.py), a 763 m road lap through a
+  grass field with sparse posts, rocks and bushes, stands of trees and a treeline 30–200 m away
+  and hills beyond; a car's rig (1.65 m up, baseline 0.9 m: at 640×400 KITTI's f·b), so the upper
+  half of the image is far points of a few pixels' disparity. The first turn, 98° over 53 m,
+  starts 10 m in.
 
 URL: ``sim://[WORLD]?key=value&...`` (all keys optional; one URL can serve camera and vehicle):
 
@@ -28,9 +33,10 @@ width      640      image width [px] (16..4096)
 height     400      image height [px] (16..4096)
 fps        30       frame rate [Hz] (0.1..1000)
 f          430·w/640  focal length [px] (keeps the OAK-D's ≈ 73° field of view)
-baseline   0.0755   stereo baseline [m]
+baseline   0.0755   stereo baseline [m]; open_terrain: 0.9 (a car's rig; f·b = KITTI's at 640×400)
 seed       1        world layout, textures and noise (integer ≥ 0)
-world      yard     yard, turn_in_place, moving_box or low_texture (also the URL's host: ``sim://yard``)
+world      yard     yard, turn_in_place, moving_box, low_texture or open_terrain (also the URL's
+                    host: ``sim://yard``)
 speed      1.0      mean rover speed [m/s] (0..5); turn_in_place: on the straights, and turns × speed
 tilt       0        terrain rocking amplitude, roll and pitch [deg] (0..10)
 duration   0        stop after this many simulated seconds; 0 = run forever
@@ -95,7 +101,7 @@ from drivers import HEALTH_STATES, AutopilotLink
 from drivers._render import ViewRenderer
 from drivers.base import Driver
 from drivers.simfollow import FollowedTrajectory, parse_follow, truth_push_args
-from drivers.simworld import WORLDS, World, build_world
+from drivers.simworld import WORLDS, World, build_world, rig_baseline_m
 from robotd.errors import DriverError
 from robotd.geometry import R_ROBOT_OPTICAL, se3
 from robotd.msgs import Odometry, PoseEstimate, StereoFrame
@@ -115,7 +121,7 @@ class SimParams:
     height: int = 400
     fps: float = 30.0
     f: float = 0.0  # 0 → 430 · width / 640
-    baseline: float = 0.0755
+    baseline: float = 0.0  # 0 → the world's rig: 0.0755 (the OAK-D's), open_terrain 0.9
     seed: int = 1
     world: str = "yard"
     speed: float = 1.0
@@ -149,6 +155,10 @@ class SimParams:
     @property
     def f_px(self) -> float:
         return self.f if self.f > 0 else 430.0 * self.width / 640.0
+
+    @property
+    def baseline_m(self) -> float:
+        return self.baseline if self.baseline > 0 else rig_baseline_m(self.world)
 
     @property
     def session_key(self) -> tuple[int, str, float, float, float, float, str, float]:
@@ -347,10 +357,10 @@ class SimRig:
         self.world = world
         self.params = params
         w, h = params.width, params.height
-        self.model = RectifiedStereo(params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, params.baseline, w, h)
+        self.model = RectifiedStereo(params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, params.baseline_m, w, h)
         self._renderer = ViewRenderer(world.surfaces, self.model.f_px, self.model.px, self.model.py, w, h)
         self._movers_only: ViewRenderer | None = None
-        b = params.baseline
+        b = params.baseline_m
         self.T_robot_left = se3(R_ROBOT_OPTICAL, np.array([0.0, -b / 2.0, 0.0]))
         self.T_robot_right = se3(R_ROBOT_OPTICAL, np.array([0.0, b / 2.0, 0.0]))
         # sensor noise: a bank of noise fields drawn once; each frame picks fields and offsets
@@ -459,7 +469,7 @@ class SimCamera(Driver):
                     self.params.height,
                     self.params.fps,
                     self._rig.model.f_px,
-                    self.params.baseline,
+                    self.params.baseline_m,
                     self.params.realtime,
                 )
 
@@ -499,7 +509,7 @@ class SimCamera(Driver):
 
     def rectified_model(self) -> RectifiedStereo:
         w, h = self.params.width, self.params.height
-        return RectifiedStereo(self.params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, self.params.baseline, w, h)
+        return RectifiedStereo(self.params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, self.params.baseline_m, w, h)
 
     def frame_t_ns(self, k: int) -> int:
         """Capture time of frame ``k`` on the host monotonic clock."""

@@ -33,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.simworld import TruthState
+from drivers.simbase import TruthState
 from robotd.errors import DriverError
 from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp
 

@@ -1,5 +1,7 @@
 """The simulated rover's world: textured planar surfaces (a walled yard with boxes and posts) and
-the rover's trajectory through it, with its exact velocities for the odometry.
+the rover's trajectory through it, with its exact velocities for the odometry. The building blocks
+(surfaces, value noise, a rover's truth) are in drivers/simbase.py; the open-terrain world in
+drivers/simterrain.py, which :func:`build_world` builds as it builds the yard's.
 
 Frames (``robotd.geometry``): the world ``W`` is the robot frame at t = 0 (FRD: x forward,
 y right, z down), so the truth starts at the identity and the flat ground lies at z = +h, h the
@@ -20,95 +22,21 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from drivers.simbase import (
+    Surface,
+    TruthState,
+    VaryingSpeed,
+    make_surface,
+    rover_truth,
+    transformed,
+    value_noise,
+)
+from drivers.simterrain import BASELINE_M, RoadLoop, terrain_surfaces
 from robotd.errors import DriverError
-from robotd.geometry import euler_rate_matrix, euler_to_R, se3, se3_inverse
+from robotd.geometry import euler_to_R, se3, se3_inverse
 
 # --------------------------------------------------------------------------------------------
-# Surfaces
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Surface:
-    """One textured planar rectangle.
-
-    A texel (s, t) of the level-0 texture (column s, row t, centres at integers) sits at the world
-    point ``origin_W + s * u_W + t * v_W``; ``u_W``/``v_W`` (3,) [m per texel] span the plane and
-    ``normal_W`` (3,) is the unit normal of the visible side (surfaces are one-sided: seen from
-    behind they are culled). ``corners_W`` (4, 3) [m] are the texture's outer texel edges.
-    """
-
-    name: str
-    origin_W: np.ndarray  # (3,) [m]
-    u_W: np.ndarray  # (3,) [m/texel]
-    v_W: np.ndarray  # (3,) [m/texel]
-    normal_W: np.ndarray  # (3,) unit, towards the viewer side
-    corners_W: np.ndarray  # (4, 3) [m]
-    texel_m: float
-    mips: tuple[np.ndarray, ...]  # level L: (h / 2^L, w / 2^L) uint8, cv2.pyrDown chain
-
-
-def make_surface(
-    name: str,
-    corner_W: np.ndarray,
-    edge_a_W: np.ndarray,
-    edge_b_W: np.ndarray,
-    outward_W: np.ndarray,
-    texture: np.ndarray,
-) -> Surface:
-    """A rectangle ``corner + α edge_a + β edge_b`` (α, β ∈ [0, 1]) wearing ``texture`` (h, w) uint8.
-
-    The texture's columns run along ``edge_a`` and its rows along ``edge_b``, as an image seen
-    from the ``outward_W`` side (like a camera: x right, y down, z into the surface), so letters
-    read the right way round; if ``edge_a`` runs the other way for that side it is reversed.
-    """
-    corner = np.asarray(corner_W, float)
-    a = np.asarray(edge_a_W, float)
-    b = np.asarray(edge_b_W, float)
-    outward = np.asarray(outward_W, float)
-    if float(np.cross(a, b) @ outward) > 0.0:
-        corner, a = corner + a, -a
-    n = -np.cross(a, b)
-    n /= np.linalg.norm(n)
-    h, w = texture.shape
-    u = a / w
-    v = b / h
-    # texel centres at integers: the texture's outer edges are at s = -0.5 and s = w - 0.5
-    origin = corner + 0.5 * u + 0.5 * v
-    corners = np.stack([corner, corner + a, corner + a + b, corner + b])
-    mips = [np.ascontiguousarray(texture)]
-    while min(mips[-1].shape) >= 16 and len(mips) < 7:
-        mips.append(cv2.pyrDown(mips[-1]))
-    return Surface(name, origin, u, v, n, corners, float(np.linalg.norm(u)), tuple(mips))
-
-
-def transformed(s: Surface, T_new_old: np.ndarray) -> Surface:
-    """The same surface with its geometry mapped by the rigid transform ``T_new_old`` (4, 4)."""
-    R, t = T_new_old[:3, :3], T_new_old[:3, 3]
-    return Surface(
-        s.name, R @ s.origin_W + t, R @ s.u_W, R @ s.v_W, R @ s.normal_W, s.corners_W @ R.T + t, s.texel_m, s.mips
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# Procedural textures. Each is built from a few octaves of value noise plus drawn shapes, so
-# corners and blobs are distinctive at every scale and nothing repeats (no tiling).
-
-
-def value_noise(rng: np.random.Generator, h: int, w: int, cells: tuple[int, ...], gamma: float = 0.8) -> np.ndarray:
-    """Multi-octave value noise (h, w) float32 in [0, 1]: random grids of ``cells`` texels, upsampled
-    bicubically and summed with amplitude ∝ cell^gamma (a 1/f-like spectrum)."""
-    acc = np.zeros((h, w), np.float32)
-    total = 0.0
-    for c in cells:
-        gh, gw = max(2, h // c + 2), max(2, w // c + 2)
-        grid = rng.random((gh, gw), dtype=np.float32)
-        up = cv2.resize(grid, ((gw - 1) * c, (gh - 1) * c), interpolation=cv2.INTER_CUBIC)
-        amp = float(c) ** gamma
-        acc += amp * up[:h, :w]
-        total += amp
-    acc /= total
-    lo, hi = np.percentile(acc[:: max(1, h // 64), :: max(1, w // 64)], (1, 99))
-    return np.clip((acc - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+# Procedural textures of the yard (value noise: drivers/simbase.py)
 
 
 _GLYPHS = "ABCDEFGHJKLMNPQRSTUVWXYZ0123456789#&%@"
@@ -213,16 +141,6 @@ def texture_plain(rng: np.random.Generator, h: int, w: int, grey: float, amplitu
 # Trajectories: a smooth closed loop on the ground, or straight legs joined by turns in place
 
 
-@dataclass(frozen=True, slots=True)
-class TruthState:
-    """Ground truth at one time: ``T_world_robot`` (4, 4), ``vel_R_mps`` (3,) and ``rate_R_radps``
-    (3,) in the robot frame (FRD), as the wheels and a gyro would ideally measure them."""
-
-    T_world_robot: np.ndarray
-    vel_R_mps: np.ndarray
-    rate_R_radps: np.ndarray
-
-
 class Trajectory(Protocol):
     """What the drivers and the world builder need of a trajectory."""
 
@@ -233,43 +151,7 @@ class Trajectory(Protocol):
     def path_points_yard(self, n: int = 720) -> np.ndarray: ...
 
 
-def _tilt(tilt_rad: float, s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Terrain rocking: roll, pitch [rad] as functions of the distance driven ``s`` [m] (0 at
-    s = 0), and their derivatives d/ds [rad/m]."""
-    a = tilt_rad
-    k1, k2 = 2 * np.pi / 3.7, 2 * np.pi / 5.3  # [rad/m]: bumps every few metres
-    rp = np.array([a * math.sin(k1 * s), a * math.sin(k2 * s + 1.0) * math.sin(0.5 * k1 * s)])
-    drp = np.array(
-        [
-            a * k1 * math.cos(k1 * s),
-            a
-            * (
-                k2 * math.cos(k2 * s + 1.0) * math.sin(0.5 * k1 * s)
-                + 0.5 * k1 * math.sin(k2 * s + 1.0) * math.cos(0.5 * k1 * s)
-            ),
-        ]
-    )
-    return rp, drp
-
-
-def _truth(
-    T_world_yard: np.ndarray, xy: tuple[float, float], yaw: float, v: float, yaw_rate: float, tilt_rad: float, s: float
-) -> TruthState:
-    """The truth of a rover at ``xy`` [m] (yard frame) heading ``yaw`` [rad], driving forward at
-    ``v`` [m/s] and turning at ``yaw_rate`` [rad/s] (no slip), rocked by the terrain at distance
-    driven ``s`` [m]: the velocity along the ground tangent goes into the (tilted) body frame and
-    the body rates are E⁻¹ · (Euler rates) (docs/math.md §6.3)."""
-    rp, drp = _tilt(tilt_rad, s)
-    rpy = np.array([rp[0], rp[1], yaw])
-    R_yard = euler_to_R(rpy)
-    T_yard_robot = se3(R_yard, np.array([xy[0], xy[1], 0.0]))
-    vel_yard = v * np.array([math.cos(yaw), math.sin(yaw), 0.0])
-    rpy_dot = np.array([drp[0] * v, drp[1] * v, yaw_rate])
-    rate_R = np.linalg.solve(euler_rate_matrix(rpy), rpy_dot)
-    return TruthState(T_world_yard @ T_yard_robot, R_yard.T @ vel_yard, rate_R)
-
-
-class LoopTrajectory:
+class LoopTrajectory(VaryingSpeed):
     """The rover drives a peanut-shaped loop (about 28.5 m) at a gently varying speed.
 
     Path in the yard frame: x(φ) = A r(φ) cos φ, y(φ) = B r(φ) sin φ, r = 1 + e cos 2φ; the rover
@@ -336,30 +218,6 @@ class LoopTrajectory:
         x, y = self._p(np.array(np.interp(s_m % self.length_m, self._s_tab, self._phi_tab)))
         return np.array([float(x), float(y)])
 
-    def arc_length(self, t_s: float) -> float:
-        """Distance driven since t = 0: s(t) = ∫ v dt, in closed form."""
-        w = 2.0 * np.pi / self.T_v
-        return self.speed * (t_s + self.eps * (1.0 - math.cos(w * t_s)) / w)
-
-    def time_at(self, s_m: float) -> float:
-        """When the rover is at arc length ``s_m`` (≥ ``start_m``, counted on from lap to lap):
-        the inverse of :meth:`arc_length` by Newton's method (it increases monotonically);
-        +inf for a parked rover."""
-        ds = s_m - self.start_m
-        if self.speed <= 0.0:
-            return math.inf
-        w = 2.0 * np.pi / self.T_v
-        t = ds / self.speed
-        for _ in range(50):
-            step = (self.arc_length(t) - ds) / (self.speed * (1.0 + self.eps * math.sin(w * t)))
-            t -= step
-            if abs(step) < 1e-12 * max(1.0, abs(t)):
-                break
-        return t
-
-    def speed_at(self, t_s: float) -> float:
-        return self.speed * (1.0 + self.eps * math.sin(2.0 * np.pi * t_s / self.T_v))
-
     def state(self, t_s: float) -> TruthState:
         """Truth at ``t_s`` seconds after the start (t ≥ 0)."""
         driven = self.arc_length(t_s)
@@ -370,7 +228,7 @@ class LoopTrajectory:
         ddx, ddy = self._d2(phi)
         yaw = float(np.arctan2(dy, dx))
         kappa = float((dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5)
-        return _truth(self.T_world_yard, (float(x), float(y)), yaw, v, kappa * v, self.tilt_rad, driven)
+        return rover_truth(self.T_world_yard, (float(x), float(y)), yaw, v, kappa * v, self.tilt_rad, driven)
 
 
 def _ramp(u: float, T: float, Tr: float) -> tuple[float, float]:
@@ -524,7 +382,7 @@ class TurnInPlaceTrajectory:
     def state(self, t_s: float) -> TruthState:
         """Truth at ``t_s`` seconds after the start (t ≥ 0)."""
         xy, yaw, v, w, dist = self._unit(self.start_s + self.speed * t_s)
-        return _truth(
+        return rover_truth(
             self.T_world_yard, xy, yaw, self.speed * v, self.speed * w, self.tilt_rad, dist - self._dist_start
         )
 
@@ -661,7 +519,15 @@ class World:
         return tuple(s for m in self.movers for s in m.surfaces_at(t_s))
 
 
-WORLDS = ("yard", "turn_in_place", "moving_box", "low_texture")
+WORLDS = ("yard", "turn_in_place", "moving_box", "low_texture", "open_terrain")
+OAK_D_BASELINE_M = 0.0755
+
+
+def rig_baseline_m(world: str) -> float:
+    """The stereo baseline [m] a world's camera has unless the URL sets one: the OAK-D's, except
+    in ``open_terrain``, whose car-mounted rig has 0.9 m, so that at 640×400 a point has the
+    disparity it has in KITTI's images (drivers/simterrain.py)."""
+    return BASELINE_M if world == "open_terrain" else OAK_D_BASELINE_M
 
 
 @dataclass(frozen=True, slots=True)
@@ -691,6 +557,8 @@ _PLAIN_GREY = {"ground": (95.0, 4.0), "wall": (165.0, 4.0)}  # grey ± amplitude
 
 
 def _trajectory(world: str, speed_mps: float, tilt_deg: float) -> Trajectory:
+    if world == "open_terrain":
+        return RoadLoop(speed_mps=speed_mps, tilt_deg=tilt_deg)
     if world == "turn_in_place":
         return TurnInPlaceTrajectory(speed_mps=speed_mps, tilt_deg=tilt_deg)
     return LoopTrajectory(speed_mps=speed_mps, tilt_deg=tilt_deg, start_m=_LAYOUTS[world].start_m)
@@ -713,14 +581,18 @@ def build_world(
     ``stop``: (at [s], for [s]): the rover stands still for a while (:class:`StoppingTrajectory`;
     (0, 0) or a duration of 0: no stop).
 
-    The surfaces and textures (about 12 Mpx, 1–2 s to generate) are built once per (seed, world)
-    and cached; speed and tilt only change the trajectory (and the moving box's schedule), whose
-    start pose (and so the world frame) does not depend on them.
+    The surfaces and textures (about 12 Mpx, 1–2 s to generate; ``open_terrain``: see
+    drivers/simterrain.py) are built once per (seed, world) and cached; speed and tilt only change
+    the trajectory (and the moving box's schedule), whose start pose (and so the world frame) does
+    not depend on them.
     """
     if world not in WORLDS:
         raise DriverError(f"sim world {world!r}: unknown; known: {', '.join(WORLDS)}")
     traj: Trajectory = _trajectory(world, speed_mps, tilt_deg)
-    surfaces, h, size = _yard_surfaces(seed, world)
+    if world == "open_terrain":
+        surfaces, h, size = terrain_surfaces(seed)
+    else:
+        surfaces, h, size = _yard_surfaces(seed, world)
     T = traj.T_world_yard
     movers: tuple[Mover, ...] = ()
     if world == "moving_box":
@@ -730,7 +602,14 @@ def build_world(
     if stop[1] > 0.0:
         traj = StoppingTrajectory(traj, stop[0], stop[1])
     return World(
-        world, seed, tuple(transformed(s, T) for s in surfaces), traj, h, size, movers, _LAYOUTS[world].plain_from_x
+        world,
+        seed,
+        tuple(transformed(s, T) for s in surfaces),
+        traj,
+        h,
+        size,
+        movers,
+        _LAYOUTS[world].plain_from_x if world in _LAYOUTS else None,
     )
 
 

@@ -120,6 +120,29 @@ def test_nearer_surface_occludes_and_owns_the_depth_buffer():
         assert img[c_far] == 200 and iz[c_far] == pytest.approx(1 / 5.0, rel=FLOAT32_ARITH_TOL)
 
 
+def test_a_coverage_mask_shows_what_lies_behind_where_the_surface_is_not():
+    """A surface with ``alpha`` (a tree crown's outline) is drawn, and owns the depth, only where
+    its coverage is set: elsewhere the farther wall shows through, in the image and the depth."""
+    far = make_surface(
+        "far", np.array([8.0, -8, -8]), np.array([0.0, 16, 0]), np.array([0.0, 0, 16]), np.array([-1.0, 0, 0]),
+        np.full((100, 100), 200, np.uint8),
+    )  # fmt: skip
+    alpha = np.zeros((80, 80), np.uint8)
+    alpha[:, :40] = 255  # the left half of the near square is there
+    near = make_surface(
+        "near", np.array([3.0, -1.0, -1.0]), np.array([0.0, 2.0, 0]), np.array([0.0, 0, 2.0]),
+        np.array([-1.0, 0, 0]), np.full((80, 80), 30, np.uint8), alpha,
+    )  # fmt: skip
+    img, iz = ViewRenderer((far, near), F, PX, PY, W, H).render(_rig_poses(np.eye(4))[0])
+    xl, _, y = project(np.array([[3.0, -0.5, 0.0], [3.0, 0.5, 0.0]]), F, PX, PY, B)
+    there = (round(y[0]), round(xl[0]))
+    not_there = (round(y[1]), round(xl[1]))
+    assert img[there] == 30 and iz[there] == pytest.approx(1 / 3.0, rel=FLOAT32_ARITH_TOL)
+    assert img[not_there] == 200 and iz[not_there] == pytest.approx(1 / 8.0, rel=FLOAT32_ARITH_TOL)
+    with pytest.raises(ValueError, match="alpha"):
+        make_surface("bad", np.zeros(3), np.eye(3)[1], np.eye(3)[2], -np.eye(3)[0], np.zeros((4, 4), np.uint8), alpha)
+
+
 def test_back_faces_are_culled():
     wall = make_surface(
         "w", np.array([5.0, -5, -5]), np.array([0.0, 10, 0]), np.array([0.0, 0, 10]), np.array([1.0, 0, 0]),

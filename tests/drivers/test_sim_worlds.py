@@ -19,7 +19,7 @@ from robotd.frontend.detectors import DetectorParams, make_detector
 from robotd.geometry import T_to_pose6, se3_inverse
 from robotd.stereo import triangulate
 
-NEW_WORLDS = ("turn_in_place", "moving_box", "low_texture")
+NEW_WORLDS = ("turn_in_place", "moving_box", "low_texture", "open_terrain")
 FPS = 30.0
 
 
@@ -225,3 +225,157 @@ def test_low_texture_stretch_has_few_features_for_over_a_second():
     longest_s = max((b - a for a, b in zip(edges[::2], edges[1::2], strict=True)), default=0) * 3 / FPS
     assert longest_s >= 1.0, (longest_s, counts)
     assert np.all(counts[t > 6.5] >= 300), counts  # and the texture comes back
+
+
+# --------------------------------------------------------------------------------------------
+# open_terrain
+
+TERRAIN_URL = "sim://open_terrain?realtime=0&speed=5&fps=5"  # car pace: 1 m per frame
+
+
+@pytest.fixture(scope="module")
+def terrain():
+    from drivers.simterrain import RoadLoop
+
+    world = build_world(1, "open_terrain", speed_mps=5.0)
+    assert isinstance(world.trajectory, RoadLoop)
+    return world
+
+
+def test_open_terrain_has_a_car_rig_unless_the_url_says_otherwise():
+    with open_camera(TERRAIN_URL) as cam:
+        m = cam.rectified_model()
+        assert (m.f_px, m.baseline_m, m.width, m.height) == (430.0, 0.9, 640, 400)
+        assert m.fb == pytest.approx(387.0)  # KITTI's 718 px × 0.54 m: the same disparity at a depth
+    with open_camera(TERRAIN_URL + "&baseline=0.54") as cam:
+        assert cam.rectified_model().baseline_m == 0.54
+    with open_camera("sim://yard?realtime=0") as cam:
+        assert cam.rectified_model().baseline_m == 0.0755
+    assert build_world(1, "open_terrain").cam_height_m == 1.65
+
+
+def test_open_terrain_drives_a_long_curve_on_a_long_closed_lap(terrain):
+    traj = terrain.trajectory
+    turns = traj.turns()
+    assert traj.length_m >= 500.0 and len(turns) == 6
+    assert {math.copysign(1.0, a) for _, _, a in turns} == {-1.0, 1.0}  # it turns both ways
+    # the first turn, from the poses: 98° over about 50 m, entered 10 m after the start
+    s0, s1, angle = turns[0]
+    t0, t1 = traj.time_at(s0), traj.time_at(s1)
+    assert math.degrees(angle) == pytest.approx(98.0) and 50.0 <= s1 - s0 <= 55.0 and s0 - traj.start_m == 10.0
+    assert t0 < 2.0 and t1 < 13.0  # at 5 m/s
+    ts = np.arange(0.0, t1 + 1.0, 0.01)
+    T = [traj.state(float(t)).T_world_robot for t in ts]
+    yaw = np.unwrap([T_to_pose6(x)[5] for x in T])
+    xyz = np.array([x[:3, 3] for x in T])
+    i0, i1 = np.searchsorted(ts, t0), np.searchsorted(ts, t1)
+    assert math.degrees(yaw[i1] - yaw[i0]) == pytest.approx(98.0, abs=0.2)
+    assert np.sum(np.linalg.norm(np.diff(xyz[i0 : i1 + 1], axis=0), axis=1)) == pytest.approx(s1 - s0, abs=0.1)
+    assert abs(math.degrees(yaw[i0] - yaw[0])) < 1e-6  # straight before it
+    # a smooth yaw rate: no radius below 25 m, no steps (the curvature ramps in over 10 m: at most
+    # 0.2 rad/s² here, where a turn entered without a ramp would step by 0.2 rad/s)
+    rate = np.array([traj.state(float(t)).rate_R_radps[2] for t in ts])
+    speed = np.array([np.linalg.norm(traj.state(float(t)).vel_R_mps) for t in ts])
+    assert np.all(np.abs(rate) <= speed / 25.0 + 1e-9) and np.max(np.abs(np.diff(rate))) < 3e-3
+    # the lap closes: after one lap the rover is back at its start pose, heading the same way
+    lap_t = traj.time_at(traj.start_m + traj.length_m)
+    assert np.allclose(traj.state(lap_t).T_world_robot, np.eye(4), atol=1e-9)
+
+
+def test_open_terrain_odometry_integrates_to_the_truth_through_the_curve():
+    from tests.drivers.test_sim import _integrate
+
+    url = TERRAIN_URL + "&noise=0&gyro_noise=0&gyro_bias=0&tilt=3"
+    with open_vehicle(url, t0_ns=0) as veh:
+        for j0 in (0, 150, 400):  # on the straight, in the curve, after it
+            samples = [veh.sample(j) for j in range(j0, j0 + 51)]  # type: ignore[attr-defined]
+            truth = se3_inverse(veh.truth_T_world_robot(samples[0].t_ns)) @ veh.truth_T_world_robot(  # type: ignore[attr-defined]
+                samples[-1].t_ns
+            )
+            assert np.linalg.norm(truth[:3, 3]) > 4.0  # 5 m/s
+            err = T_to_pose6(se3_inverse(truth) @ _integrate(samples))
+            assert np.linalg.norm(err[:3]) < 2e-3 and np.linalg.norm(err[3:]) < 1e-3, err
+
+
+def test_open_terrain_near_objects_are_sparse_and_off_the_path_and_the_trees_far(terrain):
+    from drivers.simterrain import TREE_CLEAR_M
+
+    T_yard_world = se3_inverse(terrain.trajectory.T_world_yard)
+    path = terrain.trajectory.path_points_yard(4000)
+
+    def clearance(names: set[str]) -> tuple[int, float]:
+        objs: dict[str, list[np.ndarray]] = {}
+        for s in terrain.surfaces:
+            if s.name.split(".")[0].rstrip("0123456789") in names:
+                objs.setdefault(s.name.split(".")[0], []).append(
+                    s.corners_W @ T_yard_world[:3, :3].T + T_yard_world[:3, 3]
+                )
+        d = [np.min(np.linalg.norm(path[:, None, :] - np.concatenate(c)[None, :, :2], axis=2)) for c in objs.values()]
+        return len(objs), float(min(d))
+
+    n_near, near_clear = clearance({"post", "rock", "bush"})
+    assert 3 <= n_near / terrain.trajectory.length_m * 100.0 <= 10  # a few per 100 m
+    assert near_clear >= 2.5  # never on the path
+    n_stands, tree_clear = clearance({"trees"})
+    assert n_stands >= 30 and tree_clear >= TREE_CLEAR_M
+    # no walls: nothing but the ground, the near objects and the far band
+    kinds = {s.name.split(".")[0].rstrip("0123456789,-") for s in terrain.surfaces}
+    assert kinds == {"ground", "post", "rock", "bush", "trees", "treeline", "hills"}
+
+
+@pytest.fixture(scope="module")
+def terrain_frames():
+    """Frames around the lap at 640×400 (car pace: frame k is k metres on), their depth, the
+    front end's ORB features and stereo matches with the far limit at 0.5 px."""
+    from robotd.config import load_config
+    from robotd.config_params import frontend_params_from_config
+    from robotd.frontend.frontend import Frontend
+
+    out = []
+    with open_camera(TERRAIN_URL) as cam:
+        rig = cam.rectified_model()
+        fe = Frontend(rig, frontend_params_from_config(load_config(None, {"frontend": {"disparity_min_px": 0.5}})))
+        for k in (0, 40, 120, 200, 320, 440, 600):
+            frame, depth = cam.render(k)  # type: ignore[attr-defined]
+            feats = fe.detect(frame.left, frame.right)
+            out.append((frame, depth, feats, fe.match_stereo(feats, frame.left, frame.right)))
+    return rig, out
+
+
+def test_open_terrain_far_structure_fills_the_upper_half_at_a_few_pixels_of_disparity(terrain_frames):
+    """Above the horizon the images show the treeline, the stands and the hills, 30 m and more
+    away: at fb = 387 px·m a few pixels of disparity (7.7 px at 50 m, 1.9 px at 200 m). Below it,
+    the field gives near features down to 3.5 m (110 px)."""
+    rig, frames = terrain_frames
+    far_feats, near_disp = [], []
+    for _frame, depth, feats, _ in frames:
+        top = depth[: int(rig.py)]
+        shown = np.isfinite(top)
+        assert 0.15 < shown.mean() < 0.6  # a band of far structure and the sky above it
+        assert np.mean(top[shown] >= 25.0) > 0.97  # only a near post or bush in front of it now and then
+        xy = feats.left.xy
+        up = xy[:, 1] < rig.py
+        assert up.sum() > 350  # most features are there
+        z = depth[np.rint(xy[up, 1]).astype(int), np.rint(xy[up, 0]).astype(int)]
+        far_feats.append(rig.fb / z)
+        near_disp.append(rig.fb / depth[-1, int(rig.px)])
+    d = np.concatenate(far_feats)
+    assert 2.0 < np.median(d) < 6.0  # measured 4.3 px
+    assert np.mean(d < 10.0) > 0.9  # measured 0.95 (and all below 20 px)
+    assert np.mean(d < 5.0) > 0.45  # beyond the default far limit (5 px): measured 0.56
+    assert np.median(near_disp) == pytest.approx(rig.fb / (1.65 * rig.f_px / (rig.height - 1 - rig.py)), rel=0.02)
+
+
+def test_open_terrain_ground_tiles_make_no_false_stereo_matches(terrain_frames):
+    """The ground's tiles turn and alternate their textures, and the renderer filters them by
+    distance: the front end's stereo matches on it are not fooled by repetition or aliasing."""
+    rig, frames = terrain_frames
+    gross, n = 0, 0
+    for _, depth, _, m in frames:
+        low = m.y > rig.py + 10  # the field, below the horizon
+        z = depth[np.rint(m.y[low]).astype(int), np.rint(m.xl[low]).astype(int)]
+        err = (m.xl - m.xr)[low] - rig.fb / z
+        gross += int(np.sum(np.abs(err) > 2.0))
+        n += int(low.sum())
+    assert n > 500
+    assert gross / n < 0.05  # measured 17 of 879 (1.9 %)
