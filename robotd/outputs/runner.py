@@ -29,6 +29,7 @@ robotd.daemon.health). It never stops SLAM, the daemon or another output. docs/a
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import threading
 import time
@@ -227,9 +228,11 @@ class OutputRunner:
             s.put("publish", (report,))
 
     def publish_health(self, health: Mapping[str, Any]) -> None:
-        """Supervisor: queued, never waits."""
+        """Supervisor: queued, never waits. Each output gets its own copy of the document (small, once
+        a period): the workers read it at the same time, and one that changed it must not break another."""
         for s in self._slots:
-            s.put("publish_health", (health,))
+            if "publish_health" in s.hooks:
+                s.put("publish_health", (copy.deepcopy(health),))
 
     def finish(self, state: Mapping[str, Any] | None, t_ns: int, wait_s: float = FINISH_WAIT_S) -> None:
         """Shutdown, once SLAM stopped: the workers deliver what is queued (within ``wait_s`` in

@@ -246,3 +246,16 @@ def test_calls_queued_before_the_workers_start_are_delivered_at_finish() -> None
     _drive(runner, 1)
     runner.finish(None, 3)
     assert good.hooks() == ["tee_frame", "tee_odometry", "record_inputs", "publish", "publish_health", "finish"]
+
+
+def test_each_output_reads_its_own_copy_of_the_health_document() -> None:
+    class Mutates(Recorder):
+        def publish_health(self, health: Mapping[str, Any]) -> None:
+            health.clear()  # type: ignore[attr-defined]
+
+    good = Recorder()
+    runner = OutputRunner([Mutates("rude"), good])  # not started: finish makes the calls in this order
+    doc = {"n": 1, "budget": {"level": 0}}
+    runner.publish_health(doc)
+    runner.finish(None, 0)
+    assert ("publish_health", 1) in good.calls and doc == {"n": 1, "budget": {"level": 0}}
