@@ -23,6 +23,12 @@ Contract shared by every driver:
   ``none://``, replay). A daemon that sends the pose to an autopilot other than its odometry
   source opens a MAVLink link for it and uses that link's ``autopilot``.
 - ``stats()`` returns counters (frames, drops, gaps, errors, reconnects) for the health output.
+- A user's calibration (``camera.calibration``, a :class:`robotd.stereo.StereoCalibration` read from
+  the camchain file) reaches a camera as the keyword ``calibration``. The cameras that rectify raw
+  images take it instead of their own (``oak://`` with ``rectify=host``, ``euroc://``); a camera
+  whose rig is its own (:data:`_OWN_RIG`) refuses it with a :class:`robotd.errors.CalibrationError`
+  saying why, from :func:`open_camera` and :func:`check_camera_url` alike. ``calibration=None`` is
+  no calibration, for every camera.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 from urllib.parse import urlsplit
 
-from robotd.errors import DriverError
+from robotd.errors import CalibrationError, DriverError
 
 if TYPE_CHECKING:
     import numpy as np
@@ -47,7 +53,9 @@ HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
 @runtime_checkable
 class StereoCamera(Protocol):
     url: str
-    raw_calibration: dict[str, Any] | None  # the device's own calibration dump (OAK EEPROM), else None
+    # for recordings, what the images were rectified from: the device's own calibration dump (OAK
+    # EEPROM JSON), or the user's StereoCalibration (camera.calibration); None when the rig is all
+    raw_calibration: Any
 
     @property
     def fps(self) -> float | None:
@@ -125,6 +133,15 @@ _VEHICLES: dict[str, tuple[str, str]] = {
 }
 
 
+# scheme -> why its camera takes no calibration file: its rig is its own. Every other camera takes the
+# keyword ``calibration`` (a StereoCalibration) and rectifies with it.
+_OWN_RIG: dict[str, str] = {
+    "sim": "sim:// renders its own rectified rig (set it with ?f=, ?baseline=, ?width=, ?height=)",
+    "kitti": "kitti:// images are rectified already and its rig is the folder's calib.txt (P0/P1)",
+    "mcap": "a recording replays its rectified images with the rig it was recorded with",
+}
+
+
 # scheme -> (module, checker attribute). The checker takes (url, **options), as the factory does, and
 # raises DriverError for what the factory would refuse in the URL itself (scheme, parameter names and
 # values) without opening a device or reading a file: the config is checked with it at start-up,
@@ -179,11 +196,22 @@ def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any
     return _entry(table, kind, url)(url, **options)
 
 
+def _calibration_option(url: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` without ``calibration=None``; CalibrationError when a calibration is given to a
+    camera whose rig is its own (:data:`_OWN_RIG`)."""
+    if options.get("calibration") is None:
+        return {k: v for k, v in options.items() if k != "calibration"}
+    why = _OWN_RIG.get(_scheme(url))
+    if why is not None:
+        raise CalibrationError(f"{url!r} takes no calibration file: {why}")
+    return options
+
+
 def check_camera_url(url: str, **options: Any) -> None:
     """Raise DriverError when :func:`open_camera` would refuse ``url`` for its scheme or its
     parameters; opens nothing, reads no file (a missing device or folder is found when opened)."""
     _entry(_CAMERAS, "camera", url)  # an unknown scheme says so as open_camera does
-    _entry(_CAMERA_CHECKS, "camera", url)(url, **options)
+    _entry(_CAMERA_CHECKS, "camera", url)(url, **_calibration_option(url, options))
 
 
 def check_vehicle_url(url: str, **options: Any) -> None:
@@ -194,8 +222,10 @@ def check_vehicle_url(url: str, **options: Any) -> None:
 
 
 def open_camera(url: str, **options: Any) -> StereoCamera:
-    """Open a stereo source by URL: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap."""
-    return _open(_CAMERAS, "camera", url, **options)  # type: ignore[no-any-return]
+    """Open a stereo source by URL: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap.
+    ``calibration``: a StereoCalibration to rectify with instead of the camera's own (module docstring)."""
+    _entry(_CAMERAS, "camera", url)  # an unknown scheme before anything about the calibration
+    return _open(_CAMERAS, "camera", url, **_calibration_option(url, options))  # type: ignore[no-any-return]
 
 
 def open_vehicle(url: str, **options: Any) -> VehicleLink:

@@ -10,10 +10,38 @@ from __future__ import annotations
 
 import numpy as np
 
+from robotd.errors import CalibrationError
 from robotd.geometry import R_ROBOT_OPTICAL, se3
 from robotd.stereo import RectifiedStereo, Rectifier, StereoCalibration
 
-__all__ = ["RectifiedStereo", "Rectifier", "StereoCalibration", "T_robot_leftraw"]
+__all__ = [
+    "RectifiedStereo",
+    "Rectifier",
+    "StereoCalibration",
+    "T_robot_leftraw",
+    "check_calibration_size",
+    "user_rectifier",
+]
+
+
+def check_calibration_size(url: str, calib: StereoCalibration, size: tuple[int, int], remedy: str) -> None:
+    """CalibrationError unless ``calib`` is for images of ``size`` (width, height) [px]: intrinsics
+    are per resolution, so a calibration made at another size would rectify the images wrongly.
+    ``remedy`` ends the message: what the user can do."""
+    w, h = calib.image_size
+    if (w, h) != tuple(size):
+        raise CalibrationError(
+            f"{url!r}: the calibration is for {w}x{h} images but the camera gives {size[0]}x{size[1]}; {remedy}"
+        )
+
+
+def user_rectifier(calib: StereoCalibration, alpha: float = 0.0) -> Rectifier:
+    """The rectifier for a calibration file's rig (camera.calibration): OpenCV's rectification with
+    free scaling ``alpha``, or the thesis construction when a camera has skew, which OpenCV ignores
+    (docs/calibration.md §2)."""
+    if calib.K_left[0, 1] != 0.0 or calib.K_right[0, 1] != 0.0:
+        return Rectifier(calib, method="thesis")
+    return Rectifier(calib, alpha=alpha)
 
 
 def T_robot_leftraw(R1: np.ndarray, baseline_m: float) -> np.ndarray:

@@ -16,7 +16,10 @@ Options (keyword arguments, or the URL query, e.g. ``kitti:///data/seq?stride=2&
   otherwise as fast as the consumer pulls.
 
 Dataset-specific options: EuRoC ``alpha`` (0.0, OpenCV free scaling of the rectified view) and
-``pair_tolerance_ns`` (1 ms, cam0/cam1 stamp pairing). Ground truth, where the dataset has it, is
+``pair_tolerance_ns`` (1 ms, cam0/cam1 stamp pairing), and ``calibration`` (a StereoCalibration,
+the config's ``camera.calibration``: the raw images are rectified with it instead of with the
+folder's ``sensor.yaml``; it must be for the images' size). KITTI images and recordings are
+rectified already and refuse one (``drivers._OWN_RIG``). Ground truth, where the dataset has it, is
 attached to each frame as ``truth_T_world_robot`` (robot frame FRD at the baseline centre of the
 rectified rig, world = robot frame at the first frame with truth); it is for evaluation only.
 
@@ -46,7 +49,7 @@ import cv2
 import numpy as np
 
 from drivers import AutopilotLink
-from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw
+from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw, check_calibration_size, user_rectifier
 from drivers.base import Driver
 from robotd.errors import DatasetError, DriverError
 from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
@@ -479,7 +482,7 @@ def read_euroc_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
 class EurocCamera(_ImageDatasetCamera):
     """ASL/EuRoC layout: ``mav0/cam0|cam1/{data.csv, data/*.png, sensor.yaml}``; raw images rectified here."""
 
-    def __init__(self, url: str, **options: Any) -> None:
+    def __init__(self, url: str, calibration: StereoCalibration | None = None, **options: Any) -> None:
         root, q = _split_url(url, "euroc")
         opts = {**q, **options}
         replay = ReplayOptions.pop_from(opts)
@@ -493,8 +496,14 @@ class EurocCamera(_ImageDatasetCamera):
             if not (mav / cam).is_dir():
                 raise DatasetError(f"{mav}: expected {cam}/ (ASL layout mav0/cam0, mav0/cam1)")
         s0, s1 = _read_sensor_yaml(mav / "cam0" / "sensor.yaml"), _read_sensor_yaml(mav / "cam1" / "sensor.yaml")
-        self.calibration = self._calibration(s0, s1, str(mav))
-        self.rectifier = Rectifier(self.calibration, alpha=alpha)
+        if calibration is None:
+            self.calibration = self._calibration(s0, s1, str(mav))
+            self.rectifier = Rectifier(self.calibration, alpha=alpha)
+        else:  # the user's calibration file (camera.calibration) instead of sensor.yaml's
+            size = (int(s0["resolution"][0]), int(s0["resolution"][1]))
+            check_calibration_size(url, calibration, size, f"calibrate at the images' size ({mav}/cam0/sensor.yaml)")
+            self.calibration = calibration
+            self.rectifier = user_rectifier(calibration, alpha)
         self.model = self.rectifier.model
         self._T_R_C0 = T_robot_leftraw(self.rectifier.rectification.R1, self.model.baseline_m)
 
@@ -779,8 +788,8 @@ def check_kitti_url(url: str, **options: Any) -> None:
     _reject_unknown(url, _checked_replay_options(url, "kitti", options))
 
 
-def check_euroc_url(url: str, **options: Any) -> None:
-    opts = _checked_replay_options(url, "euroc", options)
+def check_euroc_url(url: str, calibration: StereoCalibration | None = None, **options: Any) -> None:
+    opts = _checked_replay_options(url, "euroc", options)  # any calibration: its size is checked at the open
     _as_float("alpha", opts.pop("alpha", 0.0), -1.0)
     _as_int("pair_tolerance_ns", opts.pop("pair_tolerance_ns", 1_000_000), 0)
     _reject_unknown(url, opts, ("alpha", "pair_tolerance_ns"))

@@ -45,7 +45,12 @@ class RobotConfig:
 @dataclass(frozen=True)
 class CameraConfig:
     url: str = _f("sim://", "stereo source: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap")
-    calibration: str = _f("", "calibration file (Kalibr-style camchain YAML); empty: the source's own")
+    calibration: str = _f(
+        "",
+        "calibration file (Kalibr-style camchain YAML, robotd-calib) to rectify with instead of the camera's own:"
+        " oak:// (rectify=host) and euroc:// take it, sim://, kitti:// and recordings refuse it;"
+        " empty: the source's own",
+    )
     queue_size: int = _f(2, "frames buffered between the camera thread and SLAM (drop-oldest)", min=1, max=64)
 
 

@@ -355,34 +355,32 @@ def check_numba_cache(cfg: Config, warm: bool = False, modules: Sequence[Path] |
 
 
 def check_calibration(cfg: Config) -> CheckResult:
-    """camera.calibration loads and its image size is the camera's resolution."""
+    """camera.calibration loads and the camera's driver can use it (as the daemon will: an OAK's
+    streamed size must be the file's; a source with its own rig refuses one)."""
     name = "calibration"
     path = cfg.camera.calibration
     if not path:
         if _is_oak(cfg):
             return CheckResult(name, OK, "camera.calibration unset: the OAK's factory calibration will be used")
         return CheckResult(name, SKIP, f"camera.calibration unset: {cfg.camera.url} brings its own")
+    import drivers
     from calib.camchain import load_calibration
+    from robotd.errors import CalibrationError
 
     try:
         calib = load_calibration(path)
     except RobotdError as exc:
         return CheckResult(name, FAIL, f"{exc} (camera.calibration): recalibrate with robotd-calib or fix the path")
     w, h = calib.image_size
-    if not _is_oak(cfg):
-        return CheckResult(name, OK, f"{path}: {w}x{h}; resolution not checked for {cfg.camera.url}")
-    from drivers.oak.camera import OakOptions
-
     try:
-        opts = OakOptions.parse(cfg.camera.url, {})
+        drivers.check_camera_url(cfg.camera.url, calibration=calib)
+    except CalibrationError as exc:
+        return CheckResult(name, FAIL, f"{path}: {exc} (camera.calibration)")
     except RobotdError as exc:
         return CheckResult(name, FAIL, f"{exc} (camera.url)")
-    if (w, h) != (opts.width, opts.height):
+    if not _is_oak(cfg):
         return CheckResult(
-            name,
-            FAIL,
-            f"{path} is for {w}x{h} images but camera.url {cfg.camera.url} gives {opts.width}x{opts.height}: "
-            f"set ?width={w}&height={h} or recalibrate at {opts.width}x{opts.height} (camera.calibration)",
+            name, OK, f"{path}: {w}x{h}; {cfg.camera.url} rectifies with it (its size is checked at open)"
         )
     return CheckResult(name, OK, f"{path}: {w}x{h}, matches camera.url")
 

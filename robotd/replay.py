@@ -34,6 +34,7 @@ import numpy as np
 import drivers
 from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
+from robotd.device_urls import calibration_refusals, camera_options
 from robotd.errors import RobotdError
 from robotd.msgs import StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
@@ -171,11 +172,14 @@ def replay(
             # opening a recording is seconds of silence otherwise (the MCAP index is read first)
             print(_opening_line(source), file=sys.stderr, flush=True)
         sim_opts = _sim_options(url)
-        camera = stack.enter_context(drivers.open_camera(url, **sim_opts))
+        cam_opts = camera_options(cfg, url)  # camera.calibration, for a source that rectifies (else refused)
+        with calibration_refusals(cfg):
+            camera = stack.enter_context(drivers.open_camera(url, **sim_opts, **cam_opts))
         vehicle = None
         if gt_odometry:
             logger.warning("EXPERIMENT: odometry synthesised from ground truth (never for reported figures)")
-            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source), **sim_opts))
+            # the truth's robot frame is the rectified rig's: the same calibration as the camera's
+            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source), **sim_opts, **cam_opts))
         elif _is_recording(source):
             vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
         elif source.startswith("sim://"):

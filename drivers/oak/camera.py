@@ -5,7 +5,10 @@ Pipeline: two mono ``Camera`` nodes (CAM_B left, CAM_C right, GRAY8 at ``width``
 min(5 ms, 15 % of the period)) -> a small non-blocking host queue (the host never stalls the
 device). Optionally the images go through ``StereoDepth`` and its ``rectifiedLeft/Right``
 outputs (``rectify="device"``); by default they are rectified on the host from the factory
-calibration (``rectify="host"``).
+calibration (``rectify="host"``), or from the user's calibration file when one is given
+(``calibration=``, the config's ``camera.calibration``: :func:`session_rig`). The device
+rectifies with its EEPROM only, so ``rectify=device`` and ``rectify=none`` refuse a calibration
+file, as does one made for another image size (:func:`check_oak_url`).
 
 On the host every ``MessageGroup`` passes a :class:`PairGate`: a group whose interval exceeds the
 threshold is dropped and counted (never "fixed"), and gaps in the left sequence numbers are
@@ -36,7 +39,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
-from drivers._rectify import Rectifier, StereoCalibration
+from drivers._rectify import Rectifier, StereoCalibration, check_calibration_size, user_rectifier
 from drivers.base import Driver
 from robotd.errors import CalibrationError, DriverError
 from robotd.msgs import StereoFrame
@@ -246,6 +249,32 @@ def calibration_from_handler(handler: Any, size: tuple[int, int]) -> StereoCalib
     )
 
 
+def session_rig(
+    handler: Any, opts: OakOptions, user: Rectifier | None
+) -> tuple[Rectifier | None, RectifiedStereo | None, Any]:
+    """What a device session rectifies with: (the host rectifier, None unless ``rectify=host``; the
+    rectified rig, None for ``rectify=none``; what a recording keeps as the raw calibration).
+
+    ``user`` is the rectifier of the user's calibration file (``camera.calibration``), built once by
+    :class:`OakCamera` and allowed only with ``rectify=host`` (:func:`check_oak_url`); without one,
+    the factory calibration in the device's EEPROM (``handler``, a ``dai.CalibrationHandler``: the
+    device's, or one read from an EEPROM JSON) at the streamed size, and its JSON dump.
+    """
+    if user is not None:
+        return user, user.model, user.calib
+    try:
+        raw: Any = handler.eepromToJson()
+    except RuntimeError:
+        raw = None
+    calib = _load_calibration(handler, (opts.width, opts.height))
+    if opts.rectify == "none":
+        return None, None, raw
+    rectifier = Rectifier(calib, alpha=opts.alpha)
+    # rectify=device: the device's rectified geometry is assumed equal to OpenCV's from the same
+    # calibration; verify once with a target at known range (docs/math.md §2.1)
+    return (rectifier if opts.rectify == "host" else None), rectifier.model, raw
+
+
 def _load_calibration(handler: Any, size: tuple[int, int]) -> StereoCalibration:
     """Prefer the calibration module of ``drivers.oak`` when it provides a converter; else ours."""
     try:
@@ -268,7 +297,7 @@ class PipelineSession(Protocol):
     rectifier: Any | None  # host rectifier (None: images already rectified or not rectified)
     model: RectifiedStereo | None
     rectified: bool
-    raw_calibration: dict[str, Any] | None
+    raw_calibration: Any  # the EEPROM JSON dump, the user's StereoCalibration, or None
 
     def is_running(self) -> bool: ...
     def close(self) -> None: ...
@@ -294,9 +323,10 @@ def find_device(device_id: str) -> Any:
 
 
 class DeviceSession:
-    """A running device pipeline: cameras -> [StereoDepth] -> Sync -> host queue."""
+    """A running device pipeline: cameras -> [StereoDepth] -> Sync -> host queue. ``user``: the
+    rectifier of the user's calibration file (None: the EEPROM's calibration; :func:`session_rig`)."""
 
-    def __init__(self, opts: OakOptions, device_id: str) -> None:
+    def __init__(self, opts: OakOptions, device_id: str, user: Rectifier | None = None) -> None:
         import depthai as dai
 
         info = find_device(device_id)
@@ -306,20 +336,15 @@ class DeviceSession:
             self._stack.callback(device.close)
             pipeline = self._stack.enter_context(dai.Pipeline(device))
             self.pipeline = pipeline
-            handler = device.readCalibration()
-            try:
-                self.raw_calibration: dict[str, Any] | None = handler.eepromToJson()
-            except RuntimeError:
-                self.raw_calibration = None
             size = (opts.width, opts.height)
-            calib = _load_calibration(handler, size)
+            self.rectifier: Any | None
+            self.model: RectifiedStereo | None
+            self.rectifier, self.model, self.raw_calibration = session_rig(device.readCalibration(), opts, user)
             sync, self.queue = make_sync(pipeline, opts, run_on_host=False)
             outs = {}
             for name, board in ((LEFT, dai.CameraBoardSocket.CAM_B), (RIGHT, dai.CameraBoardSocket.CAM_C)):
                 cam = pipeline.create(dai.node.Camera).build(board, sensorFps=float(opts.fps))
                 outs[name] = cam.requestOutput(size, dai.ImgFrame.Type.GRAY8, fps=float(opts.fps))
-            self.rectifier: Any | None = None
-            self.model: RectifiedStereo | None = None
             self.rectified = opts.rectify != "none"
             if opts.rectify == "device":
                 stereo = pipeline.create(dai.node.StereoDepth)
@@ -328,15 +353,9 @@ class DeviceSession:
                 outs[RIGHT].link(stereo.right)
                 stereo.rectifiedLeft.link(sync.inputs[LEFT])
                 stereo.rectifiedRight.link(sync.inputs[RIGHT])
-                # the device's rectified geometry is assumed equal to OpenCV's from the same
-                # calibration; verify once with a target at known range (docs/math.md §2.1)
-                self.model = Rectifier(calib, alpha=opts.alpha).model
             else:
                 outs[LEFT].link(sync.inputs[LEFT])
                 outs[RIGHT].link(sync.inputs[RIGHT])
-                if opts.rectify == "host":
-                    self.rectifier = Rectifier(calib, alpha=opts.alpha)
-                    self.model = self.rectifier.model
             pipeline.start()
         except BaseException:
             self._stack.close()
@@ -369,12 +388,31 @@ def _is_link_error(exc: BaseException) -> bool:
     return isinstance(exc, link_types) or "X_LINK" in str(exc) or "Communication exception" in str(exc)
 
 
-def check_oak_url(url: str, **options: Any) -> OakOptions:
-    """``oak://[device-id]?options`` -> its options; DriverError for another scheme or a bad option.
-    Opens no device (the config check at start-up calls it)."""
+def check_oak_url(url: str, calibration: StereoCalibration | None = None, **options: Any) -> OakOptions:
+    """``oak://[device-id]?options`` -> its options; DriverError for another scheme or a bad option,
+    CalibrationError for a ``calibration`` (the user's file) these options cannot use: the device
+    rectifies with its own EEPROM (``rectify=device``) or not at all (``rectify=none``), and the
+    file must be for the streamed size. Opens no device (the config check at start-up calls it)."""
     if urlsplit(url).scheme.lower() != "oak":
         raise DriverError(f"{url!r}: expected oak://[device-id]")
-    return OakOptions.parse(url, options)
+    opts = OakOptions.parse(url, options)
+    if calibration is not None:
+        if opts.rectify != "host":
+            how = (
+                "the device rectifies from its EEPROM calibration" if opts.rectify == "device" else "nothing rectifies"
+            )
+            raise CalibrationError(
+                f"{url!r}: a calibration file is used to rectify on the host (rectify=host, the default); "
+                f"with rectify={opts.rectify} {how}"
+            )
+        w, h = calibration.image_size
+        check_calibration_size(
+            url,
+            calibration,
+            (opts.width, opts.height),
+            f"set ?width={w}&height={h} or calibrate at {opts.width}x{opts.height}",
+        )
+    return opts
 
 
 class OakCamera(Driver):
@@ -382,17 +420,28 @@ class OakCamera(Driver):
 
     host_clock = True  # dai.Clock stamps: the host's monotonic clock
 
-    def __init__(self, url: str, session_factory: SessionFactory | None = None, **options: Any) -> None:
+    def __init__(
+        self,
+        url: str,
+        session_factory: SessionFactory | None = None,
+        calibration: StereoCalibration | None = None,
+        **options: Any,
+    ) -> None:
         self.url = url
         parts = urlsplit(url)
-        self.opts = check_oak_url(url, **options)
+        self.opts = check_oak_url(url, calibration, **options)
+        # the user's calibration file (camera.calibration): its rectifier is built here, once, so a
+        # rig it cannot rectify fails the open instead of every reconnection (None: the EEPROM's)
+        self.calibration_rectifier = None if calibration is None else user_rectifier(calibration, self.opts.alpha)
         self.device_id = (parts.netloc + parts.path).strip("/")
-        self._factory: SessionFactory = session_factory or (lambda o: DeviceSession(o, self.device_id))
+        self._factory: SessionFactory = session_factory or (
+            lambda o: DeviceSession(o, self.device_id, self.calibration_rectifier)
+        )
         self.gate = PairGate(self.opts.threshold_ns)
         self._session: PipelineSession | None = None
         self._closed = threading.Event()
         self._model: RectifiedStereo | None = None
-        self.raw_calibration: dict[str, Any] | None = None
+        self.raw_calibration: Any = None
         self._stats: dict[str, Any] = {"frames": 0, "reconnects": 0, "link_errors": 0, "open_failures": 0,
                                        "timeouts": 0, "degraded": False, "last_error": ""}  # fmt: skip
 

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 import drivers
 from robotd.config import Config
 from robotd.daemon.sdnotify import Notifier
-from robotd.device_urls import link_options
+from robotd.device_urls import calibration_refusals, camera_options, link_options
 from robotd.errors import DriverError
 
 logger = logging.getLogger(__name__)
@@ -44,12 +44,16 @@ def open_devices(
     and the vehicle link is not MAVLink: robotd.device_urls.device_urls); each is closed when
     ``stack`` unwinds. Hardware that is missing is retried until ``stop`` or the monotonic time
     ``give_up_at`` (``--duration``); the URLs were checked before (check_device_urls), so a
-    DriverError here is the device's, not a typo's."""
+    DriverError here is the device's, not a typo's. The camera gets ``camera.calibration``
+    (robotd.device_urls.camera_options); a camera that cannot use it is a ConfigError naming the
+    key, never retried."""
 
-    def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str) -> D:
-        return open_with_retry(stack, kind, opener, url, stop, notifier, give_up_at, **link_options(cfg, url))
+    def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str, **extra: Any) -> D:
+        options = {**link_options(cfg, url), **extra}
+        return open_with_retry(stack, kind, opener, url, stop, notifier, give_up_at, **options)
 
-    camera = open_("camera", drivers.open_camera, cfg.camera.url)
+    with calibration_refusals(cfg):
+        camera = open_("camera", drivers.open_camera, cfg.camera.url, **camera_options(cfg))
     vehicle = open_("vehicle", drivers.open_vehicle, cfg.vehicle.url)
     if cfg.mavlink.enabled and not cfg.vehicle.url.startswith("mavlink"):
         # odometry from one link (e.g. the MCU over serial), the pose to the autopilot on another

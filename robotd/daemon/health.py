@@ -6,8 +6,9 @@ step, ``failed`` while tracking is lost or no step completed for ``RECENT_S``, `
 the reasons in ``problems`` when a vehicle link is not ``ok``, a stall happened in the last
 ``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, frames lately had no
 odometry while odometry flows, the last map save failed, the recording lost samples in that time
-(its writer fell behind) or failed, the pose's position σ exceeds ``MAX_POSE_SIGMA_M``, or the
-latency budget runs below full settings (docs/reliability.md).
+(its writer fell behind) or failed, an output's hook failed or its worker dropped calls in that
+time (robotd.outputs.runner), the pose's position σ exceeds ``MAX_POSE_SIGMA_M``, or the latency
+budget runs below full settings (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -226,6 +227,11 @@ class HealthMonitor:
         elif rec.get("last_loss_ns") and now - rec["last_loss_ns"] < RECENT_S * 1e9:
             # the recorder's writer (disk, PNG encoding) fell behind and its queue was full
             problems.append(f"recording lost {rec['frames_lost']} frames, {rec['odometry_lost']} odometry")
+        for name, out in (h.get("outputs") or {}).items():  # robotd.outputs.runner: one policy for all
+            if out.get("since_error_s") is not None and out["since_error_s"] < RECENT_S:
+                problems.append(f"output {name} failing ({out['errors']})")
+            if out.get("since_drop_s") is not None and out["since_drop_s"] < RECENT_S:
+                problems.append(f"output {name} behind ({out['dropped']} dropped)")
         sigma = h.get("pose_sigma_m")
         if sigma is None and self.last is not None:
             sigma = math.inf  # a covariance that is no longer finite

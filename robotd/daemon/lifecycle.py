@@ -9,7 +9,11 @@ Threads:
   publish queue; the latency budget degrades (features, particles, frame skipping) and recovers.
   It is the only thread that touches the pipeline: the map and state snapshots the outputs ask
   for are taken here, between steps.
-- publisher: every step's :class:`~robotd.outputs.base.StepReport` to every output (robotd.outputs)
+- publisher: every step's :class:`~robotd.outputs.base.StepReport` (reset counter, quality) to the
+  outputs
+- one worker per output (robotd.outputs.runner): the output's ``record_inputs``, ``publish`` and
+  ``publish_health``, which the SLAM, publisher and supervisor threads only queue; every hook of
+  every output under one error policy (logged once, counted, in health, stopping nothing else)
 - main: supervises: sd_notify (READY=1 once camera and vehicle deliver, WATCHDOG=1 only on real
   SLAM progress, STATUS=), the once-a-second health line, the health document for the outputs,
   and the stop flag that the signal handlers set (they do nothing else).
@@ -46,7 +50,7 @@ from robotd.errors import ConfigError, RobotdError
 from robotd.jit import CompileWatch
 from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
-from robotd.outputs import Output, OutputContext, StepReport, build_outputs, pose_quality
+from robotd.outputs import Output, OutputContext, OutputRunner, StepReport, build_outputs, enter_output, pose_quality
 from robotd.outputs.base import shortest_period
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
@@ -148,6 +152,7 @@ class Daemon:
         self.maps: MapFileOutput | None = None
         self.recorder: RecorderOutput | None = None
         self.outputs: list[Output] = []
+        self.output_runner = OutputRunner([])  # every output's hooks, under one error policy
         self.threads: list[threading.Thread] = []
         self._ready = False
         # the camera stamps frames on this host's monotonic clock (a live camera); False for a
@@ -238,6 +243,7 @@ class Daemon:
         meta["inputs"] = "delivered"  # a recording holds every sample the devices delivered (not what SLAM took)
         ctx = OutputContext(cfg, rig, dev.autopilot, self.record_path, meta, dev.camera.raw_calibration, self.buffer_mb)
         self.outputs = [*([self.maps] if self.maps is not None else []), *build_outputs(ctx, stack)]
+        self.output_runner = OutputRunner(self.outputs)
         self.recorder = next((o for o in self.outputs if isinstance(o, RecorderOutput)), None)
         logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
 
@@ -254,7 +260,7 @@ class Daemon:
             logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
         self.counter_file.save(self.reset_policy.counter)
         # the map file is an input too: resume before the first step, then save like any output
-        self.maps = stack.enter_context(MapFileOutput(cfg.persistence, cfg.robot.id))
+        self.maps = enter_output(stack, MapFileOutput(cfg.persistence, cfg.robot.id))
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
             self.resumed = True
             self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
@@ -277,8 +283,8 @@ class Daemon:
                     break
                 continue
             odometry = self.odo_q.drain()
-            for out in self.outputs:  # what SLAM consumes (the recorder got every sample at the pumps)
-                out.record_inputs(frame, odometry)
+            # what SLAM consumes, queued for the outputs' workers (the recorder got every sample at the pumps)
+            self.output_runner.record_inputs(frame, odometry)
             # delivery stands for capture when the stamps are on another clock (a dataset's), whose
             # vehicle samples are on that clock too: no future-stamp check against the host's then
             t_ref_ns = frame.t_ns if self.host_clock else self._deliveries.take(frame.seq) or time.monotonic_ns()
@@ -370,11 +376,7 @@ class Daemon:
                 vel_R_mps=self.reset_policy.velocity_R,
             )
             self.health.on_published(report, item.frame.truth_T_world_robot)
-            for out in self.outputs:
-                try:
-                    out.publish(report)
-                except RobotdError as exc:
-                    logger.warning("output %s: %s", out.name, exc)
+            self.output_runner.publish(report)
 
     def _check_gap(self, gap_ns: int, covered: bool, budget: LatencyBudget) -> bool:
         """Count a stall (a gap between processed frames beyond STALL_PERIODS frame periods, times
@@ -436,10 +438,7 @@ class Daemon:
             )
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
-        if self.maps is not None:
-            doc["map_file"] = self.maps.stats()
-        if self.recorder is not None:
-            doc["recording"] = self.recorder.stats()
+        doc.update(self.output_runner.health())  # every output's counters and stats
         return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))
 
     # ------------------------------------------------------------------ main loop
@@ -468,7 +467,9 @@ class Daemon:
     def _start_threads(self) -> None:
         assert self.camera is not None and self.vehicle is not None
         vehicle, stop, stats = self.vehicle, self.stop_event, self.stats
-        tees = [o.tee_odometry for o in self.outputs if type(o).tee_odometry is not Output.tee_odometry]
+        runner = self.output_runner
+        runner.start()
+        tees = [runner.tee_odometry] if runner.tees_odometry else []
         for name, fn in (
             ("camera", self._pump_frames),
             ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats, tees)),
@@ -491,7 +492,7 @@ class Daemon:
             self.duration_s == 0.0,
             stall_s,
             lambda gap_s: self.health.on_stall(gap_s, camera=True),
-            [o.tee_frame for o in self.outputs if type(o).tee_frame is not Output.tee_frame]
+            ([self.output_runner.tee_frame] if self.output_runner.tees_frames else [])
             + ([] if self.host_clock else [self._deliveries.tee]),
         )
 
@@ -546,9 +547,7 @@ class Daemon:
                 next_wd = now + wd / 2
             if now >= next_health:
                 next_health = now + health_period
-                doc = self.health_doc()
-                for out in self.outputs:
-                    out.publish_health(doc)
+                self.output_runner.publish_health(self.health_doc())
             if now >= next_status:
                 next_status = now + cfg.log.status_period_s
                 fps = (self.stats.steps - last_rate_steps) / max(now - last_rate_t, 1e-6)
@@ -588,8 +587,7 @@ class Daemon:
                 logger.warning("thread %s did not stop within %.1f s", t.name, JOIN_TIMEOUT_S)
         self._limits.restore()
         state = self.final_state()
-        for out in self.outputs:
-            out.finish(state, time.monotonic_ns())
+        self.output_runner.finish(state, time.monotonic_ns())  # each output's, whatever the others' do
         lat = np.asarray(self.stats.latencies_ms) if self.stats.latencies_ms else np.zeros(1)
         logger.info(
             "stopped after %d steps: latency p50 %.1f ms p99 %.1f ms%s, %d frames dropped, shutdown %.2f s",

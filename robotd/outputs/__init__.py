@@ -3,7 +3,8 @@
 Each output is one module here with a class derived from :class:`robotd.outputs.base.Output` and
 a factory ``make(ctx) -> Output | None`` that reads its own config section and returns None when
 it is off. :data:`FACTORIES` lists them in the order they are opened (and closed in reverse) and
-called. A new output is one module plus one line here plus its config section.
+called. A new output is one module plus one line here plus its config section; the daemon calls
+it through :class:`robotd.outputs.runner.OutputRunner`, under the one error policy every output has.
 
 The map file is not in the list: it is also an input (``persistence.resume`` restores the
 pipeline from it before the first step), so the daemon opens it itself and puts it first.
@@ -19,6 +20,7 @@ from typing import Any
 from drivers import AutopilotLink
 from robotd.config import Config
 from robotd.outputs.base import Output, StepReport, pose_quality
+from robotd.outputs.runner import OutputRunner, enter_output
 from robotd.stereo import RectifiedStereo
 
 
@@ -80,13 +82,23 @@ FACTORIES: tuple[tuple[str, Callable[[OutputContext], Output | None]], ...] = (
 
 
 def build_outputs(ctx: OutputContext, stack: ExitStack) -> list[Output]:
-    """Open every output the config asks for; each is closed when ``stack`` unwinds."""
+    """Open every output the config asks for; each is closed when ``stack`` unwinds (a failing
+    close is logged and the others still close: robotd.outputs.runner.enter_output)."""
     outputs: list[Output] = []
     for _, make in FACTORIES:
         out = make(ctx)
         if out is not None:
-            outputs.append(stack.enter_context(out))
+            outputs.append(enter_output(stack, out))
     return outputs
 
 
-__all__ = ["FACTORIES", "Output", "OutputContext", "StepReport", "build_outputs", "pose_quality"]
+__all__ = [
+    "FACTORIES",
+    "Output",
+    "OutputContext",
+    "OutputRunner",
+    "StepReport",
+    "build_outputs",
+    "enter_output",
+    "pose_quality",
+]

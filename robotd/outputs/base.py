@@ -1,19 +1,24 @@
 """What every output of the daemon receives, and the base class the outputs build on.
 
 An output is one destination for what SLAM produces: the Zenoh topics, the autopilot link, the
-MCAP recording, the map file. The daemon calls every output's hooks the same way, each on a
-known thread:
+MCAP recording, the map file. The daemon calls every output's hooks the same way, through
+:class:`robotd.outputs.runner.OutputRunner`, under one error policy (an exception is logged once
+with the output's name, counted, shown in the health document, and stops nothing else):
 
 - :meth:`Output.tee_frame` (camera thread) and :meth:`Output.tee_odometry` (vehicle thread):
   every frame and every odometry sample the devices delivered, before the SLAM queues and the
   latency budget (the recording's sensor log). They must return at once: an output hands the
   sample to a bounded queue of its own and does its work on its own thread;
-- :meth:`Output.record_inputs` (SLAM thread, before each step): the frame and the odometry that
-  step consumes, exactly (the live view shows these);
-- :meth:`Output.publish` (publisher thread, after each step): the step's :class:`StepReport`;
-- :meth:`Output.publish_health` (supervisor thread, every ``health_period_s``): the health document;
-- :meth:`Output.finish` (shutdown, after the SLAM thread stopped): the final pipeline state;
-- :meth:`Output.close` (when the daemon's ExitStack unwinds).
+- :meth:`Output.record_inputs` (before each step: the frame and the odometry that step consumes,
+  exactly; the live view shows these), :meth:`Output.publish` (after each step: the step's
+  :class:`StepReport`) and :meth:`Output.publish_health` (every ``health_period_s``: the health
+  document), in that order, on the output's own worker thread (``robotd-output-<name>``): the
+  SLAM, publisher and supervisor threads only queue the call, so a slow output delays nothing but
+  itself (its oldest queued calls are dropped, counted);
+- :meth:`Output.finish` (shutdown, after the SLAM thread stopped and the worker delivered what
+  was queued): the final pipeline state;
+- :meth:`Output.close` (when the daemon's ExitStack unwinds);
+- :meth:`Output.stats` (supervisor): in the health document under ``outputs.<name>.stats``.
 
 An output that wants the landmark map or the pipeline's state sets ``map_period_s`` /
 ``state_period_s``: the SLAM thread then takes that snapshot between steps (it is the only
@@ -86,6 +91,9 @@ class Output:
     map_period_s: float | None = None  # a LandmarkMap snapshot in the report this often
     state_period_s: float | None = None  # a pipeline state snapshot (Pipeline.state_dict) this often
     health_period_s: float | None = None  # publish_health this often
+    # its stats() also at this top-level key of the health document, which the health state reads
+    # (the map file's "map_file", the recorder's "recording"); None: under outputs.<name> only
+    health_key: str | None = None
 
     def tee_frame(self, frame: StereoFrame) -> None:
         """Camera thread: every frame the camera delivered, whatever SLAM later drops or skips.
@@ -95,19 +103,19 @@ class Output:
         """Vehicle thread: every odometry sample the vehicle link delivered; as :meth:`tee_frame`."""
 
     def record_inputs(self, frame: StereoFrame, odometry: Sequence[Odometry]) -> None:
-        """SLAM thread: the inputs of the next step, in the order it consumes them."""
+        """Worker thread: the inputs of the next step, in the order it consumes them (before its publish)."""
 
     def publish(self, report: StepReport) -> None:
-        """Publisher thread: every step's result. A RobotdError is logged and counted; the others go on."""
+        """Worker thread: every step's result, in order."""
 
     def publish_health(self, health: Mapping[str, Any]) -> None:
-        """Supervisor thread: the daemon's health document."""
+        """Worker thread: the daemon's health document."""
 
     def finish(self, state: Mapping[str, Any] | None, t_ns: int) -> None:
         """Shutdown, once the SLAM thread stopped: the final pipeline state (None when no step ran)."""
 
     def stats(self) -> dict[str, Any]:
-        """Counters for the health output."""
+        """Counters for the health document (``outputs.<name>.stats``); plain JSON values."""
         return {}
 
     def close(self) -> None:

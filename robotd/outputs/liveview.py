@@ -9,9 +9,10 @@ transforms world → robot → cameras, the odometry. The server listens on loop
 (``liveview.host``); nothing is sent, and no image is encoded, for a channel no client has
 subscribed to.
 
-Threads: the frame and the odometry a step consumes arrive on the SLAM thread
-(:meth:`record_inputs`, which only keeps them), everything is built and sent on the publisher
-thread (:meth:`publish`), so the live view costs the SLAM thread nothing.
+Threads: the frame and the odometry a step consumes (:meth:`record_inputs`, which only keeps
+them) and every step's report (:meth:`publish`, where everything is built and sent) arrive on
+this output's worker thread (robotd.outputs.runner), so the live view costs the SLAM thread
+nothing and a slow viewer delays no other output.
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ class LiveViewOutput(Output):
         return bool(self._channels[key].has_sinks())
 
     def record_inputs(self, frame: StereoFrame, odometry: Sequence[Odometry]) -> None:
-        with self._lock:  # SLAM thread: keep them, nothing else
+        with self._lock:  # keep them, nothing else (publish takes them)
             self._frames.append(frame)
             self._odometry.extend(odometry)
 

@@ -29,6 +29,7 @@ class MapFileOutput(Output):
     """Saves the map under ``persistence.state_dir`` (or $STATE_DIRECTORY, or ~/.local/state/robotd)."""
 
     name = "map_file"
+    health_key = "map_file"  # the health state reads the last save's failure there
 
     def __init__(self, cfg: PersistenceConfig, robot_id: str) -> None:
         self.store = MapStore(default_state_dir(cfg.state_dir), robot_id)

@@ -5,7 +5,7 @@ once a second, the landmark map), in one MCAP file (robotd.record, docs/recordin
 
 The inputs come from the daemon's input threads (:meth:`RecorderOutput.tee_frame` on the camera
 thread, :meth:`RecorderOutput.tee_odometry` on the vehicle thread), before the SLAM frame queue
-and the latency budget; the poses from the publisher thread. None of them waits for the disk:
+and the latency budget; the poses from its worker thread (robotd.outputs.runner). None of them waits for the disk:
 each hands its sample to a bounded queue (:class:`SampleQueue`) and returns, and the output's
 own writer thread encodes (PNG) and writes. When the writer falls behind (a slow disk, a host too
 busy to encode) and the queue is full, a new sample is refused and counted under its stream
@@ -124,6 +124,7 @@ class RecorderOutput(Output):
     failure that stopped the recording (None while it works): the daemon stops on it."""
 
     name = "recorder"
+    health_key = "recording"  # the health state reads the recording's losses and error there
     map_period_s = 1.0  # the landmark map (point cloud and ellipsoids) once a second
 
     def __init__(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -10,9 +11,10 @@ import numpy as np
 import pytest
 import yaml
 
+from calib.camchain import load_calibration, save_calibration
 from drivers import open_camera
 from drivers.dataset import EurocCamera, read_euroc_truth
-from robotd.errors import DatasetError
+from robotd.errors import CalibrationError, DatasetError
 from tests.conftest import data_path
 from tests.support.tolerances import ROUNDOFF_ATOL
 
@@ -90,3 +92,35 @@ def test_euroc_layout_errors(tmp_path: Path, shared_data) -> None:
     shutil.copy(src / "mav0" / "cam0" / "sensor.yaml", dst / "cam0" / "sensor.yaml")
     with pytest.raises(DatasetError, match=r"cam1/sensor.yaml"):
         open_camera(f"euroc://{tmp_path / 'b'}")
+
+
+# -- a calibration file (camera.calibration) instead of sensor.yaml ---------------------------------
+
+
+def test_euroc_rectifies_with_a_calibration_file_instead_of_sensor_yaml(euroc_frames, tmp_path: Path) -> None:
+    """The folder's own rig written as the camchain robotd-calib writes, then read back: the same
+    frames bit for bit. A file with another rig (the principal point moved, the baseline 10 %
+    longer) changes the images and the rectified rig: it, not sensor.yaml, is what rectifies."""
+    cam, frames = euroc_frames
+    root = data_path("euroc-v101-micro")
+    same = load_calibration(save_calibration(cam.calibration, tmp_path / "euroc.yaml"))
+    with open_camera(f"euroc://{root}?stop=3", calibration=same) as c:
+        assert c.rectified_model() == cam.rectified_model()
+        for f, g in zip(c.frames(), frames[:3], strict=True):
+            assert np.array_equal(f.left, g.left) and np.array_equal(f.right, g.right)
+    K = same.K_left.copy()
+    K[0, 2] += 6.0
+    other = dataclasses.replace(same, K_left=K, T=same.T * 1.1)
+    moved = load_calibration(save_calibration(other, tmp_path / "moved.yaml"))
+    with open_camera(f"euroc://{root}?stop=1", calibration=moved) as c:
+        m = c.rectified_model()
+        assert m.baseline_m == pytest.approx(1.1 * cam.rectified_model().baseline_m, rel=1e-9)
+        assert not np.array_equal(next(iter(c.frames())).left, frames[0].left)
+        assert c.calibration is moved
+
+
+def test_euroc_refuses_a_calibration_file_for_another_image_size(euroc_frames) -> None:
+    cam, _ = euroc_frames
+    small = dataclasses.replace(cam.calibration, image_size=(640, 480))
+    with pytest.raises(CalibrationError, match=r"for 640x480 images but the camera gives 752x480"):
+        open_camera(f"euroc://{data_path('euroc-v101-micro')}", calibration=small)

@@ -7,11 +7,12 @@ import logging
 import re
 from typing import Any
 
+import numpy as np
 import pytest
 
 import drivers
 from robotd.config import load_config
-from robotd.device_urls import check_device_urls, device_urls
+from robotd.device_urls import camera_options, check_device_urls, device_urls
 from robotd.errors import ConfigError, DatasetError, RobotdError
 from tests.support.paths import REPO
 
@@ -112,3 +113,63 @@ def test_the_daemon_checks_before_loading_the_kernels(
     failed = [r.getMessage() for r in caplog.records if "startup failed" in r.getMessage()]
     assert len(failed) == 1 and "camera.url: 'sim://?fps=-3': parameter fps" in failed[0], failed
     assert not list(tmp_path.iterdir()), "nothing written before the check"
+
+
+# -- camera.calibration: read once, judged by the camera's driver ---------------------------------
+
+V1 = REPO / "tests" / "support" / "data" / "calibration_v1"
+OAK_FILE = V1 / "v1_oak_640x400.yaml"  # a file robotd-calib import-oak wrote (640x400)
+CHESSBOARD_FILE = V1 / "v1_chessboard.yaml"  # a file robotd-calib stereo wrote (640x480)
+
+REFUSED = [
+    ("sim://", OAK_FILE, "'sim://' takes no calibration file: sim:// renders its own rectified rig"),
+    ("kitti:///data/seq", OAK_FILE, "kitti:// images are rectified already and its rig is the folder's calib.txt"),
+    ("/data/run.mcap", OAK_FILE, "a recording replays its rectified images with the rig it was recorded with"),
+    ("oak://", CHESSBOARD_FILE, "the calibration is for 640x480 images but the camera gives 640x400"),
+    ("oak://?rectify=device", OAK_FILE, "with rectify=device the device rectifies from its EEPROM calibration"),
+]
+
+
+@pytest.mark.parametrize(("url", "path", "message"), REFUSED, ids=[u for u, _, _ in REFUSED])
+def test_a_calibration_file_the_camera_cannot_use_is_a_config_error_naming_the_key(
+    url: str, path: Any, message: str
+) -> None:
+    cfg = load_config(None, {"camera": {"url": url, "calibration": str(path)}})
+    with pytest.raises(ConfigError) as e:
+        check_device_urls(cfg, where="rover.toml")
+    text = str(e.value)
+    assert text.startswith(f"camera.calibration: {path}: ") and message in text, text
+    assert text.endswith("; unset camera.calibration (in rover.toml)") and "\n" not in text, text
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        camera_options(cfg)  # what the daemon and replay open the camera with
+
+
+@pytest.mark.parametrize("url", ["oak://", "oak://?width=640&height=400&fps=15", "euroc:///no/such?alpha=0.5"])
+def test_a_calibration_file_reaches_the_cameras_that_rectify(url: str) -> None:
+    from calib.camchain import load_calibration
+
+    cfg = load_config(None, {"camera": {"url": url, "calibration": str(OAK_FILE)}})
+    check_device_urls(cfg)
+    given = camera_options(cfg)["calibration"]
+    expected = load_calibration(OAK_FILE)
+    for k in ("K_left", "D_left", "K_right", "D_right", "R", "T"):
+        assert np.array_equal(getattr(given, k), getattr(expected, k)), k
+    assert given.image_size == (640, 400)
+    assert camera_options(load_config(None, {"camera": {"url": url}})) == {}  # unset: the camera's own
+
+
+def test_a_calibration_file_that_cannot_be_read_is_a_config_error(tmp_path: Any) -> None:
+    missing = load_config(None, {"camera": {"url": "oak://", "calibration": str(tmp_path / "no.yaml")}})
+    with pytest.raises(ConfigError, match=r"^camera.calibration: .*no.yaml: cannot read the calibration file"):
+        check_device_urls(missing)
+    (tmp_path / "bad.yaml").write_text("cam0: {camera_model: pinhole}\n")
+    bad = load_config(None, {"camera": {"url": "euroc:///x", "calibration": str(tmp_path / "bad.yaml")}})
+    with pytest.raises(ConfigError, match=r"^camera.calibration: .*bad.yaml") as e:
+        check_device_urls(bad, where="rover.toml")
+    assert str(e.value).endswith("(in rover.toml)")
+
+
+def test_a_bad_url_is_named_before_its_calibration() -> None:
+    cfg = load_config(None, {"camera": {"url": "sim://?fpz=3", "calibration": str(OAK_FILE)}})
+    with pytest.raises(ConfigError, match=r"^camera.url: .*unknown parameter 'fpz'"):
+        check_device_urls(cfg)

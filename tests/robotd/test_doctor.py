@@ -211,6 +211,19 @@ def test_calibration_size_against_the_oak_resolution(tmp_path: Path) -> None:
     assert doctor.check_calibration(cfg_with()).status == doctor.SKIP
 
 
+def test_calibration_judged_by_the_camera_that_would_use_it(tmp_path: Path) -> None:
+    """As the daemon judges it: a source with its own rig refuses a calibration file (FAIL, naming
+    the key), a dataset that rectifies raw images takes it (its size is checked when it opens)."""
+    path = save_calibration(_calib(np.random.default_rng(3)), tmp_path / "rig.yaml")
+    sim = doctor.check_calibration(cfg_with(camera={"url": "sim://", "calibration": str(path)}))
+    assert sim.status == doctor.FAIL and "takes no calibration file" in sim.message
+    assert "camera.calibration" in sim.message
+    euroc = doctor.check_calibration(cfg_with(camera={"url": "euroc:///data/v101", "calibration": str(path)}))
+    assert euroc.status == doctor.OK and "rectifies with it" in euroc.message
+    device = doctor.check_calibration(cfg_with(camera={"url": "oak://?rectify=device", "calibration": str(path)}))
+    assert device.status == doctor.FAIL and "rectify=host" in device.message
+
+
 # -- the command ------------------------------------------------------------------------------
 
 

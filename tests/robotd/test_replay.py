@@ -13,6 +13,7 @@ import pytest
 
 from robotd.cli import main
 from robotd.replay import summary_line
+from tests.support.paths import REPO
 
 # the EuRoC micro cut stands still (ground truth moves ≤ 3.3 mm, README); a visual-only estimate
 # that wandered more than this would be a regression, not noise
@@ -99,3 +100,44 @@ def test_opening_line_names_a_recording_and_its_size(tmp_path: Path) -> None:
     f.write_bytes(b"\0" * 3_000_000)
     assert _opening_line(str(f)) == f"opening {f} (3 MB)..."
     assert _opening_line(f"mcap://{f}") == f"opening {f} (3 MB)..."
+
+
+def test_replay_rectifies_with_the_calibration_file_and_refuses_it_for_a_recording(
+    shared_data, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """camera.calibration reaches the replayed source as it reaches the daemon's camera: a EuRoC
+    folder (raw images) is rectified with the file's rig, the truth-derived odometry too; a
+    recording, whose images are rectified already, refuses it: one error line naming the key."""
+    import dataclasses
+
+    import drivers
+    from calib.camchain import save_calibration
+    from drivers.dataset import EurocCamera
+    from robotd.config import load_config
+    from robotd.replay import replay
+
+    url = f"euroc://{shared_data('euroc-v101-micro')}"
+    with EurocCamera(url) as cam:
+        rig, b = cam.calibration, cam.rectified_model().baseline_m
+    path = save_calibration(dataclasses.replace(rig, T=rig.T * 1.1), tmp_path / "rig.yaml")
+    opened: list[object] = []
+    real_open = drivers.open_camera
+
+    def open_camera(u: str, **options: object) -> object:
+        opened.append(cam := real_open(u, **options))
+        return cam
+
+    monkeypatch.setattr(drivers, "open_camera", open_camera)
+    cfg = load_config(None, {"camera": {"calibration": str(path)}})
+    for gt in (False, True):
+        s = replay(cfg, url, max_frames=2, progress=False, gt_odometry=gt)
+        assert s["frames"] == 2 and opened[-1].rectified_model().baseline_m == pytest.approx(1.1 * b, rel=1e-9)
+    assert s["odometry"] != "none"
+    toml = tmp_path / "c.toml"
+    toml.write_text(f'[camera]\ncalibration = "{path}"\n')
+    recording = REPO / "tests" / "support" / "data" / "format1_sim_160x100.mcap"
+    assert main(["replay", str(recording), "--config", str(toml), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert any(
+        f"camera.calibration: {path}: " in line and "a recording replays its rectified images" in line for line in err
+    ), err

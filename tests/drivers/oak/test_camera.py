@@ -276,3 +276,98 @@ def test_driver_uses_the_oak_calibration_module_consistently(shared_data) -> Non
     # theirs re-orthonormalises the float32 EEPROM R, which moves entries by a few EPS32: FLOAT32_ROUNDING_TOL
     # (1e-7 before, which held with 3 % to spare: measured 9.65e-8)
     np.testing.assert_allclose(used.R, ours.R, atol=FLOAT32_ROUNDING_TOL)
+
+
+# -- the user's calibration file (camera.calibration) -----------------------------------------------
+
+OAK_JSON = ("oakd-calibration", "BW1098OBC_14442C10218CCCD200.json")
+
+
+def _recalibrated(shared_data, tmp_path, size: tuple[int, int]) -> Any:
+    """A calibration file as ``robotd-calib`` writes one for this OAK at ``size``: the factory rig
+    (``import-oak``) recalibrated to a 10 % longer baseline and a principal point 1 px right,
+    written and read back as the camchain YAML."""
+    import dataclasses
+
+    from calib.camchain import load_calibration, save_calibration
+    from drivers.oak import load_oak_eeprom_json
+
+    factory = load_oak_eeprom_json(shared_data(*OAK_JSON), *size)
+    K = factory.K_left.copy()
+    K[0, 2] += 1.0
+    rig = dataclasses.replace(factory, K_left=K, T=factory.T * 1.1, source="recalibrated")
+    return load_calibration(save_calibration(rig, tmp_path / "oak.yaml"))
+
+
+def test_session_rig_takes_the_calibration_file_over_the_eeprom(shared_data, tmp_path) -> None:
+    """The device's EEPROM read on the host (depthai's CalibrationHandler of the EEPROM JSON) is
+    what a session rectifies with by default; with a calibration file, the file's rig instead."""
+    from drivers.oak.camera import session_rig
+
+    handler = dai.CalibrationHandler(str(shared_data(*OAK_JSON)))
+    opts = OakOptions.parse("oak://", {})
+    rectifier, factory, raw = session_rig(handler, opts, None)
+    assert rectifier is not None and isinstance(raw, dict) and raw["boardName"] == "BW1098OBC"
+    assert factory is not None and factory.baseline_m == pytest.approx(0.0755, abs=2e-4)
+    user = _recalibrated(shared_data, tmp_path, (640, 400))
+    cam = OakCamera("oak://", calibration=user)  # opens nothing until open()
+    assert cam.calibration_rectifier is not None and cam.calibration_rectifier.calib is user
+    rectifier, model, raw = session_rig(handler, cam.opts, cam.calibration_rectifier)
+    assert rectifier is cam.calibration_rectifier and raw is user  # a recording keeps the file's rig
+    assert model is not None and model.baseline_m == pytest.approx(1.1 * factory.baseline_m, rel=1e-3)
+    # the factory rig is still what the device reports without a file, at any rectify mode
+    for rectify in ("device", "none"):
+        r, m, _ = session_rig(handler, OakOptions.parse("oak://", {"rectify": rectify}), None)
+        assert r is None and (m is None) == (rectify == "none")
+
+
+def test_open_camera_rectifies_with_the_calibration_file(shared_data, tmp_path, monkeypatch) -> None:
+    """Through ``drivers.open_camera`` as the daemon opens it: the device session (the real depthai
+    Sync on the host, the EEPROM from its JSON) gets the file's rectifier, every frame comes out
+    rectified by it, and the rig the pipeline is built on is the file's."""
+    import drivers
+    import drivers.oak.camera as oak_camera
+
+    user = _recalibrated(shared_data, tmp_path, (64, 40))  # the scripted frames are 64x40
+    handler = dai.CalibrationHandler(str(shared_data(*OAK_JSON)))
+    shots = script(6, time.monotonic())
+    given: list[Any] = []
+
+    def device_session(opts: OakOptions, device_id: str, user_rectifier: Any = None) -> HostSession:
+        given.append(user_rectifier)
+        s = HostSession(opts, shots)
+        s.rectifier, s.model, s.raw_calibration = oak_camera.session_rig(handler, opts, user_rectifier)
+        return s
+
+    monkeypatch.setattr(oak_camera, "DeviceSession", device_session)
+    cam = drivers.open_camera("oak://?width=64&height=40", calibration=user)
+    with cam:
+        frames = collect(cam, 6)
+        model = cam.rectified_model()
+    assert len(given) == 1 and given[0].calib is user
+    assert model == given[0].model and model.baseline_m == pytest.approx(np.linalg.norm(user.T), rel=0.05)
+    assert cam.raw_calibration is user
+    assert len(frames) == 6 and all(f.rectified for f in frames)
+    raw = np.full((40, 64), 3, np.uint8)
+    assert np.array_equal(frames[3].left, given[0].rectify(raw, raw)[0])
+
+
+@pytest.mark.parametrize(
+    ("url", "size", "message"),
+    [
+        ("oak://", (1280, 800), r"for 1280x800 images but the camera gives 640x400; set \?width=1280&height=800"),
+        ("oak://?rectify=device", (640, 400), r"rectify=host.*rectify=device the device rectifies from its EEPROM"),
+        ("oak://?rectify=none", (640, 400), r"with rectify=none nothing rectifies"),
+    ],
+)
+def test_a_calibration_file_the_oak_cannot_use_is_refused_before_any_device(
+    shared_data, tmp_path, url: str, size: tuple[int, int], message: str
+) -> None:
+    import drivers
+    from robotd.errors import CalibrationError
+
+    user = _recalibrated(shared_data, tmp_path, size)
+    with pytest.raises(CalibrationError, match=message):
+        drivers.check_camera_url(url, calibration=user)
+    with pytest.raises(CalibrationError, match=message):
+        drivers.open_camera(url, calibration=user)

@@ -13,7 +13,7 @@ from robotd.config import load_config
 from robotd.daemon import Daemon
 from robotd.outputs import Output, StepReport
 from robotd.pipeline import Pipeline
-from tests.support.daemon_runs import HANG_GUARD_S
+from tests.support.daemon_runs import HANG_GUARD_S, run_until
 
 
 def _daemon(tmp_path: Path, camera: str = "sim://?fps=20", duration_s: float = HANG_GUARD_S) -> Daemon:
@@ -50,19 +50,27 @@ def test_a_crash_in_the_slam_step_exits_1_and_keeps_the_saved_map(tmp_path, monk
     assert not (tmp_path / "map.robotd").exists()
 
 
-def test_an_output_that_raises_something_unexpected_exits_1(tmp_path, monkeypatch, caplog) -> None:
+def test_an_output_that_raises_something_unexpected_is_counted_and_stops_nothing(tmp_path, monkeypatch, caplog) -> None:
+    """An output is not a thread of the daemon: its bug (not a RobotdError) is logged once with its
+    name and the traceback, counted in health, and the daemon runs on and stops with status 0
+    (robotd.outputs.runner; before, it stopped the publisher thread and the daemon with 1)."""
+
     class Broken(Output):
         name = "broken"
 
         def publish(self, report: StepReport) -> None:
-            if report.seq == 5:
+            if report.seq >= 5:
                 raise ValueError("not a RobotdError")
 
     monkeypatch.setattr(outputs_mod, "FACTORIES", (*outputs_mod.FACTORIES, ("broken", lambda ctx: Broken())))
     d = _daemon(tmp_path)
-    assert d.run() == 1
-    assert d.failed == ["publisher"] and "publisher thread crashed: ValueError" in caplog.text
-    assert (tmp_path / "map.robotd").exists()  # the SLAM state is whole: it is saved
+    status, reached = run_until(d, lambda: d.stats.published >= 12)
+    assert status == 0 and reached and not d.failed, (d.stop_reason, d.failed)
+    said = [r for r in caplog.records if "not a RobotdError" in r.getMessage()]
+    assert len(said) == 1 and said[0].getMessage().startswith("output broken: publish failed: ValueError")
+    assert said[0].exc_info is not None  # a bug's traceback
+    assert d.health_doc()["outputs"]["broken"]["errors_by_hook"] == {"publish": d.stats.published - 4}
+    assert (tmp_path / "map.robotd").exists()  # saved at the stop, as always
 
 
 def test_a_source_that_ends_normally_exits_0(tmp_path) -> None:
