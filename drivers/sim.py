@@ -51,6 +51,9 @@ gravity_bias 0.005  its bias σ [rad] per axis, drawn once per seed and held
 gravity_sigma 0.02  the σ [rad] the simulated IMU states with each sample
 odom_hz    50       odometry rate [Hz] (1..1000)
 img_noise  2.0      sensor noise σ [grey levels] added to each image (0..50)
+disparity_error 0   a calibration error [px] (−5..5): the right camera's principal point is this far
+                    left of where the rig says, so every disparity reads this much too large; the
+                    rig handed to the pipeline stays the nominal one (docs/frontend.md, "Far points")
 odometry   1        0: the vehicle yields no odometry (vision only; its autopilot still takes poses)
 unplug     0        fault injection: the camera raises DriverError at this simulated time [s], as a
                     USB camera that is pulled out does; 0 = never (bench/faults.py)
@@ -137,6 +140,7 @@ class SimParams:
     gravity_sigma: float = 0.02
     odom_hz: float = 50.0
     img_noise: float = 2.0
+    disparity_error: float = 0.0  # [px] right principal point off by −this: disparities read +this
     odometry: int = 1
     unplug: float = 0.0  # fault injection: the camera fails at this simulated time [s]; 0 = never
     stop_at: float = 0.0
@@ -188,6 +192,7 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "gravity_sigma": (float, 1e-4, 1.0),
     "odom_hz": (float, 1.0, 1000.0),
     "img_noise": (float, 0.0, 50.0),
+    "disparity_error": (float, -5.0, 5.0),
     "odometry": (int, 0, 1),
     "unplug": (float, 0.0, 1e9),
     "stop_at": (float, 0.0, 1e9),
@@ -359,6 +364,13 @@ class SimRig:
         w, h = params.width, params.height
         self.model = RectifiedStereo(params.f_px, (w - 1) / 2.0, (h - 1) / 2.0, params.baseline_m, w, h)
         self._renderer = ViewRenderer(world.surfaces, self.model.f_px, self.model.px, self.model.py, w, h)
+        # the right view of a rig whose calibration is off: its principal point sits disparity_error
+        # px left of the model's, so x_r is that much smaller and every disparity that much larger
+        self._renderer_right = self._renderer
+        if params.disparity_error:
+            self._renderer_right = ViewRenderer(
+                world.surfaces, self.model.f_px, self.model.px - params.disparity_error, self.model.py, w, h
+            )
         self._movers_only: ViewRenderer | None = None
         b = params.baseline_m
         self.T_robot_left = se3(R_ROBOT_OPTICAL, np.array([0.0, -b / 2.0, 0.0]))
@@ -399,7 +411,7 @@ class SimRig:
         T_world_robot = self.world.trajectory.state(t_s).T_world_robot
         moving = self.world.moving_surfaces(t_s)  # one instant for both views: a synchronised pair
         left, iz = self._renderer.render(T_world_robot @ self.T_robot_left, moving)
-        right, _ = self._renderer.render(T_world_robot @ self.T_robot_right, moving)
+        right, _ = self._renderer_right.render(T_world_robot @ self.T_robot_right, moving)
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)

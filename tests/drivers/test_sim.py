@@ -328,3 +328,24 @@ def test_prerendered_frames_are_the_rendered_ones_served_from_memory() -> None:
         np.testing.assert_array_equal(fa.truth_T_world_robot, fb.truth_T_world_robot)
     with pytest.raises(DriverError, match="prerender needs a duration"):
         parse_sim_url("sim://?prerender=1")
+
+
+def test_a_calibration_error_moves_only_the_right_image_by_its_disparity_error() -> None:
+    """disparity_error: the right view of a rig whose right principal point is off; the left view
+    and the rig the pipeline is given are the nominal ones (docs/sim.md)."""
+    import cv2
+
+    from drivers.sim import SimParams, SimRig
+    from drivers.simworld import build_world
+
+    p0 = parse_sim_url("sim://?img_noise=0")
+    p1 = parse_sim_url("sim://?img_noise=0&disparity_error=0.6")
+    assert isinstance(p0, SimParams) and p1.disparity_error == 0.6
+    world = build_world(p0.seed, p0.world, p0.speed, p0.tilt)
+    f0, _ = SimRig(world, p0).render(30, 0, depth=False)
+    r1 = SimRig(world, p1)
+    f1, _ = r1.render(30, 0, depth=False)
+    assert r1.model.px == SimRig(world, p0).model.px
+    np.testing.assert_array_equal(f0.left, f1.left)
+    (dx, dy), _ = cv2.phaseCorrelate(f0.right.astype(np.float64), f1.right.astype(np.float64))
+    assert dx == pytest.approx(-0.6, abs=0.1) and abs(dy) < 0.1  # x_r smaller: disparities 0.6 px larger
