@@ -248,6 +248,9 @@ class Pipeline:
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
+        if tracking:
+            # the rig's disparity offset, from the landmarks seen again metres later (docs/frontend.md)
+            fe.observe_pose(pose.T_world_robot)
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 

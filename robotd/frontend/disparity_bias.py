@@ -1,4 +1,4 @@
-"""A constant disparity error, estimated online from the frame-to-frame motion (issue 26).
+"""A constant disparity error, estimated online from frames metres apart (issue 26).
 
 Why. A stereo rig's disparities can carry a constant error δ [px] that no pixel-noise model
 covers: a principal point of the right camera off by a few tenths of a pixel after rectification,
@@ -7,24 +7,26 @@ a baseline that is slightly wrong, a matcher that leans one way. It is invisible
 Because a far point both sets the depth the motion is measured against and the disparity change
 that motion causes, a negative δ makes the rover travel too far: forward translation from a far
 point's flow scales with d/(d+δ), from its disparity change with (d/(d+δ))² (docs/frontend.md,
-"Far points and the disparity offset"). On KITTI, δ = −0.3 px injected turns a 0.52 % drift into
-1.6 % (scale 0.985) even with many near points; in open terrain, with few near points, it is the
-whole error.
+"Far points and the disparity offset").
 
 How. δ is observable whenever the same motion is seen by near and far points: near points fix the
-translation (δ barely moves their depth), far points then disagree with it unless δ is right. So,
-after the stereo PnP has found the motion T_prev_curr and its inliers, one more Gauss–Newton
-solve runs over seven parameters (the motion's 6 and a correction ε to the current offset) on the
-same symmetric stereo reprojection residuals the PnP minimises, with the points re-triangulated
-from the pixels with ε applied to both frames' right columns. The marginal variance of ε from
-that solve (inflated for the residuals' correlation) makes it one measurement of a scalar Kalman
-filter with a slow random walk; its estimate corrects every right column the matcher outputs
-(x_r ← x_r + δ̂, so d ← d − δ̂) before triangulation, so the PnP, the map's landmarks and the
-filter's pixel measurements all see the corrected disparities.
+translation (δ barely moves their depth), far points then disagree with it unless δ is right. The
+front end keeps an anchor frame (its stereo pixels and descriptors, and the filter's pose of it).
+Once the filter's pose is ``min_baseline_m`` from the anchor's, the two frames' measurements are
+matched by descriptor, pairs the filter's motion does not carry within ``gate_px`` are dropped,
+and one Gauss–Newton solve runs over seven parameters (the anchor-to-current motion and a
+correction ε of the offset) on the symmetric stereo reprojection residuals, the points
+re-triangulated from the pixels with ε applied to both frames' right columns. ε's marginal
+variance from that solve (inflated: the residuals are not independent) makes it one measurement of
+a scalar Kalman filter with a slow random walk; the current frame becomes the anchor. The estimate
+corrects every right column the matcher outputs (x_r ← x_r + δ̂, so d ← d − δ̂) before the
+limits and the triangulation, so the PnP, the map's landmarks and the filter's pixel measurements
+all see corrected disparities. It works with and without odometry (the filter's poses give the
+motion; the solve re-fits it).
 
 Without near points the offset and the translation's scale cannot be told apart: the marginal
-variance of ε is then large, the gain small, and δ̂ stays where it was (0 at the start). With
-odometry, the images' motion is not estimated (the vehicle gives it) and δ̂ is held.
+variance of ε is then large, the gain small, and δ̂ stays where it was (0 at the start). A camera
+that does not move fuses nothing.
 """
 
 from __future__ import annotations
@@ -59,15 +61,20 @@ class DisparityBiasParams:
     min_points: fewer PnP inliers: no measurement.
     iterations: Gauss–Newton passes of the seven-parameter solve.
     min_baseline_m: a measurement spans the motion from an anchor frame to the current one, at
-      least this long (points are tracked through the frame-to-frame matches): consecutive frames
-      of a 30 Hz camera are too close to tell a far point's depth, and solves over overlapping
-      pairs share their errors.
+      least this long (the stereo matches of both frames, matched by descriptor; the motion from
+      the filter's poses, re-fitted by the solve): consecutive frames of a 30 Hz camera are too close to tell a
+      far point's depth, and solves over overlapping pairs share their errors.
+    max_baseline_m: a longer motion from the anchor (a relocalisation, a gap) starts again.
+    gate_px: an anchor-to-current pair whose anchor point, carried by the filter's motion, lands
+      further than this from where it is seen (column and row) is a wrong match. (A gate on the
+      segment the point's ray is carried onto, which a wrong offset cannot leave, let in too many
+      wrong matches: tried, worse everywhere.)
     huber_px: robust weight threshold of a residual norm.
     """
 
     mode: str = "online"
     initial_px: float = 0.0
-    prior_sigma_px: float = 0.5
+    prior_sigma_px: float = 0.25
     walk_px: float = 0.01
     max_abs_px: float = 2.0
     variance_inflation: float = 9.0
@@ -76,6 +83,8 @@ class DisparityBiasParams:
     iterations: int = 2
     huber_px: float = 1.5
     min_baseline_m: float = 2.0
+    max_baseline_m: float = 8.0
+    gate_px: float = 4.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -167,7 +176,13 @@ def solve_offset(
         C = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return None
-    var = float(C[6, 6]) * sigma_px**2 * params.variance_inflation
+    # the noise the fit actually left (never below the configured pixel noise)
+    r_end = _residuals(theta, R, t, zp, zc, rig).reshape(-1, 3)
+    fin = np.isfinite(r_end).all(1)
+    rms = 0.0
+    if fin.any():
+        rms = float(np.sqrt(np.mean(np.minimum(np.sum(r_end[fin] ** 2, 1) / 3.0, params.huber_px**2))))
+    var = float(C[6, 6]) * max(sigma_px, rms) ** 2 * params.variance_inflation
     eps = float(theta[6])
     if not (math.isfinite(eps) and math.isfinite(var) and var > 0):
         return None
@@ -183,11 +198,9 @@ class DisparityBias:
         self.var_px2 = float(self.params.prior_sigma_px) ** 2
         self.fused = 0
         self.rejected = 0
-        # tracks back to the anchor frame: its pixels per previous-frame measurement (NaN: none),
-        # the offset they were corrected with, and the motion T_anchor_prev
-        self._anchor: np.ndarray | None = None
-        self._anchor_delta = 0.0
-        self._T_anchor_prev = np.eye(4)
+        # the anchor frame: its landmarks' ids (sorted) and pixels, the offset they were corrected
+        # with, and its pose in the world
+        self.reset_tracks()
 
     @property
     def sigma_px(self) -> float:
@@ -197,53 +210,63 @@ class DisparityBias:
         """Right columns with the offset taken off the disparity (d − δ̂ = x_l − (x_r + δ̂))."""
         return xr + self.value_px if self.value_px else xr
 
-    def reset_tracks(self, z_curr: np.ndarray | None = None, corrected_with: float | None = None) -> None:
-        """Start the tracks again at the current frame (pixels ``z_curr`` (N, 3), corrected with the
-        offset ``corrected_with``, the current estimate when None), or drop them."""
-        self._anchor = None if z_curr is None else np.array(z_curr, dtype=float)
-        self._anchor_delta = self.value_px if corrected_with is None else corrected_with
-        self._T_anchor_prev = np.eye(4)
+    def reset_tracks(self) -> None:
+        """Forget the anchor frame (a new map, a relocalisation, a gap)."""
+        self._anchor: tuple[np.ndarray, np.ndarray, bool, np.ndarray, float] | None = None
 
-    def track(
+    def observe(
         self,
-        z_curr: np.ndarray,
-        ic: np.ndarray,
-        ip: np.ndarray,
-        R: np.ndarray,
-        t: np.ndarray,
+        z: np.ndarray,
+        desc: np.ndarray,
+        binary: bool,
+        T_world_robot: np.ndarray,
         rig: RectifiedStereo,
         sigma_px: float,
+        max_dist: float,
+        ratio: float,
     ) -> bool:
-        """One frame's motion T_prev_curr = [R t] with its inlier pairs (current index ``ic``,
-        previous index ``ip``) over the current frame's pixels ``z_curr`` (N, 3): extends the tracks
-        and, once they span ``min_baseline_m``, fuses the anchor-to-current solve. True if fused."""
+        """One frame's stereo measurements (``z`` (N, 3) pixels corrected with the current estimate,
+        ``desc`` their normalised descriptors) and the filter's pose of the frame. Once the pose is
+        ``min_baseline_m`` from the anchor frame's, the measurements of both frames are matched by
+        descriptor (ratio test and cross-check, ``max_dist`` and ``ratio`` as the frame-to-frame
+        motion's), pairs that the filter's motion does not carry within ``gate_px`` are dropped, and
+        the rest give one measurement of the offset; this frame becomes the anchor. True if fused."""
+        from robotd.frontend.stereo_match import distance_matrix, ratio_and_cross_check
+
         p = self.params
         if p.mode != "online":
             return False
-        n = z_curr.shape[0]
+        T = np.asarray(T_world_robot, dtype=float)
+        z = np.asarray(z, dtype=float)
         if self._anchor is None:
-            self.reset_tracks(z_curr)
+            self._anchor = (z, desc, binary, T.copy(), self.value_px)
             return False
-        ok_idx = ip < self._anchor.shape[0]
-        ic, ip = ic[ok_idx], ip[ok_idx]
-        anchor = np.full((n, 3), np.nan)
-        anchor[ic] = self._anchor[ip]
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, t
-        T_ac = self._T_anchor_prev @ T
-        valid = np.isfinite(anchor).all(1)
-        if int(valid.sum()) < p.min_points:
-            self.reset_tracks(z_curr)
+        za_all, da, a_binary, T_wa, delta_a = self._anchor
+        T_ac = np.linalg.inv(T_wa) @ T
+        base = float(np.linalg.norm(T_ac[:3, 3]))
+        if base < p.min_baseline_m:
             return False
-        if float(np.linalg.norm(T_ac[:3, 3])) < p.min_baseline_m:
-            self._anchor, self._T_anchor_prev = anchor, T_ac
+        used = self.value_px  # this frame's pixels were corrected with it
+        self._anchor = (z, desc, binary, T.copy(), used)
+        if base > p.max_baseline_m or a_binary != binary or not len(za_all) or not len(z):
+            return False  # a jump (relocalisation, a gap) or nothing to match: start again here
+        D = distance_matrix(desc, da, binary)  # (N_curr, N_anchor)
+        ii, jj = np.nonzero(D <= max_dist)
+        sel, _ = ratio_and_cross_check(ii, jj, D[ii, jj], da.shape[0], ratio, max_dist, True)
+        ic, ia = ii[sel], jj[sel]
+        if ic.size < p.min_points:
             return False
-        za = anchor[valid].copy()
-        za[:, 1] += self.value_px - self._anchor_delta  # re-corrected with today's estimate
-        used = self.value_px  # the current pixels were corrected with it
-        fused = self.update(za, z_curr[valid], T_ac[:3, :3], T_ac[:3, 3], rig, sigma_px)
-        self.reset_tracks(z_curr, used)
-        return fused
+        za = za_all[ia].copy()
+        za[:, 1] += self.value_px - delta_a  # re-corrected with today's estimate
+        zc = z[ic]
+        # pairs the filter's motion does not carry near where they are seen are wrong matches
+        R, t = T_ac[:3, :3], T_ac[:3, 3]
+        pred = _project((_triangulate(za, rig) - t) @ R, rig)
+        err = np.hypot(pred[:, 0] - zc[:, 0], pred[:, 2] - zc[:, 2])
+        ok = np.isfinite(err) & (err < p.gate_px)
+        if int(ok.sum()) < p.min_points:
+            return False
+        return self.update(za[ok], zc[ok], R, t, rig, sigma_px)
 
     def update(
         self, zp: np.ndarray, zc: np.ndarray, R: np.ndarray, t: np.ndarray, rig: RectifiedStereo, sigma_px: float

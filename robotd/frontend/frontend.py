@@ -83,8 +83,8 @@ class FrontendParams:
     planar_map: the map has no heights (a 2-D filter): guided matching ignores the image row.
     fov_margin_px: a map landmark is predicted visible if it projects this far inside the image.
     parallel_detect: detect the left and right images on two threads (OpenCV and SURF release the GIL).
-    disparity_bias: the online estimate of the rig's constant disparity error (PnP motion only;
-      robotd.frontend.disparity_bias).
+    disparity_bias: the online estimate of the rig's constant disparity error
+      (robotd.frontend.disparity_bias; fed by :meth:`Frontend.observe_pose`).
     """
 
     detector: DetectorParams = field(default_factory=DetectorParams)
@@ -267,7 +267,7 @@ class Frontend:
     def reset(self) -> None:
         """Forget the previous frame (after a gap or a relocalisation); keeps the descriptors."""
         self._prev = None
-        self.disparity_bias.reset_tracks(None)
+        self.disparity_bias.reset_tracks()
 
     # ---------------------------------------------------------------------------- the stages
     def detect(self, left: np.ndarray, right: np.ndarray) -> FeaturePair:
@@ -394,12 +394,10 @@ class Frontend:
         prediction of this motion with its physical bounds (PnP only: it picks the static
         background over a moving vehicle, robotd.frontend.pnp)."""
         if not wanted:
-            self.disparity_bias.reset_tracks(None)
             return VisualMotion(None, None, {})
         counts = {"motion_matches": 0, "motion_inliers": 0}
         pv = self._prev
         if pv is None or pv.meas.n == 0 or meas.n == 0 or t_ns < pv.t_ns:
-            self.disparity_bias.reset_tracks(None)
             return VisualMotion(None, None, counts)
         p = self.params
         binary = meas.binary
@@ -419,14 +417,9 @@ class Frontend:
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
             pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng, prior)
             if pnp is None:
-                self.disparity_bias.reset_tracks(None)
                 return VisualMotion(None, None, counts, ic if ic.size else None)
             counts["motion_inliers"] = int(pnp.inliers.sum())
             R, t, cov_tr = pnp.R, pnp.t, pnp.cov
-            inl = pnp.inliers
-            self.disparity_bias.track(
-                np.c_[meas.xl, meas.xr, meas.y], ic[inl], ip[inl], R, t, self.rig, max(p.pnp.sigma_px, pnp.rms_px)
-            )
             moving: np.ndarray | None = ic[~pnp.inliers]
         else:
             fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)
@@ -472,6 +465,18 @@ class Frontend:
         assert self.descriptors is not None, "Frontend.commit before Frontend.detect"
         self.descriptors.commit(ident.corr, meas.desc, new)
         self._prev = _PrevFrame(int(t_ns), meas, ident.corr.ids.copy())
+
+    def observe_pose(self, T_world_robot: np.ndarray) -> bool:
+        """The filter's pose of the frame just committed: its stereo measurements feed the
+        disparity offset's estimate (robotd.frontend.disparity_bias). True if it fused one."""
+        pv = self._prev
+        if pv is None:
+            return False
+        p, m = self.params, pv.meas
+        max_d = p.association.max_dist_binary if m.binary else p.association.max_dist_float
+        ratio = p.association.ratio if p.association.ratio is not None else (0.75 if m.binary else 0.8)
+        z = np.c_[m.xl, m.xr, m.y]
+        return self.disparity_bias.observe(z, m.desc, m.binary, T_world_robot, self.rig, p.pnp.sigma_px, max_d, ratio)
 
     # ---------------------------------------------------------------------------- outputs
     @staticmethod

@@ -76,13 +76,13 @@ def test_far_points_alone_cannot_tell_the_offset_from_the_translation() -> None:
 
 
 def _drive(est: DisparityBias, delta: float, frames: int, step_m: float, seed: int = 4) -> list[float]:
-    """Frames of a rover driving straight through a fixed scene, matched frame to frame the way
-    the front end does it: measured x_r = true x_r − δ, corrected with the running estimate.
-    Returns the estimate after each frame."""
+    """Frames of a rover driving straight through a fixed scene, each landmark keeping its id, the
+    way the pipeline feeds the estimate: measured x_r = true x_r − δ, corrected with the running
+    estimate, and the frame's pose. Returns the estimate after each frame."""
     rng = np.random.default_rng(seed)
     P_W = _scene(rng, 400, 4.0, 80.0) + np.array([step_m * frames / 2, 0.0, 0.0])
+    table = rng.integers(0, 256, (400, 32), dtype=np.uint8)  # each landmark's own binary descriptor
     out = []
-    prev_ids = None
     for k in range(frames):
         x = k * step_m
         q = P_W - np.array([x, 0.0, 0.0])
@@ -91,10 +91,9 @@ def _drive(est: DisparityBias, delta: float, frames: int, step_m: float, seed: i
         ids = np.nonzero(vis)[0]
         zm = z[ids] + rng.normal(0, 0.3, (ids.size, 3))
         zm[:, 1] += -delta + est.value_px
-        if prev_ids is not None:
-            _, ic, ip = np.intersect1d(ids, prev_ids, return_indices=True)
-            est.track(zm, ic, ip, np.eye(3), np.array([step_m, 0.0, 0.0]), RIG, 0.5)
-        prev_ids = ids
+        T = np.eye(4)
+        T[0, 3] = x
+        est.observe(zm, table[ids], True, T, RIG, 0.5, 64.0, 0.8)
         out.append(est.value_px)
     return out
 
@@ -103,7 +102,7 @@ def test_tracker_fuses_only_over_its_baseline_and_converges_to_the_offset() -> N
     est = DisparityBias(DisparityBiasParams(min_baseline_m=2.0))
     trace = _drive(est, -0.4, 120, 0.1)
     # the first measurement needs 2 m of motion: 20 frames at 0.1 m
-    assert trace[19] == 0.0 and trace[21] != 0.0
+    assert trace[19] == 0.0 and trace[20] != 0.0
     assert est.fused >= 4
     assert trace[-1] == pytest.approx(-0.4, abs=0.08)
     assert est.sigma_px < 0.5
