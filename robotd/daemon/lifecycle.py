@@ -223,7 +223,7 @@ class Daemon:
         fps = dev.camera.fps or 30.0
         self._frame_period_s = 1.0 / fps
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
-        particles = cfg.slam.filter != "ekf"
+        particles = self.pipeline.kind.particles is not None  # what the filter declared
         self.budget = LatencyBudget(
             deadline,
             cfg.frontend.max_features,
@@ -328,7 +328,7 @@ class Daemon:
             self.health.on_step(result.timings_ms)
             state = budget.record(frame_ms, latency_ms)
             pipeline.set_max_features(state.max_features)
-            if self.cfg.slam.filter != "ekf":
+            if pipeline.kind.particles is not None:
                 pipeline.set_particles(state.n_particles)
             now = time.monotonic()
             landmarks = snapshot = None
