@@ -37,7 +37,7 @@ from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
 from robotd.slam.common import measurement_model, pixel_noise
-from robotd.slam.estimator import Estimator
+from robotd.slam.estimator import Estimator, persistent
 from robotd.slam.factory import ESTIMATORS, estimator_kind, make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
@@ -585,7 +585,7 @@ class Pipeline:
         return {
             "estimator_name": self.estimator.name,
             "dim": self.estimator.dim,
-            "estimator": self.estimator.state_dict(),
+            "estimator": persistent(self.estimator).state_dict(),
             "database": descriptors.state_dict() if descriptors is not None else {},
         }
 
@@ -603,7 +603,7 @@ class Pipeline:
             raise MapMismatchError(
                 f"saved map is from {name!r} in {dim}D, this run uses {self.estimator.name!r} in {self.estimator.dim}D"
             )
-        checked = self.estimator.check_state_dict(st.table("estimator").data)
+        checked = persistent(self.estimator).check_state_dict(st.table("estimator").data)
         filter_ids = checked["ids"]
         saved_db = st.table("database")
         if not saved_db.data:  # no frame was detected before the save
@@ -630,7 +630,7 @@ class Pipeline:
         """Resume from a saved state, checked whole first (:meth:`check_state_dict`): when it
         fails, nothing of this pipeline has changed."""
         checked, descriptors = self.check_state_dict(state)
-        self.estimator.restore(checked)
+        persistent(self.estimator).restore(checked)
         if descriptors is not None:
             self.frontend.descriptors = descriptors
         self.frontend.reset()

@@ -57,6 +57,7 @@ from robotd.outputs.recorder import RecorderOutput
 from robotd.persist import CounterFile, StateDirLock, default_state_dir
 from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
+from robotd.slam.estimator import Persistent
 
 logger = logging.getLogger("robotd.daemon")  # the name users filter the lifecycle lines by
 
@@ -260,6 +261,9 @@ class Daemon:
             logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
         self.counter_file.save(self.reset_policy.counter)
         # the map file is an input too: resume before the first step, then save like any output
+        if not isinstance(self.pipeline.estimator, Persistent):
+            logger.warning("map file: none (the %r filter cannot be saved or resumed)", self.pipeline.estimator.name)
+            return
         self.maps = enter_output(stack, MapFileOutput(cfg.persistence, cfg.robot.id))
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
             self.resumed = True
@@ -561,7 +565,7 @@ class Daemon:
     def final_state(self) -> dict[str, Any] | None:
         """The pipeline's state at shutdown, once the SLAM thread has stopped (nothing else touches
         the estimator); None when no step ran or the thread is still running."""
-        if self.pipeline is None or self.stats.steps == 0:
+        if self.pipeline is None or self.stats.steps == 0 or not isinstance(self.pipeline.estimator, Persistent):
             return None
         if "slam" in self.failed:
             logger.error("map not saved at shutdown: the SLAM thread crashed mid-step (the last saved map is kept)")
