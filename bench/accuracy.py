@@ -59,8 +59,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from robotd.choices import DETECTORS, FILTERS  # noqa: E402
+from robotd.choices import DETECTORS  # noqa: E402
 from robotd.research.evaluate import ALIGN_POSITIONS_M  # noqa: E402
+from robotd.slam.factory import ESTIMATORS  # noqa: E402
 
 # ALIGN_POSITIONS_M (10 m): the positions-aligned NEES column aligns the estimate to the truth by
 # the positions over the first 10 m of true path and judges the poses after them; it is the M a
@@ -428,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
     default_filter = load_config(args.config).slam.filter
     skipped: list[str] = []
     detectors = _names(args.detectors, DETECTORS, "detectors")
-    filters = _names(args.filters, FILTERS, "filters")
+    filters = _names(args.filters, tuple(ESTIMATORS), "filters")
     places = kitti_places(args.data, args.folders.split(",") if args.folders else None)
     if not places:
         skipped.append(f"KITTI: no folder with calib.txt and image_0/ or image_l/ under {args.data}")

@@ -41,7 +41,7 @@ import numpy as np
 from robotd.geometry import euler_to_R
 from robotd.msgs import MotionIncrement, Observations
 from robotd.slam.ekf import EkfSlam
-from robotd.slam.factory import make_estimator
+from robotd.slam.factory import estimator_kind, make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
 from robotd.stereo import project, triangulate
@@ -172,7 +172,7 @@ def time_filter(
         "filter": filt,
         "measurement": measurement,
         "dim": 3,
-        "particles": P if filt != "ekf" else 0,
+        "particles": P if estimator_kind(filt).particles is not None else 0,
         "map_size": M,
         "observations": N,
         "observations_mean": round(float(np.mean(n_obs)), 1),  # < N only where pruning deleted some
@@ -180,7 +180,7 @@ def time_filter(
         "p99_ms": round(float(np.percentile(a, 99)), 3),
         # on a shared machine the fastest step approximates the uncontended cost
         "min_ms": round(float(np.min(a)), 3),
-        "path": f"numba{_threads_used(threads)}" if (use_numba and filt != "ekf") else "numpy",
+        "path": f"numba{_threads_used(threads)}" if (use_numba and isinstance(est, FastSlam)) else "numpy",
         "steps": len(times),
         "resampled_frac": round(n_res / len(times), 3),
         "block": block,

@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from robotd.choices import DETECTORS, FILTERS, MEASUREMENTS, OUTLIER_METHODS
+from robotd.choices import DETECTORS, MEASUREMENTS, OUTLIER_METHODS
 from robotd.config_bounds import Sizing, check_bounds
 from robotd.errors import ConfigError, show_value
+from robotd.slam.factory import ESTIMATORS
 
 
 def _f(default: Any, doc: str = "", **meta: Any) -> Any:
@@ -131,7 +132,7 @@ class FrontendConfig:
 
 @dataclass(frozen=True)
 class SlamConfig:
-    filter: str = _f("fastslam2", "estimator", choices=FILTERS)
+    filter: str = _f("fastslam2", "estimator", choices=ESTIMATORS)  # the registered names, read live
     dim: int = _f(3, "2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)", choices=(2, 3))
     measurement: str = _f(
         "pixel",

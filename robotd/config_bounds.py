@@ -4,15 +4,15 @@ frame deadline (docs/reliability.md, "Configuration bounds").
 A value past its bound is refused when the configuration is loaded, in one line naming the key,
 the value, the bound and why. The bounds:
 
-- ``slam.n_particles`` (FastSLAM), the smallest of
+- ``slam.n_particles`` (a filter with particles: FastSLAM), the smallest of
   - the fixed ceiling ``MAX_PARTICLES``;
   - memory: half the memory available at start over the worst-case map per particle, every
-    particle holding its own copy of ``REFERENCE_LANDMARKS`` landmarks (3-D: mean and covariance,
-    12 float64 = 96 B; 2-D: 6 float64 = 48 B; bench/fastslam.py measured the copy-on-write store
-    at this size, docs/benchmarks.md);
-  - time: the filter alone must fit the deadline at full settings. FastSLAM's step costs
-    ``STEP_US_PER_PARTICLE_OBS`` per particle and observation on the reference machine
-    (bench/fastslam.py, 1000 particles × 100 observations, one core), and a frame carries at most
+    particle holding its own copy of ``REFERENCE_LANDMARKS`` landmarks of the size the filter
+    declares (FastSLAM 3-D: mean and covariance, 12 float64 = 96 B; 2-D: 6 float64 = 48 B;
+    bench/fastslam.py measured the copy-on-write store at this size, docs/benchmarks.md);
+  - time: the filter alone must fit the deadline at full settings. The filter declares its step's
+    cost per particle and observation on the reference machine (FastSLAM: bench/fastslam.py,
+    1000 particles × 100 observations, one core), and a frame carries at most
     ``slam.max_updates_per_frame + slam.max_new_per_frame`` observations (no more than
     ``frontend.max_features``). The deadline is ``budget.deadline_ms``, or the frame period at
     ``DEFAULT_FRAME_RATE_HZ`` when it is 0 (the camera's rate is not known before it is opened).
@@ -20,6 +20,8 @@ the value, the bound and why. The bounds:
   distance matrix, about ``FEATURE_MATCH_BYTES`` per pair at its peak (the matrix and numpy's
   temporaries); at most half the available memory. Time is the latency budget's to manage: it
   halves the features first, and a detector's cost per feature differs tenfold (ORB against SIFT).
+
+The filter's costs are those it declared at its registration (robotd.slam.factory.ParticleCost).
 """
 
 from __future__ import annotations
@@ -31,13 +33,10 @@ from dataclasses import dataclass
 
 from robotd.choices import MAX_PARTICLES
 from robotd.errors import ConfigError, show_value
+from robotd.slam.factory import ParticleCost, estimator_kind
 
 MEMORY_SHARE = 0.5  # of the memory available at start, for one of these consumers
 REFERENCE_LANDMARKS = 10_000  # map size of the memory bound (the largest bench/fastslam.py measured)
-LANDMARK_BYTES = {2: 6 * 8, 3: 12 * 8}  # one particle's copy of one landmark: mean and covariance, float64
-# µs per particle and observation, FastSLAM step on one core (docs/benchmarks.md: 1000 particles ×
-# 100 observations took 27.1 ms (2.0) and 15.6 ms (1.0))
-STEP_US_PER_PARTICLE_OBS = {"fastslam2": 0.271, "fastslam1": 0.156}
 DEFAULT_FRAME_RATE_HZ = 30.0
 FEATURE_MATCH_BYTES = 16  # per (feature, feature) pair: four (N, N) float32 arrays at the peak
 
@@ -77,13 +76,14 @@ def deadline_ms(cfg: Sizing) -> float:
     return cfg.deadline_ms or 1000.0 / DEFAULT_FRAME_RATE_HZ
 
 
-def particle_bound(cfg: Sizing) -> tuple[int, str]:
-    """The largest ``slam.n_particles`` for this configuration on this machine, and why."""
+def particle_bound(cfg: Sizing, cost: ParticleCost) -> tuple[int, str]:
+    """The largest ``slam.n_particles`` for this configuration on this machine, for a filter whose
+    particles cost ``cost``, and why."""
     mem = available_memory_bytes()
-    per_particle = LANDMARK_BYTES[cfg.dim] * REFERENCE_LANDMARKS
+    per_particle = cost.landmark_bytes[cfg.dim] * REFERENCE_LANDMARKS
     by_memory = int(MEMORY_SHARE * mem // per_particle)
     obs = min(cfg.max_updates_per_frame + cfg.max_new_per_frame, cfg.max_features)
-    us = STEP_US_PER_PARTICLE_OBS[cfg.filter]
+    us = cost.step_us_per_obs
     by_time = int(min(deadline_ms(cfg) * 1000.0 / (us * max(obs, 1)), float(MAX_PARTICLES)))
     bound = min(MAX_PARTICLES, by_memory, by_time)
     if bound == MAX_PARTICLES:
@@ -110,8 +110,9 @@ def feature_bound(cfg: Sizing) -> int:
 def check_bounds(cfg: Sizing) -> None:
     """ConfigError, one line naming the key, its value, the bound and why, for a value past its bound."""
     here = f"on this machine ({available_memory_bytes() / 1e9:.1f} GB available, {deadline_ms(cfg):.1f} ms deadline)"
-    if cfg.filter != "ekf":
-        bound, why = particle_bound(cfg)
+    cost = estimator_kind(cfg.filter).particles  # ConfigError for an unregistered filter
+    if cost is not None:
+        bound, why = particle_bound(cfg, cost)
         if cfg.n_particles > bound:
             raise ConfigError(f"slam.n_particles = {show_value(cfg.n_particles)}: at most {bound} {here}: {why}")
     fb = feature_bound(cfg)

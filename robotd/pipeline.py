@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.choices import FILTERS, MEASUREMENTS
+from robotd.choices import MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
 from robotd.errors import MapMismatchError, PersistenceError, RobotdError
@@ -37,8 +37,8 @@ from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
 from robotd.slam.common import measurement_model, pixel_noise
-from robotd.slam.estimator import Estimator
-from robotd.slam.factory import make_estimator
+from robotd.slam.estimator import Estimator, persistent
+from robotd.slam.factory import ESTIMATORS, estimator_kind, make_estimator
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
 from robotd.stall import GapDetector, Reach, blind_motion, plausible, reach, still_prior
@@ -160,11 +160,13 @@ class Pipeline:
         self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
         params = slam_params_from_config(cfg, rig)
         self.estimator: Estimator = make_estimator(params, rng)
-        # the reported covariance (robotd.slam.uncertainty): anchors for the particle filters, whose
-        # own covariance is only the last fix; the EKF's joint covariance carries the map already
+        self.kind = estimator_kind(params.filter)  # what the filter declared (particles, ...)
+        # the reported covariance (robotd.slam.uncertainty): anchors for the filters that declare
+        # them (the particle filters, whose own covariance is only the last fix; the EKF's joint
+        # covariance carries the map already)
         model = measurement_model(params)
         self.covariance = ReportedCovariance(
-            cfg.slam.covariance, self.estimator.name != "ekf", model, pixel_noise(params) if model.intrinsics else None
+            cfg.slam.covariance, self.kind.anchored_covariance, model, pixel_noise(params) if model.intrinsics else None
         )
         self.counters = PipelineCounters()
         self.tracker = TrackingMonitor(self.counters)
@@ -586,7 +588,7 @@ class Pipeline:
         return {
             "estimator_name": self.estimator.name,
             "dim": self.estimator.dim,
-            "estimator": self.estimator.state_dict(),
+            "estimator": persistent(self.estimator).state_dict(),
             "database": descriptors.state_dict() if descriptors is not None else {},
         }
 
@@ -598,13 +600,13 @@ class Pipeline:
         filter's checked values (``Estimator.restore``) and the saved descriptor store (None when
         the map has none)."""
         st = StateTable(state, "state")
-        name = st.choice("estimator_name", FILTERS)
+        name = st.choice("estimator_name", tuple(ESTIMATORS))
         dim = st.choice("dim", (2, 3))
         if name != self.estimator.name or dim != self.estimator.dim:
             raise MapMismatchError(
                 f"saved map is from {name!r} in {dim}D, this run uses {self.estimator.name!r} in {self.estimator.dim}D"
             )
-        checked = self.estimator.check_state_dict(st.table("estimator").data)
+        checked = persistent(self.estimator).check_state_dict(st.table("estimator").data)
         filter_ids = checked["ids"]
         saved_db = st.table("database")
         if not saved_db.data:  # no frame was detected before the save
@@ -631,7 +633,7 @@ class Pipeline:
         """Resume from a saved state, checked whole first (:meth:`check_state_dict`): when it
         fails, nothing of this pipeline has changed."""
         checked, descriptors = self.check_state_dict(state)
-        self.estimator.restore(checked)
+        persistent(self.estimator).restore(checked)
         if descriptors is not None:
             self.frontend.descriptors = descriptors
         self.frontend.reset()

@@ -57,6 +57,7 @@ from robotd.outputs.recorder import RecorderOutput
 from robotd.persist import CounterFile, StateDirLock, default_state_dir
 from robotd.pipeline import Pipeline
 from robotd.queues import DropOldestQueue
+from robotd.slam.estimator import Persistent
 
 logger = logging.getLogger("robotd.daemon")  # the name users filter the lifecycle lines by
 
@@ -223,7 +224,7 @@ class Daemon:
         fps = dev.camera.fps or 30.0
         self._frame_period_s = 1.0 / fps
         deadline = cfg.budget.deadline_ms or 1000.0 / fps
-        particles = cfg.slam.filter != "ekf"
+        particles = self.pipeline.kind.particles is not None  # what the filter declared
         self.budget = LatencyBudget(
             deadline,
             cfg.frontend.max_features,
@@ -260,6 +261,9 @@ class Daemon:
             logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
         self.counter_file.save(self.reset_policy.counter)
         # the map file is an input too: resume before the first step, then save like any output
+        if not isinstance(self.pipeline.estimator, Persistent):
+            logger.warning("map file: none (the %r filter cannot be saved or resumed)", self.pipeline.estimator.name)
+            return
         self.maps = enter_output(stack, MapFileOutput(cfg.persistence, cfg.robot.id))
         if cfg.persistence.resume and self.maps.resume(self.pipeline):
             self.resumed = True
@@ -328,7 +332,7 @@ class Daemon:
             self.health.on_step(result.timings_ms)
             state = budget.record(frame_ms, latency_ms)
             pipeline.set_max_features(state.max_features)
-            if self.cfg.slam.filter != "ekf":
+            if pipeline.kind.particles is not None:
                 pipeline.set_particles(state.n_particles)
             now = time.monotonic()
             landmarks = snapshot = None
@@ -561,7 +565,7 @@ class Daemon:
     def final_state(self) -> dict[str, Any] | None:
         """The pipeline's state at shutdown, once the SLAM thread has stopped (nothing else touches
         the estimator); None when no step ran or the thread is still running."""
-        if self.pipeline is None or self.stats.steps == 0:
+        if self.pipeline is None or self.stats.steps == 0 or not isinstance(self.pipeline.estimator, Persistent):
             return None
         if "slam" in self.failed:
             logger.error("map not saved at shutdown: the SLAM thread crashed mid-step (the last saved map is kept)")

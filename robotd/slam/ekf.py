@@ -59,7 +59,7 @@ logger = logging.getLogger(__name__)
 
 
 class EkfSlam(UpdateEntryPoints):
-    """EKF SLAM in 2D or 3D. Build it with :func:`robotd.slam.estimator.make_estimator`."""
+    """EKF SLAM in 2D or 3D. Build it with :func:`robotd.slam.factory.make_estimator`."""
 
     name = "ekf"
 

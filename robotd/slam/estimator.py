@@ -1,10 +1,13 @@
-"""The estimator interface of robotd: the ``Estimator`` Protocol every SLAM filter implements.
+"""The estimator interface of robotd: the ``Estimator`` Protocol every SLAM filter implements,
+and ``Persistent``, the one a filter whose map can be saved and resumed implements besides.
 
-The pipeline only sees this interface: it builds a filter with
+The pipeline only sees these interfaces: it builds a filter with
 :func:`robotd.slam.factory.make_estimator` and then calls ``predict(inc)`` once per motion
-increment and ``update(obs)`` once per frame. Planar filters (``dim == 2``) also offer
-``predict_velocity(v, w, dt)`` (§6.1) and ``update_range_bearing(ids, r, beta, R_rb, is_new)``
-(§7.2), see :class:`PlanarEstimator`.
+increment and ``update(obs)`` once per frame; it saves and loads the map through
+:func:`persistent`. Planar filters (``dim == 2``) also offer ``predict_velocity(v, w, dt)``
+(§6.1) and ``update_range_bearing(ids, r, beta, R_rb, is_new)`` (§7.2), see
+:class:`PlanarEstimator`. What a filter is (a particle set or not, ...) it declares at its
+registration in :mod:`robotd.slam.factory`, not here.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from robotd.errors import PersistenceError
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 
 
@@ -20,7 +24,7 @@ from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate
 class Estimator(Protocol):
     """A SLAM filter with known correspondences (docs/math.md §8–§10)."""
 
-    name: str  # "ekf" | "fastslam1" | "fastslam2"
+    name: str  # its registered name (robotd.slam.factory), the value of slam.filter
     dim: int  # 2 | 3
 
     def predict(self, inc: MotionIncrement) -> None:
@@ -52,12 +56,18 @@ class Estimator(Protocol):
         ...
 
     def set_particles(self, n: int) -> int:
-        """Change the particle count (clamped to [n_particles_min, ∞)); returns the new count. EKF: no-op."""
+        """Change the particle count (clamped to [n_particles_min, ∞)); returns the new count. Without
+        particles (robotd.slam.factory.EstimatorKind): a no-op."""
         ...
 
     def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
         """Relocalisation: put the pose at ``x`` (dx,) with covariance ``cov``; the map is kept."""
         ...
+
+
+@runtime_checkable
+class Persistent(Protocol):
+    """A filter whose state can be saved and resumed (``Pipeline.state_dict``, which the map file saves)."""
 
     def state_dict(self) -> dict[str, np.ndarray | float | int]:
         """Everything needed to resume: numpy arrays and scalars only."""
@@ -75,6 +85,13 @@ class Estimator(Protocol):
     def restore(self, checked: dict[str, Any]) -> None:
         """Restore from what ``check_state_dict`` returned (cannot fail)."""
         ...
+
+
+def persistent(est: Estimator) -> Persistent:
+    """``est`` as a :class:`Persistent`; PersistenceError when it cannot be saved or loaded."""
+    if not isinstance(est, Persistent):
+        raise PersistenceError(f"the {est.name!r} filter cannot be saved or loaded (it is not Persistent)")
+    return est
 
 
 @runtime_checkable

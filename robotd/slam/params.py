@@ -1,5 +1,5 @@
-"""Tuning of the SLAM core: ``SlamParams`` (every default documented in docs/slam.md), the filter
-names, and the default field-of-view test the filters prune landmarks with.
+"""Tuning of the SLAM core: ``SlamParams`` (every default documented in docs/slam.md) and the
+default field-of-view test the filters prune landmarks with.
 
 Which motion covariance wins (``SlamParams.motion_cov_source``):
 
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.choices import FILTERS, MEASUREMENTS
+from robotd.choices import MEASUREMENTS
 from robotd.errors import ConfigError
 
 MOTION_COV_SOURCES = ("auto", "message", "model")
@@ -34,7 +34,7 @@ class SlamParams:
     Units: metres, radians. Tuples of six are the a0…a5 / α1…α6 coefficients of the 2D models.
     """
 
-    filter: str = "fastslam2"  # "ekf" | "fastslam1" | "fastslam2"
+    filter: str = "fastslam2"  # a registered name (robotd.slam.factory): make_estimator refuses others
     dim: int = 3  # 2 (x, y, yaw) or 3 (x, y, z, roll, pitch, yaw)
     n_particles: int = 100  # FastSLAM particle count N (docs/math.md §10)
     n_particles_min: int = 10  # floor for set_particles: min(n_particles_min, n_particles)
@@ -94,8 +94,6 @@ class SlamParams:
         def bad(key: str, expected: str, got: Any) -> ConfigError:
             return ConfigError(f"slam.{key}: expected {expected}, got {got!r}")
 
-        if self.filter not in FILTERS:
-            raise bad("filter", " | ".join(FILTERS), self.filter)
         if self.dim not in (2, 3):
             raise bad("dim", "2 or 3", self.dim)
         if int(self.n_particles) < 1:
