@@ -36,7 +36,7 @@ from robotd.frontend.stereo_match import StereoMatches
 from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
-from robotd.slam.common import measurement_model, pixel_noise
+from robotd.slam.common import measurement_model, model_cov6, pixel_noise
 from robotd.slam.estimator import Estimator
 from robotd.slam.factory import make_estimator
 from robotd.slam.measurement import covariance_at_prediction
@@ -57,6 +57,9 @@ GRAVITY_BIAS_TAU_S = 60.0
 # a filter that is far off (after a stall, say) from being taken for the sensor's bias
 GRAVITY_BIAS_MAX_RAD = math.radians(3.0)
 
+# the odometry and the images' motion over one interval are fused when they agree within this
+# Mahalanobis distance (χ²(6) at 0.999)
+FUSE_CHI2 = 22.458
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
@@ -70,6 +73,10 @@ class PipelineCounters:
     frames: int = 0
     visual_priors: int = 0
     odometry_priors: int = 0
+    # odometry increments the images' own motion over the same interval was fused into, and those
+    # where the two disagreed (the odometry alone was used)
+    fused_priors: int = 0
+    fusion_refused: int = 0
     constant_velocity_priors: int = 0
     frames_without_correspondences: int = 0
     lost_events: int = 0
@@ -159,6 +166,7 @@ class Pipeline:
         self.rng = rng
         self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
         params = slam_params_from_config(cfg, rig)
+        self._slam_params = params
         self.estimator: Estimator = make_estimator(params, rng)
         # the reported covariance (robotd.slam.uncertainty): anchors for the particle filters, whose
         # own covariance is only the last fix; the EKF's joint covariance carries the map already
@@ -178,6 +186,10 @@ class Pipeline:
         self._last_pose: tuple[int, np.ndarray] | None = None
         self._velocity: tuple[np.ndarray, np.ndarray, float, float, float] | None = None
         self._measured: MotionIncrement | None = None
+        # the map fixed the last frame's pose (at least relocalise.MIN_INLIERS landmarks identified,
+        # what a pose from the map alone needs): the images' motion is then not fused into the
+        # odometry (Pipeline._fuse_motion)
+        self._map_fixed = False
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
         # the direction of gravity in the world frame (3D, slam.gravity): from the first measurement
@@ -248,6 +260,7 @@ class Pipeline:
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
+        self._map_fixed = n_identified >= MIN_INLIERS
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 
@@ -503,6 +516,8 @@ class Pipeline:
             return None
         if odo is not None:
             self.counters.odometry_priors += 1
+            if vis is not None and vis.t0_ns == odo.t0_ns and vis.t1_ns == odo.t1_ns and not self._map_fixed:
+                odo = self._fuse_motion(odo, vis)
             self._measured = odo
             return odo
         if vis is not None and vis.t0_ns == self._last_t_ns:
@@ -517,6 +532,39 @@ class Pipeline:
             sd = np.r_[np.full(3, cv.tol_t_m / 2.0), np.full(3, cv.tol_rot_rad / 2.0)]
             return MotionIncrement(self._last_t_ns, t_ns, cv.t, so3_log(cv.R), np.diag(sd * sd))
         return None
+
+    def _fuse_motion(self, odo: MotionIncrement, vis: MotionIncrement) -> MotionIncrement:
+        """The odometry's increment and the images' own motion over the same interval (both
+        measurements of it, independent) fused by their covariances, in the increment's tangent
+        space (dp, drot) about the odometry's. The odometry's covariance is its stated one, else
+        the filter's motion model's, which is what the filter would take for it. When the two
+        disagree beyond ``FUSE_CHI2`` (a scene that moved, a wheel that slipped), the odometry
+        alone, as before.
+
+        Called only while the map does not fix the pose (``_map_fixed``): the images' motion then
+        carries what nothing else does. Before, it was thrown away whenever odometry came, and at a
+        car's metre a frame, where the map identifies nothing, the filter moved its particles by
+        the motion model's noise alone (5 cm and 2° of yaw a frame) until they spread over metres.
+        Where the map fixes the pose its update uses the same images, and fusing there was measured
+        worse (docs/slam.md "Odometry and the images' motion")."""
+        C_o = np.asarray(odo.cov, float)
+        if not np.any(C_o):
+            C_o = model_cov6(odo, self._slam_params)
+        C_v = np.asarray(vis.cov, float)
+        d = np.r_[np.asarray(vis.dp_R_m, float) - odo.dp_R_m, np.asarray(vis.drot_R_rad, float) - odo.drot_R_rad]
+        S = C_o + C_v
+        try:
+            d2 = float(d @ np.linalg.solve(S, d))
+            K = np.linalg.solve(S.T, C_o.T).T  # C_o S⁻¹
+        except np.linalg.LinAlgError:
+            return odo
+        if not (math.isfinite(d2) and np.all(np.isfinite(K))) or d2 > FUSE_CHI2:
+            self.counters.fusion_refused += 1
+            return odo
+        x = np.r_[odo.dp_R_m, odo.drot_R_rad] + K @ d
+        C = C_o - K @ C_o
+        self.counters.fused_priors += 1
+        return dataclasses.replace(odo, dp_R_m=x[:3], drot_R_rad=x[3:], cov=0.5 * (C + C.T))
 
     def _result(
         self,

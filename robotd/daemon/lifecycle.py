@@ -435,6 +435,8 @@ class Daemon:
                 gravity_rejected=c.gravity_rejected,
                 gravity_reopened=c.gravity_reopened,
                 gravity_implausible=c.gravity_implausible,
+                fused_priors=c.fused_priors,
+                fusion_refused=c.fusion_refused,
             )
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
