@@ -27,13 +27,13 @@ import numpy as np
 from robotd.choices import FILTERS, MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
-from robotd.errors import MapMismatchError, PersistenceError, RobotdError
+from robotd.errors import MapMismatchError, PersistenceError, RobotdError, SingularityError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior, motion_prior
 from robotd.frontend.stereo_match import StereoMatches
-from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
+from robotd.geometry import R_to_euler, euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
 from robotd.slam.common import measurement_model, model_cov6, pixel_noise
@@ -92,6 +92,9 @@ class PipelineCounters:
     gravity_rejected: int = 0
     gravity_reopened: int = 0  # fused with roll and pitch reopened after GRAVITY_REOPEN_S of refusals
     gravity_implausible: int = 0  # tilted beyond vehicle.max_tilt_deg: never fused
+    # 3D: the filter's attitude tilted beyond vehicle.max_tilt_deg (or at the ZYX singularity):
+    # roll and pitch reset to level, the frame reported lost (Pipeline._reset_attitude)
+    attitude_resets: int = 0
 
 
 class GravityBias:
@@ -151,6 +154,15 @@ class TrackingMonitor:
             logger.warning("tracking lost: nothing constrained the pose for %d frames", self._no_corr)
         return self.tracking
 
+    def lose(self, why: str) -> bool:
+        """Lost this frame for a reason of its own (``why``, logged): a lost event when it was
+        tracking; tracking returns with the next constrained frame."""
+        if self.tracking:
+            self.counters.lost_events += 1
+            logger.warning("tracking lost: %s", why)
+        self.tracking = False
+        return False
+
     def suspend(self) -> bool:
         """Not tracking this frame (relocalising), whatever the correspondences."""
         self.tracking = False
@@ -190,6 +202,7 @@ class Pipeline:
         # what a pose from the map alone needs): the images' motion is then not fused into the
         # odometry (Pipeline._fuse_motion)
         self._map_fixed = False
+        self._attitude_reset_at: int | None = None  # t_ns of the frame whose attitude was last reset
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
         # the direction of gravity in the world frame (3D, slam.gravity): from the first measurement
@@ -256,10 +269,14 @@ class Pipeline:
             fe.descriptors.forget(obs.ids[obs.is_new])
             raise
         report = clock.run("update", self._update, obs, landmarks)
+        if self._attitude_implausible() is not None:
+            self._reset_attitude(frame.t_ns)
         pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
+        if self._attitude_reset_at == frame.t_ns:
+            tracking = self.tracker.lose("the attitude was reset")  # a guess this frame
         self._map_fixed = n_identified >= MIN_INLIERS
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
@@ -436,7 +453,13 @@ class Pipeline:
             k = self.cfg.slam.motion_noise_scale
             if k != 1.0:
                 inc = dataclasses.replace(inc, cov=inc.cov * k)
-            self.estimator.predict(inc)
+            try:
+                self.estimator.predict(inc)
+            except SingularityError:
+                # a pose (a particle) at pitch ±90°: no rover is there, and the model cannot move
+                # it, so every later frame would fail the same way; level it and go on
+                self._reset_attitude(inc.t1_ns)
+                self.estimator.predict(inc)
             if inc.gravity_R is not None and self.cfg.slam.gravity and self.cfg.slam.dim == 3:
                 self._fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad, inc.t1_ns)
 
@@ -479,6 +502,54 @@ class Pipeline:
         if reopen and since is not None:
             self.counters.gravity_reopened += 1
             logger.warning("gravity refused for %.1f s: roll and pitch reopened (NIS %.0f)", (t_ns - since) / 1e9, nis)
+
+    def _attitude_implausible(self) -> float | None:
+        """3D: the estimate's tilt [deg] (its vertical against the world's, the measured gravity's
+        when there is one) when it is beyond ``vehicle.max_tilt_deg``, where no rover drives;
+        else None."""
+        if self.cfg.slam.dim != 3:
+            return None
+        R = self.estimator.estimate().T_world_robot[:3, :3]
+        down = self._gravity_W if self._gravity_W is not None else np.array([0.0, 0.0, 1.0])
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(R[:, 2] @ down)))))
+        return tilt if tilt > self.cfg.vehicle.max_tilt_deg or not math.isfinite(tilt) else None
+
+    def _reset_attitude(self, t_ns: int) -> None:
+        """The filter's roll and pitch were implausible (:meth:`_attitude_implausible`) or at the
+        ZYX singularity: put the pose level against the world's vertical, keeping its position
+        and heading (``RESET_COV`` about it), and report the frame lost. Nothing measured the
+        tilt it had (vision alone has no absolute vertical), so level is the rover's likeliest
+        attitude; a vehicle's gravity, when it has one, then holds it."""
+        est = self.estimator.estimate()
+        T = est.T_world_robot
+        R = T[:3, :3]
+        down = self._gravity_W if self._gravity_W is not None else np.array([0.0, 0.0, 1.0])
+        x_ax, z_ax = R[:, 0], R[:, 2]
+        # the heading: the forward axis across the vertical; near pitch ±90° the vertical axis
+        # gives it (nose up: z points where the nose did)
+        h = (x_ax - (x_ax @ down) * down) - (x_ax @ down) * (z_ax - (z_ax @ down) * down)
+        if float(np.linalg.norm(h)) < 1e-6:
+            h = np.cross(down, [0.0, 1.0, 0.0]) if abs(down[1]) < 0.9 else np.cross(down, [1.0, 0.0, 0.0])
+        h = h / np.linalg.norm(h)
+        R_level = np.column_stack([h, np.cross(down, h), down])
+        rpy = R_to_euler(R_level)
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(z_ax @ down)))))
+        self.counters.attitude_resets += 1
+        self._attitude_reset_at = t_ns
+        logger.warning(
+            "attitude implausible (tilted %.1f° from the vertical, roll %.1f° pitch %.1f°; vehicle.max_tilt_deg %.0f°):"
+            " roll and pitch reset to level, heading %.1f° and position kept (%d so far)",
+            tilt,
+            math.degrees(est.rpy_rad[0]),
+            math.degrees(est.rpy_rad[1]),
+            self.cfg.vehicle.max_tilt_deg,
+            math.degrees(rpy[2]),
+            self.counters.attitude_resets,
+        )
+        x = np.r_[T[:3, 3], rpy] if self.estimator.dim == 3 else np.r_[T[:2, 3], rpy[2]]
+        self.estimator.reset_pose(x, RESET_COV if self.estimator.dim == 3 else RESET_COV[np.ix_([0, 1, 5], [0, 1, 5])])
+        # the constant-velocity model's last pose is the implausible one
+        self._last_pose = None
 
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend
@@ -592,6 +663,7 @@ class Pipeline:
             relocalised,
             consistency=self.covariance.health(),
             observations=obs,
+            attitude_reset=self._attitude_reset_at == frame.t_ns,
         )
 
     # ---------------------------------------------------------------- degradation hooks

@@ -284,6 +284,7 @@ def replay(
         "gravity_implausible": pipeline.counters.gravity_implausible,
         "fused_priors": pipeline.counters.fused_priors,
         "fusion_refused": pipeline.counters.fusion_refused,
+        "attitude_resets": pipeline.counters.attitude_resets,
         **pipeline.frontend.disparity_bias.stats(),
     }
     stages = sorted({k for r in results for k in r.timings_ms})

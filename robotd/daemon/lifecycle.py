@@ -337,6 +337,10 @@ class Daemon:
             if now >= next_state:
                 next_state, snapshot = now + state_period, pipeline.state_dict()
             event = ResetEvent.RELOCALISATION if result.relocalised else None
+            if result.attitude_reset:
+                # the pose jumped to level: the autopilot must not take the jump as motion
+                self.health.on_attitude_reset()
+                event = event or ResetEvent.ATTITUDE_RESET
             if stalled and inc is None:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
                 # the autopilot must not fuse the jump as motion (docs/interfaces.md §1.5)

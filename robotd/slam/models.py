@@ -20,7 +20,7 @@ from functools import partial
 
 import numpy as np
 
-from robotd.errors import EstimatorError
+from robotd.errors import EstimatorError, SingularityError
 from robotd.geometry import (
     R_to_euler,
     drot2,
@@ -189,7 +189,7 @@ def motion3d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
         the rotation blocks ``E(η_t) exp(ω)ᵀ E(η)⁻¹`` and ``E(η_t) J_r(ω)`` (docs/math.md §6.3).
 
     Raises:
-        EstimatorError: when a pose is within ~0.06° of pitch ±90° (E is singular there).
+        SingularityError (an EstimatorError): when a pose is within ~0.06° of pitch ±90° (E is singular there).
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
@@ -197,7 +197,7 @@ def motion3d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     cp = np.cos(eta[:, 1])
     if np.any(np.abs(cp) < COS_PITCH_MIN):
         bad = float(np.rad2deg(eta[np.argmin(np.abs(cp)), 1]))
-        raise EstimatorError(f"motion3d: pitch {bad:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
+        raise SingularityError(f"motion3d: pitch {bad:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
     R, Rr, Rp, Ry = _rot3_all(eta)
     dp, om = u[:, :3], u[:, 3:6]
     Rw = so3_exp(om)
