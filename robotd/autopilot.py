@@ -306,6 +306,7 @@ class ResetEvent:
     FILTER_RESTART = "filter_restart"
     LOOP_CLOSURE = "loop_closure"
     STALL = "stall"  # frames stopped for longer than a stall and no odometry covered the gap
+    ATTITUDE_RESET = "attitude_reset"  # an attitude no rover can have was reset to level
 
 
 @dataclass
@@ -314,8 +315,8 @@ class ResetCounterPolicy:
 
     ``update(pose, event, odometry)`` returns the counter (uint8, wraps) to send with ``pose``. It
     bumps when an ``event`` is given (relocalisation, map load, filter restart, loop closure, a
-    stall nothing measured) and when the pose lands further from its prediction than a moving
-    vehicle can explain. The prediction is, in this order:
+    stall nothing measured, an implausible attitude reset to level) and when the pose lands further
+    from its prediction than a moving vehicle can explain. The prediction is, in this order:
 
     1. the vehicle's odometry integrated from the last pose to this one (``odometry``, a
        :class:`~robotd.msgs.MotionIncrement` whose interval is exactly last pose → this pose);

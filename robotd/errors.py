@@ -37,6 +37,11 @@ class EstimatorError(RobotdError):
     """A filter reached a state it cannot continue from (non-finite covariance, no particles)."""
 
 
+class SingularityError(EstimatorError):
+    """A 3-D pose at pitch ±90° (the ZYX Euler singularity): the motion model cannot propagate it.
+    No ground vehicle gets there; the pipeline resets the attitude (docs/reliability.md)."""
+
+
 class PersistenceError(RobotdError):
     """A saved map or recording is corrupt, foreign or could not be written."""
 

@@ -136,6 +136,22 @@ def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
     )
 
 
+def euler_rate_matrix_inverse(rpy: np.ndarray) -> np.ndarray:
+    """E⁻¹(roll, pitch): ZYX Euler-angle rates -> body rates, (..., 3, 3); defined at every pitch."""
+    rpy = np.asarray(rpy, dtype=float)
+    r, p = rpy[..., 0], rpy[..., 1]
+    cr, sr, cp, sp = np.cos(r), np.sin(r), np.cos(p), np.sin(p)
+    o, z = np.ones_like(r), np.zeros_like(r)
+    return np.stack(
+        [
+            np.stack([o, z, -sp], -1),
+            np.stack([z, cr, sr * cp], -1),
+            np.stack([z, -sr, cr * cp], -1),
+        ],
+        -2,
+    )
+
+
 def euler_rate_jacobian(rpy: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """∂(E(rpy) ω)/∂rpy, (..., 3, 3); the yaw column is zero (docs/math.md §6.3)."""
     rpy = np.asarray(rpy, dtype=float)
@@ -272,6 +288,18 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
     b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
+    """J_r(w) (..., 3, 3): exp(w + δ) ≈ exp(w) exp(J_r(w) δ) for a small δ."""
+    w = np.asarray(w, dtype=float)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = th < 1e-4
+    ths = np.where(small, 1.0, th)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+    c = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (ths - np.sin(ths)) / ths**3)
+    return np.eye(3) - b * K + c * (K @ K)  # type: ignore[no-any-return]
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:

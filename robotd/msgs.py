@@ -284,3 +284,6 @@ class StepResult:
     # the reported covariance's consistency monitor (robotd.slam.uncertainty): state, nis_ratio, scale
     consistency: dict[str, Any] = field(default_factory=dict)
     observations: Observations | None = None  # what the filter took this frame (ids, pixels): for display
+    # 3D: the filter's roll and pitch were implausible (beyond vehicle.max_tilt_deg, or at the ZYX
+    # singularity) and were reset to level this step (a discontinuity; the frame is reported lost)
+    attitude_reset: bool = False

@@ -27,16 +27,16 @@ import numpy as np
 from robotd.choices import MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
-from robotd.errors import MapMismatchError, PersistenceError, RobotdError
+from robotd.errors import MapMismatchError, PersistenceError, RobotdError, SingularityError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior, motion_prior
 from robotd.frontend.stereo_match import StereoMatches
-from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp, so3_log
+from robotd.geometry import R_to_euler, euler_to_R, se3, se3_inverse, so3_exp, so3_log
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_similarity
-from robotd.slam.common import measurement_model, pixel_noise
+from robotd.slam.common import measurement_model, model_cov6, pixel_noise
 from robotd.slam.estimator import Estimator, persistent
 from robotd.slam.factory import ESTIMATORS, estimator_kind, make_estimator
 from robotd.slam.measurement import covariance_at_prediction
@@ -57,6 +57,9 @@ GRAVITY_BIAS_TAU_S = 60.0
 # a filter that is far off (after a stall, say) from being taken for the sensor's bias
 GRAVITY_BIAS_MAX_RAD = math.radians(3.0)
 
+# the odometry and the images' motion over one interval are fused when they agree within this
+# Mahalanobis distance (χ²(6) at 0.999)
+FUSE_CHI2 = 22.458
 LOST_AFTER_FRAMES = 5  # frames without anything constraining the pose before tracking is declared lost
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
 NO_NEW = np.zeros(0, np.int64)  # no new landmarks this frame
@@ -70,6 +73,10 @@ class PipelineCounters:
     frames: int = 0
     visual_priors: int = 0
     odometry_priors: int = 0
+    # odometry increments the images' own motion over the same interval was fused into, and those
+    # where the two disagreed (the odometry alone was used)
+    fused_priors: int = 0
+    fusion_refused: int = 0
     constant_velocity_priors: int = 0
     frames_without_correspondences: int = 0
     lost_events: int = 0
@@ -85,6 +92,9 @@ class PipelineCounters:
     gravity_rejected: int = 0
     gravity_reopened: int = 0  # fused with roll and pitch reopened after GRAVITY_REOPEN_S of refusals
     gravity_implausible: int = 0  # tilted beyond vehicle.max_tilt_deg: never fused
+    # 3D: the filter's attitude tilted beyond vehicle.max_tilt_deg (or at the ZYX singularity):
+    # roll and pitch reset to level, the frame reported lost (Pipeline._reset_attitude)
+    attitude_resets: int = 0
 
 
 class GravityBias:
@@ -144,6 +154,15 @@ class TrackingMonitor:
             logger.warning("tracking lost: nothing constrained the pose for %d frames", self._no_corr)
         return self.tracking
 
+    def lose(self, why: str) -> bool:
+        """Lost this frame for a reason of its own (``why``, logged): a lost event when it was
+        tracking; tracking returns with the next constrained frame."""
+        if self.tracking:
+            self.counters.lost_events += 1
+            logger.warning("tracking lost: %s", why)
+        self.tracking = False
+        return False
+
     def suspend(self) -> bool:
         """Not tracking this frame (relocalising), whatever the correspondences."""
         self.tracking = False
@@ -159,6 +178,7 @@ class Pipeline:
         self.rng = rng
         self.frontend = Frontend(rig, frontend_params_from_config(cfg), rng=rng)
         params = slam_params_from_config(cfg, rig)
+        self._slam_params = params
         self.estimator: Estimator = make_estimator(params, rng)
         self.kind = estimator_kind(params.filter)  # what the filter declared (particles, ...)
         # the reported covariance (robotd.slam.uncertainty): anchors for the filters that declare
@@ -180,6 +200,11 @@ class Pipeline:
         self._last_pose: tuple[int, np.ndarray] | None = None
         self._velocity: tuple[np.ndarray, np.ndarray, float, float, float] | None = None
         self._measured: MotionIncrement | None = None
+        # the map fixed the last frame's pose (at least relocalise.MIN_INLIERS landmarks identified,
+        # what a pose from the map alone needs): the images' motion is then not fused into the
+        # odometry (Pipeline._fuse_motion)
+        self._map_fixed = False
+        self._attitude_reset_at: int | None = None  # t_ns of the frame whose attitude was last reset
         # the last measured intervals: (rotation rate, velocity, weight of each, dt_s)
         self._rates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
         # the direction of gravity in the world frame (3D, slam.gravity): from the first measurement
@@ -246,12 +271,17 @@ class Pipeline:
             fe.descriptors.forget(obs.ids[obs.is_new])
             raise
         report = clock.run("update", self._update, obs, landmarks)
+        if self._attitude_implausible() is not None:
+            self._reset_attitude(frame.t_ns)
         pose = self.covariance.report(est.estimate(), obs)
         n_identified = int(np.count_nonzero(~obs.is_new))
         constrained = n_identified > 0 or visual.increment is not None or increment is not None
         tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
+        if self._attitude_reset_at == frame.t_ns:
+            tracking = self.tracker.lose("the attitude was reset")  # a guess this frame
+        self._map_fixed = n_identified >= MIN_INLIERS
         if tracking:
-            # the rig's disparity offset, from the landmarks seen again metres later (docs/frontend.md)
+            # the rig's disparity offset, from the measurements seen again metres later (docs/frontend.md)
             fe.observe_pose(pose.T_world_robot)
         self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
@@ -428,7 +458,13 @@ class Pipeline:
             k = self.cfg.slam.motion_noise_scale
             if k != 1.0:
                 inc = dataclasses.replace(inc, cov=inc.cov * k)
-            self.estimator.predict(inc)
+            try:
+                self.estimator.predict(inc)
+            except SingularityError:
+                # a pose (a particle) at pitch ±90°: no rover is there, and the model cannot move
+                # it, so every later frame would fail the same way; level it and go on
+                self._reset_attitude(inc.t1_ns)
+                self.estimator.predict(inc)
             if inc.gravity_R is not None and self.cfg.slam.gravity and self.cfg.slam.dim == 3:
                 self._fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad, inc.t1_ns)
 
@@ -472,6 +508,55 @@ class Pipeline:
             self.counters.gravity_reopened += 1
             logger.warning("gravity refused for %.1f s: roll and pitch reopened (NIS %.0f)", (t_ns - since) / 1e9, nis)
 
+    def _attitude_implausible(self) -> float | None:
+        """3D: the estimate's tilt [deg] (its vertical against the world's, the measured gravity's
+        when there is one) when it is beyond ``vehicle.max_tilt_deg``, where no rover drives;
+        else None."""
+        if self.cfg.slam.dim != 3:
+            return None
+        R = self.estimator.estimate().T_world_robot[:3, :3]
+        down = self._gravity_W if self._gravity_W is not None else np.array([0.0, 0.0, 1.0])
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(R[:, 2] @ down)))))
+        return tilt if tilt > self.cfg.vehicle.max_tilt_deg or not math.isfinite(tilt) else None
+
+    def _reset_attitude(self, t_ns: int) -> None:
+        """The filter's roll and pitch were implausible (:meth:`_attitude_implausible`) or at the
+        ZYX singularity: put the pose level against the world's vertical, keeping its position
+        and heading (``RESET_COV`` about it), and report the frame lost. Nothing measured the
+        tilt it had (vision alone has no absolute vertical), so level is the rover's likeliest
+        attitude; a vehicle's gravity, when it has one, then holds it."""
+        self.frontend.disparity_bias.reset_tracks()  # the anchor's pose is no longer this map's
+        est = self.estimator.estimate()
+        T = est.T_world_robot
+        R = T[:3, :3]
+        down = self._gravity_W if self._gravity_W is not None else np.array([0.0, 0.0, 1.0])
+        x_ax, z_ax = R[:, 0], R[:, 2]
+        # the heading: the forward axis across the vertical; near pitch ±90° the vertical axis
+        # gives it (nose up: z points where the nose did)
+        h = (x_ax - (x_ax @ down) * down) - (x_ax @ down) * (z_ax - (z_ax @ down) * down)
+        if float(np.linalg.norm(h)) < 1e-6:
+            h = np.cross(down, [0.0, 1.0, 0.0]) if abs(down[1]) < 0.9 else np.cross(down, [1.0, 0.0, 0.0])
+        h = h / np.linalg.norm(h)
+        R_level = np.column_stack([h, np.cross(down, h), down])
+        rpy = R_to_euler(R_level)
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(z_ax @ down)))))
+        self.counters.attitude_resets += 1
+        self._attitude_reset_at = t_ns
+        logger.warning(
+            "attitude implausible (tilted %.1f° from the vertical, roll %.1f° pitch %.1f°; vehicle.max_tilt_deg %.0f°):"
+            " roll and pitch reset to level, heading %.1f° and position kept (%d so far)",
+            tilt,
+            math.degrees(est.rpy_rad[0]),
+            math.degrees(est.rpy_rad[1]),
+            self.cfg.vehicle.max_tilt_deg,
+            math.degrees(rpy[2]),
+            self.counters.attitude_resets,
+        )
+        x = np.r_[T[:3, 3], rpy] if self.estimator.dim == 3 else np.r_[T[:2, 3], rpy[2]]
+        self.estimator.reset_pose(x, RESET_COV if self.estimator.dim == 3 else RESET_COV[np.ix_([0, 1, 5], [0, 1, 5])])
+        # the constant-velocity model's last pose is the implausible one
+        self._last_pose = None
+
     def _update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
         f = self.cfg.frontend
         if f.cov_at == "predicted" and landmarks.n and self.cfg.slam.measurement == "cartesian":
@@ -508,6 +593,8 @@ class Pipeline:
             return None
         if odo is not None:
             self.counters.odometry_priors += 1
+            if vis is not None and vis.t0_ns == odo.t0_ns and vis.t1_ns == odo.t1_ns and not self._map_fixed:
+                odo = self._fuse_motion(odo, vis)
             self._measured = odo
             return odo
         if vis is not None and vis.t0_ns == self._last_t_ns:
@@ -522,6 +609,39 @@ class Pipeline:
             sd = np.r_[np.full(3, cv.tol_t_m / 2.0), np.full(3, cv.tol_rot_rad / 2.0)]
             return MotionIncrement(self._last_t_ns, t_ns, cv.t, so3_log(cv.R), np.diag(sd * sd))
         return None
+
+    def _fuse_motion(self, odo: MotionIncrement, vis: MotionIncrement) -> MotionIncrement:
+        """The odometry's increment and the images' own motion over the same interval (both
+        measurements of it, independent) fused by their covariances, in the increment's tangent
+        space (dp, drot) about the odometry's. The odometry's covariance is its stated one, else
+        the filter's motion model's, which is what the filter would take for it. When the two
+        disagree beyond ``FUSE_CHI2`` (a scene that moved, a wheel that slipped), the odometry
+        alone, as before.
+
+        Called only while the map does not fix the pose (``_map_fixed``): the images' motion then
+        carries what nothing else does. Before, it was thrown away whenever odometry came, and at a
+        car's metre a frame, where the map identifies nothing, the filter moved its particles by
+        the motion model's noise alone (5 cm and 2° of yaw a frame) until they spread over metres.
+        Where the map fixes the pose its update uses the same images, and fusing there was measured
+        worse (docs/slam.md "Odometry and the images' motion")."""
+        C_o = np.asarray(odo.cov, float)
+        if not np.any(C_o):
+            C_o = model_cov6(odo, self._slam_params)
+        C_v = np.asarray(vis.cov, float)
+        d = np.r_[np.asarray(vis.dp_R_m, float) - odo.dp_R_m, np.asarray(vis.drot_R_rad, float) - odo.drot_R_rad]
+        S = C_o + C_v
+        try:
+            d2 = float(d @ np.linalg.solve(S, d))
+            K = np.linalg.solve(S.T, C_o.T).T  # C_o S⁻¹
+        except np.linalg.LinAlgError:
+            return odo
+        if not (math.isfinite(d2) and np.all(np.isfinite(K))) or d2 > FUSE_CHI2:
+            self.counters.fusion_refused += 1
+            return odo
+        x = np.r_[odo.dp_R_m, odo.drot_R_rad] + K @ d
+        C = C_o - K @ C_o
+        self.counters.fused_priors += 1
+        return dataclasses.replace(odo, dp_R_m=x[:3], drot_R_rad=x[3:], cov=0.5 * (C + C.T))
 
     def _result(
         self,
@@ -549,6 +669,7 @@ class Pipeline:
             relocalised,
             consistency=self.covariance.health(),
             observations=obs,
+            attitude_reset=self._attitude_reset_at == frame.t_ns,
         )
 
     # ---------------------------------------------------------------- degradation hooks

@@ -282,6 +282,9 @@ def replay(
         "gravity_rejected": pipeline.counters.gravity_rejected,
         "gravity_reopened": pipeline.counters.gravity_reopened,
         "gravity_implausible": pipeline.counters.gravity_implausible,
+        "fused_priors": pipeline.counters.fused_priors,
+        "fusion_refused": pipeline.counters.fusion_refused,
+        "attitude_resets": pipeline.counters.attitude_resets,
         **pipeline.frontend.disparity_bias.stats(),
     }
     stages = sorted({k for r in results for k in r.timings_ms})

@@ -4,7 +4,8 @@ docs/topics.md) and the once-a-second status line (stderr, systemd STATUS=).
 The document's ``state`` is ``ok`` only when nothing is wrong now: ``starting`` before the first
 step, ``failed`` while tracking is lost or no step completed for ``RECENT_S``, ``degraded`` with
 the reasons in ``problems`` when a vehicle link is not ``ok``, a stall happened in the last
-``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, frames lately had no
+``RECENT_S``, steps failed in that time or none completed for ``NO_STEP_S``, the filter's attitude
+was reset in that time (tilted beyond any rover's, docs/reliability.md), frames lately had no
 odometry while odometry flows, the last map save failed, the recording lost samples in that time
 (its writer fell behind) or failed, an output's hook failed or its worker dropped calls in that
 time (robotd.outputs.runner), the pose's position σ exceeds ``MAX_POSE_SIGMA_M``, or the latency
@@ -80,6 +81,9 @@ class DaemonStats:
     last_without_odometry_ns: int = 0
     stalls_without_odometry: int = 0  # of the stalls, those no odometry covered (a pose discontinuity)
     last_step_error_ns: int = 0
+    # 3D: steps whose attitude (roll, pitch) no rover can have was reset to level (Pipeline)
+    attitude_resets: int = 0
+    last_attitude_reset_ns: int = 0
 
     def add_latency(self, ms: float) -> None:
         self.latencies_ms.append(ms)
@@ -113,6 +117,11 @@ class HealthMonitor:
             self.timer.add(k, v)
         self.stats.steps += 1
         self.stats.last_step_ns = time.monotonic_ns()
+
+    def on_attitude_reset(self) -> None:
+        """SLAM thread: the step reset an implausible attitude to level (StepResult.attitude_reset)."""
+        self.stats.attitude_resets += 1
+        self.stats.last_attitude_reset_ns = time.monotonic_ns()
 
     def on_stall(self, gap_s: float, camera: bool) -> None:
         """A gap of ``gap_s`` between frames: at the camera (capture times) or between processed frames."""
@@ -188,6 +197,7 @@ class HealthMonitor:
             "frames_before_odometry": st.frames_before_odometry,
             "pose_sigma_m": None if sigma is None or not np.isfinite(sigma) else round(sigma, 4),
             "step_errors": self.stats.step_errors,
+            "attitude_resets": st.attitude_resets,
             "budget": budget.health(),
             "neff": None if not res or not np.isfinite(res.pose.neff) else float(res.pose.neff),
             "particles": res.pose.n_particles if res else 0,
@@ -214,6 +224,8 @@ class HealthMonitor:
         lacking = st.last_without_odometry_ns and now - st.last_without_odometry_ns < RECENT_S * 1e9
         if st.last_step_error_ns and now - st.last_step_error_ns < RECENT_S * 1e9:
             problems.append(f"frames failing ({st.step_errors})")
+        if st.last_attitude_reset_ns and now - st.last_attitude_reset_ns < RECENT_S * 1e9:
+            problems.append(f"attitude reset ({st.attitude_resets}): tilt beyond vehicle.max_tilt_deg")
         if self.last is not None and now - st.last_step_ns > NO_STEP_S * 1e9:
             problems.append(f"no SLAM step for {(now - st.last_step_ns) / 1e9:.1f} s")
         if needs_vehicle and st.odometry_in > 0 and lacking:

@@ -341,6 +341,10 @@ class Daemon:
             if now >= next_state:
                 next_state, snapshot = now + state_period, pipeline.state_dict()
             event = ResetEvent.RELOCALISATION if result.relocalised else None
+            if result.attitude_reset:
+                # the pose jumped to level: the autopilot must not take the jump as motion
+                self.health.on_attitude_reset()
+                event = event or ResetEvent.ATTITUDE_RESET
             if stalled and inc is None:
                 # nothing measured the motion across the stall: the pose after it is a guess, and
                 # the autopilot must not fuse the jump as motion (docs/interfaces.md §1.5)
@@ -439,6 +443,8 @@ class Daemon:
                 gravity_rejected=c.gravity_rejected,
                 gravity_reopened=c.gravity_reopened,
                 gravity_implausible=c.gravity_implausible,
+                fused_priors=c.fused_priors,
+                fusion_refused=c.fusion_refused,
             )
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()

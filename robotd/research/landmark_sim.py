@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from robotd.errors import ConfigError
-from robotd.geometry import euler_rate_matrix, euler_to_R, pose2_compose, pose2_inverse, wrap_angle
+from robotd.geometry import R_to_euler, euler_to_R, pose2_compose, pose2_inverse, so3_exp, so3_log, wrap_angle
 from robotd.msgs import MotionIncrement, Observations
 from robotd.stereo import gate_selection_shift, project, triangulate, triangulation_covariance
 
@@ -321,16 +321,14 @@ def make_world(config: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray,
 def true_increment(pose0: np.ndarray, pose1: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """Control (dp_R (3,), drot_R (3,)) that takes pose0 to pose1 under the §6.2 / §6.3 models.
 
-    2D: (Δx_b, Δy_b, Δψ) = x0⁻¹ ⊕ x1. 3D: Δp_b = R(η0)ᵀ(p1 − p0) and ω = E(η0)⁻¹ wrap(η1 − η0).
+    2D: (Δx_b, Δy_b, Δψ) = x0⁻¹ ⊕ x1. 3D: Δp_b = R(η0)ᵀ(p1 − p0) and ω = log(R(η0)ᵀ R(η1)).
     """
     if dim == 2:
         d = pose2_compose(pose2_inverse(pose0[[0, 1, 5]]), pose1[[0, 1, 5]])
         return np.array([d[0], d[1], 0.0]), np.array([0.0, 0.0, d[2]])
     R0 = euler_to_R(pose0[3:6])
     dp = R0.T @ (pose1[:3] - pose0[:3])
-    deta = wrap_angle(pose1[3:6] - pose0[3:6])
-    omega = np.linalg.solve(euler_rate_matrix(pose0[3:6]), deta)
-    return dp, omega
+    return dp, so3_log(R0.T @ euler_to_R(pose1[3:6]))
 
 
 def odometry_covariance(dp: np.ndarray, drot: np.ndarray, config: SimConfig) -> np.ndarray:
@@ -561,5 +559,5 @@ def apply_increment(pose: np.ndarray, dp: np.ndarray, drot: np.ndarray, dim: int
         out[[0, 1, 5]] = x2
         return out
     out[:3] = pose[:3] + euler_to_R(pose[3:6]) @ dp
-    out[3:6] = wrap_angle(pose[3:6] + euler_rate_matrix(pose[3:6]) @ drot)
+    out[3:6] = wrap_angle(R_to_euler(euler_to_R(pose[3:6]) @ so3_exp(drot)))
     return out

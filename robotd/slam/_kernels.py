@@ -997,8 +997,9 @@ def _step(  # type: ignore[no-untyped-def]
 
 @jit(fastmath=_FM)
 def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # type: ignore[no-untyped-def]
-    """§6.3 motion model for every particle: p' = p + R(η) Δp, η' = wrap(η + E(roll, pitch) ω), and
-    (``want_S``) S = V M V^T + diag(extra), V = blockdiag(R, E), symmetric by construction.
+    """§6.3 motion model for every particle: p' = p + R(η) Δp, R(η') = R(η) exp([ω]×), and
+    (``want_S``) S = V M V^T + diag(extra), V = blockdiag(R, E(η') J_r(ω)), symmetric by
+    construction (as :func:`robotd.slam.models.motion3d`).
 
     u is (1, 6) (one control for all particles) or (P, 6). Returns the index of a particle at the
     pitch singularity (|cos pitch| < cos_pitch_min; nothing after it is written) or -1.
@@ -1006,27 +1007,41 @@ def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # typ
     P = pose.shape[0]
     V = np.zeros((6, 6))
     VM = np.empty((6, 6))
+    Rw = np.empty((3, 3))
+    Jr = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    pitch_max = math.acos(cos_pitch_min)
     for k in range(P):
         roll, pitch = pose[k, 3], pose[k, 4]
         cp = math.cos(pitch)
         if abs(cp) < cos_pitch_min:
             return k
         R, _, _ = _rot3t(roll, pitch, pose[k, 5])
-        cr, sr, tp = math.cos(roll), math.sin(roll), math.tan(pitch)
         uk = u[k if u.shape[0] > 1 else 0]
         for i in range(3):
             out_pose[k, i] = pose[k, i] + R[3 * i] * uk[0] + R[3 * i + 1] * uk[1] + R[3 * i + 2] * uk[2]
-        out_pose[k, 3] = _wrap(roll + uk[3] + sr * tp * uk[4] + cr * tp * uk[5])
-        out_pose[k, 4] = _wrap(pitch + cr * uk[4] - sr * uk[5])
-        out_pose[k, 5] = _wrap(pose[k, 5] + sr / cp * uk[4] + cr / cp * uk[5])
+        _so3_exp_jr(uk[3], uk[4], uk[5], Rw, Jr)
+        for i in range(3):
+            for t in range(3):
+                Rn[i, t] = R[3 * i] * Rw[0, t] + R[3 * i + 1] * Rw[1, t] + R[3 * i + 2] * Rw[2, t]
+        sp_new = min(1.0, max(-1.0, -Rn[2, 0]))
+        pitch_new = math.asin(sp_new)
+        roll_new = math.atan2(Rn[2, 1], Rn[2, 2])
+        out_pose[k, 3] = _wrap(roll_new)
+        out_pose[k, 4] = _wrap(pitch_new)
+        out_pose[k, 5] = _wrap(math.atan2(Rn[1, 0], Rn[0, 0]))
         if not want_S:
             continue
         for i in range(3):
             for t in range(3):
                 V[i, t] = R[3 * i + t]
-        V[3, 3], V[3, 4], V[3, 5] = 1.0, sr * tp, cr * tp
-        V[4, 4], V[4, 5] = cr, -sr
-        V[5, 4], V[5, 5] = sr / cp, cr / cp
+        # E at the new attitude (a pitch the increment took to the singularity: clamped, finite)
+        pe = min(pitch_max, max(-pitch_max, pitch_new))
+        cr, sr, cpn, tp = math.cos(roll_new), math.sin(roll_new), math.cos(pe), math.tan(pe)
+        for t in range(3):
+            V[3, 3 + t] = Jr[0, t] + sr * tp * Jr[1, t] + cr * tp * Jr[2, t]
+            V[4, 3 + t] = cr * Jr[1, t] - sr * Jr[2, t]
+            V[5, 3 + t] = (sr * Jr[1, t] + cr * Jr[2, t]) / cpn
         _mm_into(V, M, VM, 6, 6, 6)
         for i in range(6):
             for t in range(i, 6):
@@ -1037,6 +1052,31 @@ def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # typ
                 out_S[k, t, i] = acc
             out_S[k, i, i] += extra[i]
     return -1
+
+
+@jit(fastmath=_FM, inline="always")
+def _so3_exp_jr(wx: float, wy: float, wz: float, Rw, Jr) -> None:  # type: ignore[no-untyped-def]
+    """exp([w]×) and the right Jacobian J_r(w) into Rw, Jr (3, 3), as robotd.geometry's."""
+    th2 = wx * wx + wy * wy + wz * wz
+    th = math.sqrt(th2)
+    if th < 1e-4:
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+        c = 1.0 / 6.0 - th2 / 120.0
+    else:
+        s, co = math.sin(th), math.cos(th)
+        a = s / th
+        b = (1.0 - co) / th2
+        c = (th - s) / (th2 * th)
+    # K = [w]×, K² = w wᵀ − th² I
+    K = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
+    w = (wx, wy, wz)
+    for i in range(3):
+        for j in range(3):
+            k2 = w[i] * w[j] - (th2 if i == j else 0.0)
+            d = 1.0 if i == j else 0.0
+            Rw[i, j] = d + a * K[i][j] + b * k2
+            Jr[i, j] = d - b * K[i][j] + c * k2
 
 
 def predict3_numba(

@@ -95,6 +95,26 @@ def control_from_increment(inc: MotionIncrement, params: SlamParams) -> tuple[np
     )
 
 
+def model_cov6(inc: MotionIncrement, params: SlamParams) -> np.ndarray:
+    """The motion model's covariance (6, 6) over (dp, drot) for ``inc``: what the filter takes
+    for an increment that states no covariance (:func:`control_from_increment`, "auto"). 3D: the
+    model of §6.3; 2D: §6.2's (x, y, yaw) block, the other axes from §6.3 (a 2D filter ignores
+    them)."""
+    u = np.concatenate([inc.dp_R_m, inc.drot_R_rad]).astype(float)
+    M = motion3d_noise(
+        u,
+        params.motion3d_sigma_dp_m,
+        params.motion3d_dp_rel,
+        params.motion3d_sigma_rot_rad,
+        params.motion3d_rot_per_m,
+        params.motion3d_rot_rel,
+    )
+    if params.dim == 2:
+        idx = [0, 1, 5]
+        M[np.ix_(idx, idx)] = odometry2d_noise(u[idx], params.odo2d_a)
+    return M
+
+
 def measurement_model(params: SlamParams) -> MeasurementModel:
     """The filter's measurement model for ``params.measurement`` and ``params.dim``."""
     if params.measurement == "pixel":

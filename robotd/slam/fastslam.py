@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from robotd.choices import MAX_PARTICLES
-from robotd.errors import EstimatorError, InputError, PersistenceError
+from robotd.errors import InputError, PersistenceError, SingularityError
 from robotd.geometry import euler_to_R, rot2
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
@@ -401,12 +401,14 @@ class FastSlam(UpdateEntryPoints):
     def _predict3_checked(
         self, u: np.ndarray, M: np.ndarray, extra: np.ndarray, want_S: bool
     ) -> tuple[np.ndarray, np.ndarray]:
-        """numba §6.3 motion of all particles; EstimatorError at the pitch singularity as ``motion3d``."""
+        """numba §6.3 motion of all particles; SingularityError at the pitch singularity as ``motion3d``."""
         assert self._predict3 is not None
         x, S, bad = self._predict3(self.pose, u, M, extra, want_S, COS_PITCH_MIN)
         if bad >= 0:
             deg = float(np.rad2deg(self.pose[bad, 4]))
-            raise EstimatorError(f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
+            raise SingularityError(
+                f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate"
+            )
         return x, (S if S is not None else np.empty((0, 6, 6)))
 
     def update_gravity(

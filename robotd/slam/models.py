@@ -20,12 +20,15 @@ from functools import partial
 
 import numpy as np
 
-from robotd.errors import EstimatorError
+from robotd.errors import EstimatorError, SingularityError
 from robotd.geometry import (
+    R_to_euler,
     drot2,
-    euler_rate_jacobian,
     euler_rate_matrix,
+    euler_rate_matrix_inverse,
     rot2,
+    so3_exp,
+    so3_right_jacobian,
     wrap_angle,
 )
 
@@ -172,17 +175,21 @@ def odometry2d_noise(u: np.ndarray, a: tuple[float, ...]) -> np.ndarray:
 def motion3d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """6-DOF increment model (docs/math.md §6.3).
 
-    ``p_t = p + R(η) Δp_b``, ``η_t = η + E(θ, φ) ω``.
+    ``p_t = p + R(η) Δp_b``, ``R(η_t) = R(η) exp([ω]×)``: the body rotation is composed exactly.
+    (The first-order ``η_t = η + E(θ, φ) ω`` it replaces is an explicit Euler step of the attitude:
+    under a turn of ω per increment it scales any tilt by √(1 + |ω|²), 15 % a frame at 0.56 rad,
+    and took a 5 m/s run round the sim yard at 5 fps to pitch 90°.)
 
     Args:
         x: (B, 6) poses (x, y, z, roll, pitch, yaw) at t-1, world frame.
         u: (B, 6) controls (Δp_b [m] in the robot frame at t-1, body rotation increment ω [rad]).
 
     Returns:
-        x_new (B, 6) with wrapped angles, G (B, 6, 6), V = blockdiag(R, E) (B, 6, 6).
+        x_new (B, 6) with wrapped angles, G (B, 6, 6), V (B, 6, 6): ∂x_new/∂x and ∂x_new/∂u, with
+        the rotation blocks ``E(η_t) exp(ω)ᵀ E(η)⁻¹`` and ``E(η_t) J_r(ω)`` (docs/math.md §6.3).
 
     Raises:
-        EstimatorError: when a pose is within ~0.06° of pitch ±90° (E is singular there).
+        SingularityError (an EstimatorError): when a pose is within ~0.06° of pitch ±90° (E is singular there).
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
@@ -190,23 +197,32 @@ def motion3d(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
     cp = np.cos(eta[:, 1])
     if np.any(np.abs(cp) < COS_PITCH_MIN):
         bad = float(np.rad2deg(eta[np.argmin(np.abs(cp)), 1]))
-        raise EstimatorError(f"motion3d: pitch {bad:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
+        raise SingularityError(f"motion3d: pitch {bad:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate")
     R, Rr, Rp, Ry = _rot3_all(eta)
-    E = euler_rate_matrix(eta)
     dp, om = u[:, :3], u[:, 3:6]
+    Rw = so3_exp(om)
+    eta_new = R_to_euler(R @ Rw)
     x_new = np.empty_like(x)
     x_new[:, :3] = x[:, :3] + np.einsum("bij,bj->bi", R, dp)
-    x_new[:, 3:6] = wrap_angle(eta + np.einsum("bij,bj->bi", E, om))
+    x_new[:, 3:6] = wrap_angle(eta_new)
 
+    # E at the new attitude: a pose the increment takes to the singularity gets a large, finite
+    # E (the next propagation refuses it)
+    e_new = eta_new.copy()
+    c_new = np.cos(e_new[:, 1])
+    near = np.abs(c_new) < COS_PITCH_MIN
+    if np.any(near):
+        e_new[near, 1] = np.sign(e_new[near, 1]) * math.acos(COS_PITCH_MIN)
+    E_new = euler_rate_matrix(e_new)
     B = x.shape[0]
     G = np.tile(np.eye(6), (B, 1, 1))
     G[:, :3, 3] = np.einsum("bij,bj->bi", Rr, dp)
     G[:, :3, 4] = np.einsum("bij,bj->bi", Rp, dp)
     G[:, :3, 5] = np.einsum("bij,bj->bi", Ry, dp)
-    G[:, 3:6, 3:6] += euler_rate_jacobian(eta, om)
+    G[:, 3:6, 3:6] = E_new @ np.swapaxes(Rw, -1, -2) @ euler_rate_matrix_inverse(eta)
     V = np.zeros((B, 6, 6))
     V[:, :3, :3] = R
-    V[:, 3:6, 3:6] = E
+    V[:, 3:6, 3:6] = E_new @ so3_right_jacobian(om)
     return x_new, G, V
 
 

@@ -207,3 +207,31 @@ def test_gravity_tilted_beyond_any_rover_is_never_fused(sim_frames, max_tilt_deg
     else:
         assert (c.gravity_implausible, c.gravity_reopened, c.gravity_fused) == (30, 0, 1)
         assert pitch < np.radians(1.0)
+
+
+@pytest.mark.parametrize("filt", ["fastslam2", "ekf"])
+@pytest.mark.parametrize("pitch_deg", [89.99, 75.0])
+def test_an_attitude_no_rover_can_have_is_reset_and_the_run_goes_on(sim_frames, filt, pitch_deg):
+    """A pose at the ZYX singularity (pitch 89.99°: the motion model cannot propagate it) or
+    tilted beyond vehicle.max_tilt_deg (75° > 60°): before, the first failed every later step
+    ("motion3d: pitch ... at the ZYX singularity", for ever) and the second drifted on toward it.
+    Now the attitude is reset to level (position and heading kept), the frame is reported lost and
+    counted, and the next frames track again."""
+    frames, rig = sim_frames
+    p = _pipeline(rig, filter=filt, n_particles=20)
+    for f in frames[:8]:
+        p.step(f, None)
+    before = p.estimator.estimate()
+    x = np.r_[before.xyz_W_m, 0.0, np.radians(pitch_deg), before.rpy_rad[2]]
+    p.estimator.reset_pose(x, None)
+    r = p.step(frames[8], None)
+    assert r.attitude_reset and not r.tracking
+    assert p.counters.attitude_resets == 1 and p.counters.lost_events == 1
+    assert np.degrees(np.abs(r.pose.rpy_rad[:2])).max() < 10.0
+    assert np.linalg.norm(r.pose.xyz_W_m - before.xyz_W_m) < 0.3  # the position was kept
+    for f in frames[9:20]:
+        r = p.step(f, None)
+        assert not r.attitude_reset
+    assert r.tracking and p.counters.attitude_resets == 1
+    truth = se3_inverse(frames[0].truth_T_world_robot) @ frames[19].truth_T_world_robot
+    assert np.linalg.norm(r.pose.xyz_W_m - truth[:3, 3]) < 0.1

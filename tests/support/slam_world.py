@@ -55,10 +55,10 @@ class World:
             dr[1] = 0.01 * np.sin(0.2 * self.t)
             dp[2] = 0.01 * np.sin(0.25 * self.t)
         R = euler_to_R(self.x[3:])
-        from robotd.geometry import euler_rate_matrix
+        from robotd.geometry import R_to_euler, so3_exp
 
         self.x[:3] += R @ dp
-        self.x[3:] = wrap_angle(self.x[3:] + euler_rate_matrix(self.x[3:]) @ dr)
+        self.x[3:] = wrap_angle(R_to_euler(R @ so3_exp(dr)))  # the §6.3 model (docs/math.md)
         self.t += 1
         n = self.rng.normal(0.0, self.sigma_odo, 6) if self.sigma_odo > 0 else np.zeros(6)
         if self.dim == 2:

@@ -191,6 +191,10 @@ def test_assess_reports_each_problem_and_ok_only_without_any() -> None:
     h.stats.last_step_error_ns, h.stats.step_errors = time.monotonic_ns(), 7
     assert h.assess(_doc(), needs_vehicle=True)["problems"] == ["frames failing (7)"]
     h.stats.last_step_error_ns = 0
+    h.on_attitude_reset()
+    assert h.assess(_doc(), needs_vehicle=True)["problems"] == ["attitude reset (1): tilt beyond vehicle.max_tilt_deg"]
+    h.stats.last_attitude_reset_ns -= int(6e9)  # a reset older than RECENT_S is history
+    assert h.assess(_doc(), needs_vehicle=True)["state"] == "ok"
     h.stats.last_step_ns = time.monotonic_ns() - 3_000_000_000
     assert h.assess(_doc(), needs_vehicle=True)["problems"] == ["no SLAM step for 3.0 s"]
     h.stats.last_step_ns = time.monotonic_ns() - 6_000_000_000
