@@ -1,8 +1,9 @@
 """``Pipeline.step(frame, increment) -> StepResult``: the data flow of docs/architecture.md "Data flow" in a screenful.
 
-Pure with respect to I/O: no threads, sockets, files or wall clocks inside (perf_counter only
-measures stage times). The daemon, replay, the benchmarks and the tests call the same ``step``,
-so a run replays bit for bit from its recorded inputs and seed.
+Pure with respect to I/O: no sockets, files or wall clocks inside (perf_counter only measures
+stage times); the one thread is the front end's detect worker, which only computes. The daemon,
+replay, the benchmarks and the tests call the same ``step``, so a run replays bit for bit from its
+recorded inputs and seed.
 
 Motion prior, in order of preference (docs/math.md §6 "Where the control comes from"): the
 vehicle's odometry integrated to the frame time; without it (visual only, as the thesis ran),

@@ -1,0 +1,130 @@
+"""The stage list docs/architecture.md documents is the one ``Pipeline.step`` runs.
+
+The document holds it as one line between ``<!-- stages -->`` markers, stages in order and the
+optional ones in parentheses. It is compared with the ``clock.run("name", ...)`` calls in the
+source of ``Pipeline.step`` and with the stages a real step on the simulated rover timed
+(``StepResult.timings_ms`` keeps them in the order the clock saw them), so a stage added to, moved
+in or renamed in the step without the document fails here.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import re
+import textwrap
+
+import numpy as np
+import pytest
+
+import drivers
+from robotd.config import load_config
+from robotd.pipeline import Pipeline
+from tests.support.paths import REPO
+
+DOC = REPO / "docs" / "architecture.md"
+
+
+def documented_stages() -> list[tuple[str, bool]]:
+    """(name, optional) of each stage, in the documented order."""
+    text = DOC.read_text(encoding="utf-8")
+    m = re.search(r"<!-- stages -->\s*`([^`]*)`\s*<!-- /stages -->", text)
+    assert m, f"{DOC}: no stage line between <!-- stages --> and <!-- /stages -->"
+    out: list[tuple[str, bool]] = []
+    for part in m.group(1).split("→"):
+        part = part.strip()
+        opt = re.fullmatch(r"\((\w+)\)", part)
+        assert opt or re.fullmatch(r"\w+", part), f"{DOC}: cannot read the stage {part!r}"
+        out.append((opt.group(1), True) if opt else (part, False))
+    names = [n for n, _ in out]
+    assert len(names) == len(set(names)), f"{DOC}: a stage is listed twice: {names}"
+    return out
+
+
+def stages_in_source() -> list[str]:
+    """The names of the ``clock.run("name", ...)`` calls in ``Pipeline.step``, in source order."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(Pipeline.step)))
+    calls = [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call)
+        and isinstance(n.func, ast.Attribute)
+        and n.func.attr == "run"
+        and isinstance(n.func.value, ast.Name)
+        and n.func.value.id == "clock"
+    ]
+    calls.sort(key=lambda n: (n.lineno, n.col_offset))
+    names = []
+    for c in calls:
+        arg = c.args[0] if c.args else None
+        assert isinstance(arg, ast.Constant) and isinstance(arg.value, str), "a stage name that is not a literal"
+        names.append(arg.value)
+    return names
+
+
+def check_order(timed: list[str], doc: list[tuple[str, bool]]) -> list[str]:
+    """What is wrong with one step's timed stages (``total`` left out) against the documented
+    list: a stage not documented, stages out of the documented order, a required stage missing.
+    A step that ended at ``relocalise`` (the map not found yet) times nothing after it."""
+    names = [n for n, _ in doc]
+    bad = [f"stage {s!r} is timed but not documented" for s in timed if s not in names]
+    if bad:
+        return bad
+    if timed != sorted(timed, key=names.index):
+        return [f"timed in the order {timed}, documented {names}"]
+    last = names.index("relocalise") if timed and timed[-1] == "relocalise" else len(names) - 1
+    return [f"required stage {n!r} was not timed" for n, opt in doc[: last + 1] if not opt and n not in timed]
+
+
+def test_the_documented_stages_are_the_ones_in_the_source() -> None:
+    assert [n for n, _ in documented_stages()] == stages_in_source()
+
+
+def test_the_order_check_catches_what_it_is_for() -> None:
+    doc = [("a", False), ("b", True), ("relocalise", True), ("c", False)]
+    assert check_order(["a", "b", "relocalise", "c"], doc) == []
+    assert check_order(["a", "c"], doc) == []  # optional ones absent
+    assert check_order(["a", "relocalise"], doc) == []  # the step ended at relocalise
+    assert check_order(["a", "x", "c"], doc)  # undocumented
+    assert check_order(["a", "c", "b"], doc)  # out of order
+    assert check_order(["a", "b"], doc)  # a required one missing
+
+
+@pytest.fixture(scope="module")
+def sim() -> tuple[list, object]:
+    with drivers.open_camera("sim://?realtime=0&fps=30&seed=3") as cam:
+        it = cam.frames()
+        frames = [next(it) for _ in range(40)]
+        rig = cam.rectified_model()
+    return frames, rig
+
+
+def test_a_real_step_times_the_documented_stages_in_order(sim) -> None:
+    frames, rig = sim
+    doc = documented_stages()
+    cfg = load_config(None, {"slam": {"n_particles": 20}})
+    seen: list[list[str]] = []
+
+    def step(p: Pipeline, frame) -> None:
+        r = p.step(frame, None)
+        keys = list(r.timings_ms)
+        assert keys[-1] == "total", keys
+        seen.append(keys[:-1])
+
+    p = Pipeline(cfg, rig, np.random.default_rng(1))
+    for f in frames[:12]:
+        step(p, f)
+    # a gap no odometry covers: 0.8 s of frames never reach the step
+    assert (frames[36].t_ns - frames[11].t_ns) * 1e-9 > 0.6
+    for f in frames[36:38]:
+        step(p, f)
+    # a map loaded: the next frames relocalise in it
+    q = Pipeline(cfg, rig, np.random.default_rng(2))
+    q.load_state_dict(p.state_dict())
+    for f in frames[38:40]:
+        step(q, f)
+    bad = [f"step {i}: {msg}" for i, keys in enumerate(seen) for msg in check_order(keys, doc)]
+    assert not bad, "\n".join(bad)
+    # every documented stage, the optional ones included, was seen at least once
+    timed = {s for keys in seen for s in keys}
+    assert timed == {n for n, _ in doc}, sorted({n for n, _ in doc} - timed)
