@@ -17,7 +17,7 @@ PACKAGES = ("robotd", "drivers", "calib", "systemd")
 MIRRORED = (*PACKAGES, "bench")  # bench/ holds scripts, not a package: tests/bench/ tests them
 TESTS = REPO / "tests"
 # repository-wide tests that belong to no one module (test_dev.py mirrors dev.py at the root)
-TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py", "test_dev.py", "test_docs.py"}
+TOP_LEVEL_TESTS = {"test_layering.py", "test_layout.py", "test_dev.py", "test_docs.py", "test_module_map.py"}
 NOT_MIRRORS = {"support", "fuzz", "__pycache__"}  # fuzz: property tests across packages (issue 15)
 
 
