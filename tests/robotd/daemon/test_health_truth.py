@@ -218,6 +218,10 @@ def test_the_status_line_and_the_stop_summary_count_the_same_dropped_frames(tmp_
     assert len(summary) == 1 and f", {dropped} frames dropped," in summary[0], summary
     doc = d.health_doc()
     assert doc["frames_dropped"] == dropped and f"dropped {dropped} " in d.health.status_line(doc, 20.0)
+    # the rig's disparity offset is in health (a still rover or a short run fuses nothing)
+    st = doc["stereo"]
+    assert st["disparity_offset_mode"] == "online" and st["disparity_offset_fused"] >= 0
+    assert abs(st["disparity_offset_px"]) <= 2.0 and st["disparity_offset_sigma_px"] > 0
     assert all(h["frames_dropped"] == h["frame_drops"] + h["frames_missed"] for h in collect.docs)
 
 
