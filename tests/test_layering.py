@@ -1,7 +1,10 @@
 """The layers of docs/architecture.md "Module map", enforced by walking the imports.
 
+- every row of the page's layer table: ``LAYERS`` puts each module of robotd/, drivers/ and calib/
+  in the layer its row names, ``RULES`` says what each layer may import (its own layer, whole
+  layers, single modules of others, libraries), and the page's table and ``LAYERS`` must agree;
 - core (geometry, stereo, msgs, statecheck, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
-- pipeline (pipeline, relocalise, config_params): the core and the config, no I/O;
+- pipeline (pipeline, relocalise, config_params, config, ...): the core, no I/O (but the config's loader);
 - the daemon never imports the research package, not even indirectly;
 - no import cycles among the modules of robotd, drivers and calib;
 - each hardware library has one importer.
@@ -10,33 +13,70 @@
 from __future__ import annotations
 
 import ast
+import re
+import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from tests.support.paths import REPO
 
 PACKAGES = ("robotd", "drivers", "calib")
 
-CORE = [
-    "robotd/errors.py",
-    "robotd/choices.py",
-    "robotd/geometry.py",
-    "robotd/stereo.py",
-    "robotd/msgs.py",
-    "robotd/statecheck.py",
-    "robotd/timing.py",
-    "robotd/jit.py",
-    "robotd/outliers.py",
-    "robotd/_outlier_kernels.py",
-    "robotd/frontend",
-    "robotd/slam",
-]
-PIPELINE = [
-    "robotd/pipeline.py",
-    "robotd/relocalise.py",
-    "robotd/stall.py",
-    "robotd/config_params.py",
-    "robotd/odometry.py",
-]
+# docs/architecture.md's layer table, row by row: which modules (a file, or a package with a
+# trailing slash) belong to which layer. The one place the test says it; the page must agree
+# (test_the_doc_table_and_the_layers_agree).
+LAYERS: dict[str, tuple[str, ...]] = {
+    "core": (
+        "robotd/__init__.py",  # the package itself: its docstring and __version__
+        "robotd/msgs.py",
+        "robotd/errors.py",
+        "robotd/choices.py",
+        "robotd/geometry.py",
+        "robotd/stereo.py",
+        "robotd/statecheck.py",
+        "robotd/timing.py",
+        "robotd/jit.py",
+        "robotd/outliers.py",
+        "robotd/_outlier_kernels.py",
+        "robotd/frontend/",
+        "robotd/slam/",
+    ),
+    "pipeline": (
+        "robotd/pipeline.py",
+        "robotd/relocalise.py",
+        "robotd/stall.py",
+        "robotd/odometry.py",
+        "robotd/config_params.py",
+        "robotd/config.py",
+        "robotd/config_bounds.py",
+    ),
+    "formats": (
+        "robotd/queues.py",
+        "robotd/autopilot.py",
+        "robotd/codec.py",
+        "robotd/persist.py",
+        "robotd/record.py",
+        "robotd/mcap_scan.py",
+        "robotd/foxglove_pb.py",
+    ),
+    "drivers": ("drivers/",),
+    "service": ("robotd/daemon/", "robotd/outputs/", "robotd/device_urls.py"),
+    "tools": (
+        "robotd/cli.py",
+        "robotd/__main__.py",
+        "robotd/doctor.py",
+        "robotd/journal.py",
+        "robotd/replay.py",
+        "robotd/echo.py",
+        "robotd/fleet.py",
+        "robotd/progress.py",
+        "robotd/batch/",
+        "calib/",
+    ),
+    "research": ("robotd/research/",),
+}
+CORE = list(LAYERS["core"])
+PIPELINE = list(LAYERS["pipeline"])
 ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
 STDLIB_OK = {
     "__future__",
@@ -112,7 +152,14 @@ def _graph() -> dict[str, set[str]]:
     return graph
 
 
-def _check_layer(files: list[Path], allowed_project: tuple[str, ...]) -> list[str]:
+def _within(module: str, prefixes: tuple[str, ...]) -> bool:
+    """``module`` is one of ``prefixes`` or inside one of them (``robotd.slam.ekf`` in ``robotd.slam``)."""
+    return any(module == p or module.startswith(p + ".") for p in prefixes)
+
+
+def _check_layer(
+    files: list[Path], allowed_project: tuple[str, ...], more_stdlib: frozenset[str] = frozenset()
+) -> list[str]:
     bad: list[str] = []
     for f in files:
         for name in _imports(f):
@@ -122,14 +169,23 @@ def _check_layer(files: list[Path], allowed_project: tuple[str, ...]) -> list[st
                 bad.append(f"{rel} imports {name}")
             elif top in PACKAGES:
                 # a bare package name is the ``from robotd import x`` half; ``robotd.x`` is checked
-                if name not in PACKAGES and not name.startswith(allowed_project):
+                if name not in PACKAGES and not _within(name, allowed_project):
                     bad.append(f"{rel} imports {name}")
-            elif top not in ALLOWED_THIRD_PARTY and top not in STDLIB_OK:
+            elif top not in ALLOWED_THIRD_PARTY and top not in STDLIB_OK | more_stdlib:
                 bad.append(f"{rel} imports {name}")
     return bad
 
 
-CORE_MODULES = tuple(c.removesuffix(".py").replace("/", ".") for c in CORE)
+def _dotted(entry: str) -> str:
+    """``robotd/slam/`` -> ``robotd.slam``, ``robotd/msgs.py`` -> ``robotd.msgs``,
+    ``robotd/__init__.py`` -> ``robotd``."""
+    return entry.removesuffix("/").removesuffix("/__init__.py").removesuffix(".py").replace("/", ".")
+
+
+# the package's own name is no prefix here: ``robotd`` would let in every module of robotd
+CORE_MODULES = tuple(_dotted(c) for c in CORE if not c.endswith("__init__.py"))
+# what config.py's loader needs to read the TOML file: the pipeline's one file access
+CONFIG_LOADER_LIBRARIES = frozenset({"pathlib", "tomllib", "re", "types"})
 
 
 def test_core_imports_only_numeric_libraries() -> None:
@@ -142,8 +198,11 @@ def test_core_imports_only_numeric_libraries() -> None:
 def test_pipeline_imports_the_core_and_the_config_only() -> None:
     files = _files(PIPELINE)
     assert len(files) == len(PIPELINE)
-    pipeline_modules = tuple(p.removesuffix(".py").replace("/", ".") for p in PIPELINE)
-    bad = _check_layer(files, (*CORE_MODULES, *pipeline_modules, "robotd.config"))
+    pipeline_modules = tuple(_dotted(p) for p in PIPELINE)
+    bad = _check_layer([f for f in files if f.name != "config.py"], (*CORE_MODULES, *pipeline_modules))
+    bad += _check_layer(
+        [f for f in files if f.name == "config.py"], (*CORE_MODULES, *pipeline_modules), CONFIG_LOADER_LIBRARIES
+    )
     assert not bad, "the pipeline imports I/O or modules outside the core:\n" + "\n".join(bad)
 
 
@@ -228,4 +287,194 @@ def test_each_hardware_library_has_one_importer() -> None:
             top = name.split(".")[0]
             if top in owners and not rel.startswith(owners[top]):
                 bad.append(f"{rel} imports {name} (only {owners[top]} may)")
+    assert not bad, "\n".join(bad)
+
+
+# --- every row of the table -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What a layer's row lets its modules import, besides the modules of their own layer."""
+
+    layers: frozenset[str] = frozenset()  # whole layers
+    modules: tuple[str, ...] = ()  # single modules (or packages) of other layers
+    never: tuple[str, ...] = ()  # modules not to import even so
+    third_party: frozenset[str] | None = None  # None: any
+    stdlib: frozenset[str] | None = None  # None: any but never_stdlib
+    never_stdlib: frozenset[str] = frozenset()
+
+
+CORE_LIBRARIES = frozenset(ALLOWED_THIRD_PARTY)
+NO_NETWORK = frozenset({"socket", "subprocess", "multiprocessing", "selectors", "ssl"})
+BELOW_TOOLS = frozenset({"core", "pipeline", "formats", "drivers", "service"})
+RULES: dict[str, Rule] = {
+    "core": Rule(third_party=CORE_LIBRARIES, stdlib=frozenset(STDLIB_OK)),
+    "pipeline": Rule(layers=frozenset({"core"}), third_party=CORE_LIBRARIES, stdlib=frozenset(STDLIB_OK)),
+    # the format libraries: mcap, cbor2, protobuf (google.protobuf) with Foxglove's schemas, zstandard;
+    # files and a writer thread, no sockets or processes
+    "formats": Rule(
+        layers=frozenset({"core"}),
+        third_party=frozenset({"numpy", "cv2", "mcap", "cbor2", "google", "foxglove_schemas_protobuf", "zstandard"}),
+        never_stdlib=NO_NETWORK,
+    ),
+    # the hardware libraries' owners are test_each_hardware_library_has_one_importer's
+    "drivers": Rule(
+        layers=frozenset({"core"}),
+        modules=("robotd.queues", "robotd.autopilot", "robotd.record"),
+        third_party=frozenset({"numpy", "cv2", "numba", "yaml", "depthai", "serial", "pymavlink"}),
+    ),
+    "service": Rule(layers=frozenset({"core", "pipeline", "formats", "drivers"}), modules=("calib.camchain",)),
+    "tools": Rule(layers=BELOW_TOOLS, modules=("robotd.research.evaluate", "robotd.research.experiments")),
+    "research": Rule(layers=BELOW_TOOLS | {"tools"}, never=("robotd.daemon", "robotd.outputs")),
+}
+# config.py's loader reads the TOML file
+MODULE_LIBRARIES: dict[str, frozenset[str]] = {"robotd.config": CONFIG_LOADER_LIBRARIES}
+
+
+def _all_files() -> list[Path]:
+    return [f for pkg in PACKAGES for f in sorted((REPO / pkg).rglob("*.py")) if "__pycache__" not in f.parts]
+
+
+def _layer_of(rel: str) -> str | None:
+    """The layer of the repository path ``rel`` by LAYERS (the longest entry that holds it)."""
+    best: tuple[int, str | None] = (-1, None)
+    for layer, entries in LAYERS.items():
+        for e in entries:
+            if (rel == e or (e.endswith("/") and rel.startswith(e))) and len(e) > best[0]:
+                best = (len(e), layer)
+    return best[1]
+
+
+def _module_layers() -> dict[str, str]:
+    out: dict[str, str] = {}
+    for f in _all_files():
+        layer = _layer_of(f.relative_to(REPO).as_posix())
+        assert layer is not None, f"{f.relative_to(REPO)} is in no layer of LAYERS (and of docs/architecture.md)"
+        out[_module_name(f)] = layer
+    return out
+
+
+def _project_violations(graph: dict[str, set[str]], layers: dict[str, str]) -> list[str]:
+    bad: list[str] = []
+    for m in sorted(graph):
+        rule = RULES[layers[m]]
+        for d in sorted(graph[m]):
+            ok = layers[d] == layers[m] or layers[d] in rule.layers or _within(d, rule.modules)
+            if not ok or _within(d, rule.never):
+                bad.append(f"{m} ({layers[m]}) imports {d} ({layers[d]})")
+    return bad
+
+
+def _library_violations(files: list[Path], layers: dict[str, str]) -> list[str]:
+    bad: list[str] = []
+    for f in files:
+        m = _module_name(f)
+        rule = RULES[layers[m]]
+        extra = MODULE_LIBRARIES.get(m, frozenset())
+        for name in _imports(f):
+            top = name.split(".")[0]
+            if top in PACKAGES or not top:
+                continue
+            if top in sys.stdlib_module_names:
+                ok = (rule.stdlib is None or top in rule.stdlib | extra) and top not in rule.never_stdlib
+            else:
+                ok = rule.third_party is None or top in rule.third_party | extra
+            if not ok:
+                bad.append(f"{f.relative_to(REPO)} ({layers[m]}) imports {top}")
+    return sorted(set(bad))
+
+
+def test_every_module_is_in_one_layer() -> None:
+    layers = _module_layers()
+    assert len(layers) > 100
+    assert set(layers.values()) == set(LAYERS) == set(RULES)
+
+
+def test_each_layer_imports_only_what_its_row_allows() -> None:
+    bad = _project_violations(_graph(), _module_layers())
+    assert not bad, "imports the layer table of docs/architecture.md does not allow:\n" + "\n".join(bad)
+
+
+def test_each_layer_uses_only_the_libraries_its_row_allows() -> None:
+    bad = _library_violations(_all_files(), _module_layers())
+    assert not bad, "libraries the layer table of docs/architecture.md does not allow:\n" + "\n".join(bad)
+
+
+def test_the_layer_check_finds_a_violation() -> None:
+    layers = {"robotd.geometry": "core", "robotd.pipeline": "pipeline", "drivers.sim": "drivers"}
+    layers |= {"robotd.record": "formats", "robotd.codec": "formats", "robotd.daemon.x": "service"}
+    layers |= {"robotd.research.sitl": "research", "calib.camchain": "tools"}
+    graph = {
+        "robotd.geometry": {"robotd.pipeline"},  # core up to the pipeline
+        "robotd.pipeline": {"robotd.geometry"},
+        "drivers.sim": {"robotd.record", "robotd.codec"},  # record may, codec may not
+        "robotd.record": set(),
+        "robotd.codec": set(),
+        "robotd.daemon.x": {"calib.camchain", "robotd.research.sitl"},  # camchain may, research not
+        "robotd.research.sitl": {"robotd.daemon.x"},  # never the daemon
+        "calib.camchain": set(),
+    }
+    assert _project_violations(graph, layers) == [
+        "drivers.sim (drivers) imports robotd.codec (formats)",
+        "robotd.daemon.x (service) imports robotd.research.sitl (research)",
+        "robotd.geometry (core) imports robotd.pipeline (pipeline)",
+        "robotd.research.sitl (research) imports robotd.daemon.x (service)",
+    ]
+
+
+# --- the page's table and LAYERS agree ----------------------------------------------------------
+
+DOC = REPO / "docs" / "architecture.md"
+
+
+def _doc_rows() -> dict[str, str]:
+    """Layer -> its row's modules cell, from the table under "| layer | modules | may import |"."""
+    lines = DOC.read_text(encoding="utf-8").splitlines()
+    start = lines.index("| layer | modules | may import |")
+    rows: dict[str, str] = {}
+    for line in lines[start + 2 :]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        rows[cells[0]] = cells[1]
+    return rows
+
+
+def _doc_paths(cell: str) -> list[str]:
+    """The repository paths a modules cell names outside its parentheses: a path in backticks
+    (``robotd/msgs.py``, ``robotd/slam/``), or a bare file name (``errors.py``) in the folder of
+    the last path before it."""
+    while True:
+        shorter = re.sub(r"\([^()]*\)", "", cell)
+        if shorter == cell:
+            break
+        cell = shorter
+    out: list[str] = []
+    folder = ""
+    for tok in re.findall(r"`([^`]+)`", cell):
+        if not tok.endswith((".py", "/")):
+            continue
+        if "/" in tok:
+            out.append(tok)
+            folder = tok if tok.endswith("/") else tok.rpartition("/")[0] + "/"
+        else:
+            out.append(folder + tok)
+    return out
+
+
+def test_the_doc_table_and_the_layers_agree() -> None:
+    rows = _doc_rows()
+    assert set(rows) == set(LAYERS), f"the page's layers {sorted(rows)} are not LAYERS' {sorted(LAYERS)}"
+    bad: list[str] = []
+    for layer, cell in rows.items():
+        for path in _doc_paths(cell):
+            if not (REPO / path).exists():
+                bad.append(f"the {layer} row names {path}, which does not exist")
+            elif _layer_of(path) != layer:
+                bad.append(f"the {layer} row names {path}; LAYERS puts it in {_layer_of(path)}")
+        for entry in LAYERS[layer]:
+            name = entry.rstrip("/").rpartition("/")[2] + ("/" if entry.endswith("/") else "")
+            if entry not in cell and f"`{name}`" not in cell:
+                bad.append(f"LAYERS puts {entry} in {layer}; the page's {layer} row does not name it")
     assert not bad, "\n".join(bad)
