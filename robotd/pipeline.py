@@ -222,72 +222,96 @@ class Pipeline:
         """One stereo frame through the stages in data-flow order: measure, identify, screen
         outliers, predict, update. ``increment``: the vehicle's motion since the previous frame
         (None: visual only). Each stage is timed by one clock (``StepResult.timings_ms``)."""
-        clock, fe, est = StageClock(), self.frontend, self.estimator
-        landmarks = est.landmarks()
+        clock, fe, t_ns = StageClock(), self.frontend, frame.t_ns
+        landmarks = self.estimator.landmarks()
         relocalising = self.relocaliser.active and landmarks.n > 0
+        pnp = self.cfg.frontend.motion == "pnp"
         # measure: features in both images, stereo matches triangulated with their covariance
         feats = clock.run("detect", fe.detect, frame.left, frame.right)
         meas = clock.run("stereo", fe.match_stereo, feats, frame.left, frame.right)
-        # the motion prior: odometry, else the visual motion from the previous frame, else constant velocity
-        # (with odometry too: its outliers are points that moved, on a vehicle, and are not mapped)
-        pnp = self.cfg.frontend.motion == "pnp"
-        # a gap no odometry covers (a stall): the motion across it from evidence (robotd.stall)
-        gap = None if relocalising else self._gap_reach(frame.t_ns)
-        gap = gap if increment is None else None
-        if gap is not None:
-            prior: MotionPrior | None = still_prior(gap) if pnp else None
-        else:
-            prior = (
-                (self._motion_prior(frame.t_ns) if increment is None else self._odometry_prior(increment))
-                if pnp
-                else None
-            )
-        visual = clock.run("motion", fe.visual_motion, meas, frame.t_ns, increment is None or pnp, prior)
+        # the images' own motion, checked against the motion prior (or across a gap no odometry covers)
+        gap, prior = self._gap_and_prior(t_ns, increment, relocalising, pnp)
+        visual = clock.run("motion", fe.visual_motion, meas, t_ns, increment is None or pnp, prior)
+        # the motion the filter predicts with: across the gap, else odometry, visual motion or constant velocity
         inc: MotionIncrement | None
         if gap is not None:
-            inc = clock.run("gap", self._across_gap, gap, meas, visual, landmarks, frame.t_ns)
+            inc = clock.run("gap", self._across_gap, gap, meas, visual, landmarks, t_ns)
         else:
-            inc = None if relocalising else self._choose_increment(increment, visual.increment, frame.t_ns)
+            inc = None if relocalising else self._choose_increment(increment, visual.increment, t_ns)
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else self._view_prior(landmarks, inc)
         ident = clock.run("identify", fe.identify, meas, landmarks, view)
         screen = clock.run("outliers", fe.screen, meas, ident)
         counts = fe.counts(feats, meas, ident, screen, visual)
         if relocalising and not clock.run("relocalise", self._relocalise, screen):
-            fe.commit(meas, ident, frame.t_ns, NO_NEW)  # not found in the map yet: leave the map as it is
-            return self._result(frame, clock, counts, UpdateReport(), est.estimate(), self.tracker.suspend(), 0)
+            return self._not_relocalised(frame, clock, meas, ident, counts)
         # points seen to move since the previous frame are not mapped; on vision alone, when the
         # images gave no motion, nothing is known to move (the bare stretch needs its landmarks)
-        moving = visual.moving if (visual.increment is not None or increment is not None) else None
-        obs = clock.run("select", self._select, meas, ident, frame.t_ns, moving)
+        moved = visual.increment is not None or increment is not None
+        obs = clock.run("select", self._select, meas, ident, t_ns, visual.moving if moved else None)
         # predict with the motion prior, then fuse the frame's observations
         try:
             clock.run("predict", self._predict, inc)
             if self.covariance.enabled:
-                clock.run("consistency", self.covariance.observe, est.estimate(), obs, landmarks)
+                clock.run("consistency", self.covariance.observe, self.estimator.estimate(), obs, landmarks)
         except RobotdError:
-            # the filter did not take this frame's new landmarks: their descriptors go (the store
-            # follows the filter exactly, or the saved map fails its own check)
-            assert fe.descriptors is not None
-            fe.descriptors.forget(obs.ids[obs.is_new])
+            self._forget_new(obs)
             raise
         report = clock.run("update", self._update, obs, landmarks)
-        if self._attitude_implausible() is not None:
-            self._reset_attitude(frame.t_ns)
-        pose = self.covariance.report(est.estimate(), obs)
-        n_identified = int(np.count_nonzero(~obs.is_new))
-        constrained = n_identified > 0 or visual.increment is not None or increment is not None
-        tracking = self.tracker.update(landmarks.n > 0, constrained, pose)
-        if self._attitude_reset_at == frame.t_ns:
-            tracking = self.tracker.lose("the attitude was reset")  # a guess this frame
-        self._map_fixed = n_identified >= MIN_INLIERS
-        if tracking:
-            # the rig's disparity offset, from the measurements seen again metres later (docs/frontend.md)
-            fe.observe_pose(pose.T_world_robot)
-        self._track_velocity(frame.t_ns, pose.T_world_robot, relocalising)
+        pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 
     # ---------------------------------------------------------------- the stages
+    def _gap_and_prior(
+        self, t_ns: int, increment: MotionIncrement | None, relocalising: bool, pnp: bool
+    ) -> tuple[Reach | None, MotionPrior | None]:
+        """Before the images' motion: a gap no odometry covers (a stall, robotd.stall; the motion
+        across it then comes from evidence), and the motion prior the images are checked against:
+        at rest across a gap, else the odometry, else the constant-velocity prediction (None
+        without PnP). With odometry too, the images' outliers are points that moved, on a vehicle,
+        and are not mapped. Every interval goes through the gap detector, odometry or not."""
+        gap = None if relocalising else self._gap_reach(t_ns)
+        gap = gap if increment is None else None
+        if not pnp:
+            return gap, None
+        if gap is not None:
+            return gap, still_prior(gap)
+        return gap, self._motion_prior(t_ns) if increment is None else self._odometry_prior(increment)
+
+    def _not_relocalised(
+        self, frame: StereoFrame, clock: StageClock, meas: StereoMatches, ident: Identification, counts: dict[str, int]
+    ) -> StepResult:
+        """The relocalising path's end while the map is not found yet: the measurements committed
+        with no new landmarks (the map left as it is), tracking suspended."""
+        self.frontend.commit(meas, ident, frame.t_ns, NO_NEW)
+        return self._result(frame, clock, counts, UpdateReport(), self.estimator.estimate(), self.tracker.suspend(), 0)
+
+    def _forget_new(self, obs: Observations) -> None:
+        """The filter did not take this frame's new landmarks: their descriptors go (the store
+        follows the filter exactly, or the saved map fails its own check)."""
+        assert self.frontend.descriptors is not None
+        self.frontend.descriptors.forget(obs.ids[obs.is_new])
+
+    def _after_update(
+        self, t_ns: int, obs: Observations, landmarks: LandmarkMap, moved: bool, relocalising: bool
+    ) -> tuple[PoseEstimate, bool, int]:
+        """After the update: an implausible attitude reset to level (the frame is then lost), the
+        reported pose, tracking, the rig's disparity offset from the pose while tracking (the
+        measurements seen again metres later, docs/frontend.md) and the constant-velocity model.
+        Returns (pose, tracking, number of identified observations)."""
+        if self._attitude_implausible() is not None:
+            self._reset_attitude(t_ns)
+        pose = self.covariance.report(self.estimator.estimate(), obs)
+        n_identified = int(np.count_nonzero(~obs.is_new))
+        tracking = self.tracker.update(landmarks.n > 0, n_identified > 0 or moved, pose)
+        if self._attitude_reset_at == t_ns:
+            tracking = self.tracker.lose("the attitude was reset")  # a guess this frame
+        self._map_fixed = n_identified >= MIN_INLIERS
+        if tracking:
+            self.frontend.observe_pose(pose.T_world_robot)
+        self._track_velocity(t_ns, pose.T_world_robot, relocalising)
+        return pose, tracking, n_identified
+
     def _motion_prior(self, t_ns: int) -> MotionPrior | None:
         """The constant-velocity prediction of the motion since the last frame, with the vehicle's
         physical bounds (robotd.frontend.pnp.motion_prior): the filter's motion over the last

@@ -80,6 +80,15 @@ def test_the_documented_stages_are_the_ones_in_the_source() -> None:
     assert [n for n, _ in documented_stages()] == stages_in_source()
 
 
+STEP_MAX_LINES = 45  # issue 28: a screenful; docs/architecture.md "Data flow"
+
+
+def test_the_step_is_a_screenful() -> None:
+    """``Pipeline.step`` reads as a screenful of plain calls; the choices between stages are named methods."""
+    n = len(inspect.getsource(Pipeline.step).splitlines())
+    assert n <= STEP_MAX_LINES, f"Pipeline.step is {n} lines: move a choice between stages into a named method"
+
+
 def test_the_order_check_catches_what_it_is_for() -> None:
     doc = [("a", False), ("b", True), ("relocalise", True), ("c", False)]
     assert check_order(["a", "b", "relocalise", "c"], doc) == []
