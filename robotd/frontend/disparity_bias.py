@@ -38,8 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from robotd.errors import ConfigError
+from robotd.frontend.pnp import project_stereo
 from robotd.geometry import so3_exp
-from robotd.stereo import RectifiedStereo
+from robotd.stereo import RectifiedStereo, triangulate
 
 logger = logging.getLogger(__name__)
 
@@ -94,42 +95,28 @@ class DisparityBiasParams:
 
 
 def _triangulate(z: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
-    d = z[:, 0] - z[:, 1]
-    b = rig.baseline_m
+    """Pixels (..., 3) = (x_l, x_r, y) -> points (..., 3) in the robot frame (robotd.stereo.triangulate)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        X = rig.fb / d
-        Y = (z[:, 0] - rig.px) * b / d - b / 2.0
-        Z = (z[:, 2] - rig.py) * b / d
-    return np.stack([X, Y, Z], -1)
-
-
-def _project(q: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
-    hb = rig.baseline_m / 2.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / q[:, 0]
-    return np.stack(
-        [
-            rig.px + rig.f_px * (q[:, 1] + hb) * inv,
-            rig.px + rig.f_px * (q[:, 1] - hb) * inv,
-            rig.py + rig.f_px * q[:, 2] * inv,
-        ],
-        -1,
-    )
+        return triangulate(z[..., 0], z[..., 1], z[..., 2], rig.f_px, rig.px, rig.py, rig.baseline_m)
 
 
 def _residuals(
-    theta: np.ndarray, R: np.ndarray, t: np.ndarray, zp: np.ndarray, zc: np.ndarray, rig: RectifiedStereo
+    thetas: np.ndarray, R: np.ndarray, t: np.ndarray, zp: np.ndarray, zc: np.ndarray, rig: RectifiedStereo
 ) -> np.ndarray:
-    """(2N·3,) stacked forward and backward residuals at parameters θ = (δt, δφ, ε)."""
-    Rp = R @ so3_exp(theta[3:6])
-    tp = t + theta[:3]
-    sh = np.array([0.0, theta[6], 0.0])
-    zp_e, zc_e = zp + sh, zc + sh
+    """(K, 2N·3) stacked forward and backward residuals at K parameter vectors θ = (δt, δφ, ε)
+    (K, 7), all at once (the solve's finite differences are 8 evaluations of a few hundred pairs:
+    one numpy pass each would be mostly call overhead)."""
+    K = thetas.shape[0]
+    Rp = R @ so3_exp(thetas[:, 3:6])  # (K, 3, 3)
+    tp = t + thetas[:, :3]  # (K, 3)
+    sh = np.zeros((K, 1, 3))
+    sh[:, 0, 1] = thetas[:, 6]
+    zp_e, zc_e = zp[None] + sh, zc[None] + sh  # (K, N, 3)
     P = _triangulate(zp_e, rig)  # in R(t−1)
     Q = _triangulate(zc_e, rig)  # in R(t)
-    fwd = zc_e - _project((P - tp) @ Rp, rig)
-    bwd = zp_e - _project(Q @ Rp.T + tp, rig)
-    return np.concatenate([fwd, bwd], 0).ravel()
+    fwd = zc_e - project_stereo((P - tp[:, None, :]) @ Rp, rig)
+    bwd = zp_e - project_stereo(Q @ Rp.transpose(0, 2, 1) + tp[:, None, :], rig)
+    return np.concatenate([fwd, bwd], 1).reshape(K, -1)
 
 
 def solve_offset(
@@ -151,12 +138,9 @@ def solve_offset(
     steps = np.array([1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6, 1e-3])
     H = np.zeros((7, 7))
     for _ in range(max(1, params.iterations)):
-        r0 = _residuals(theta, R, t, zp, zc, rig)
-        J = np.empty((r0.size, 7))
-        for k in range(7):
-            th = theta.copy()
-            th[k] += steps[k]
-            J[:, k] = (_residuals(th, R, t, zp, zc, rig) - r0) / steps[k]
+        rr = _residuals(theta[None] + np.vstack([np.zeros(7), np.diag(steps)]), R, t, zp, zc, rig)
+        r0 = rr[0]
+        J = ((rr[1:] - r0) / steps[:, None]).T  # (2N·3, 7) finite differences
         # robust weights per pair-direction (the norm of its three residuals)
         rn = np.sqrt(np.sum(r0.reshape(-1, 3) ** 2, axis=1))
         w3 = np.where(rn <= params.huber_px, 1.0, params.huber_px / np.maximum(rn, 1e-12))
@@ -177,7 +161,7 @@ def solve_offset(
     except np.linalg.LinAlgError:
         return None
     # the noise the fit actually left (never below the configured pixel noise)
-    r_end = _residuals(theta, R, t, zp, zc, rig).reshape(-1, 3)
+    r_end = _residuals(theta[None], R, t, zp, zc, rig).reshape(-1, 3)
     fin = np.isfinite(r_end).all(1)
     rms = 0.0
     if fin.any():
@@ -261,7 +245,7 @@ class DisparityBias:
         zc = z[ic]
         # pairs the filter's motion does not carry near where they are seen are wrong matches
         R, t = T_ac[:3, :3], T_ac[:3, 3]
-        pred = _project((_triangulate(za, rig) - t) @ R, rig)
+        pred = project_stereo((_triangulate(za, rig) - t) @ R, rig)
         err = np.hypot(pred[:, 0] - zc[:, 0], pred[:, 2] - zc[:, 2])
         ok = np.isfinite(err) & (err < p.gate_px)
         if int(ok.sum()) < p.min_points:

@@ -11,7 +11,8 @@ import pytest
 import robotd.frontend.stereo_match as sm
 from robotd.cli import main
 from robotd.errors import ConfigError
-from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams, _project, solve_offset
+from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams, solve_offset
+from robotd.frontend.pnp import project_stereo as _project
 from robotd.geometry import so3_exp
 from robotd.stereo import RectifiedStereo
 
