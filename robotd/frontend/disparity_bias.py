@@ -222,6 +222,9 @@ class DisparityBias:
             return False
         T = np.asarray(T_world_robot, dtype=float)
         z = np.asarray(z, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            self.reset_tracks()  # no usable pose: nothing to measure against, start again
+            return False
         if self._anchor is None:
             self._anchor = (z, desc, binary, T.copy(), self.value_px)
             return False

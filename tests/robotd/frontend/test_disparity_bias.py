@@ -118,6 +118,26 @@ def test_tracker_leaves_a_true_rig_alone_and_off_never_moves() -> None:
     assert off.value_px == 0.0 and off.fused == 0
 
 
+def test_bad_input_fuses_nothing_and_leaves_the_estimate() -> None:
+    """A pose with NaN, pixels with NaN, no measurements: nothing fused, no NaN in the estimate,
+    and the next good frames start again."""
+    rng = np.random.default_rng(5)
+    est = DisparityBias()
+    z = _project(_scene(rng, 60), RIG)
+    desc = rng.integers(0, 256, (z.shape[0], 32), dtype=np.uint8)
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    assert not est.observe(z, desc, True, np.eye(4), RIG, 0.5, 64.0, 0.8)
+    assert not est.observe(z, desc, True, bad, RIG, 0.5, 64.0, 0.8)
+    zn = z.copy()
+    zn[::2] = np.nan
+    far = np.eye(4)
+    far[0, 3] = 3.0
+    assert not est.observe(zn, desc, True, far, RIG, 0.5, 64.0, 0.8)  # the anchor was dropped: this is it
+    assert not est.observe(np.zeros((0, 3)), np.zeros((0, 32), np.uint8), True, far, RIG, 0.5, 64.0, 0.8)
+    assert est.value_px == 0.0 and est.fused == 0 and np.isfinite(est.sigma_px)
+
+
 def test_a_wrong_mode_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="frontend.disparity_offset"):
         DisparityBiasParams(mode="sometimes")
