@@ -149,6 +149,13 @@ class SlamConfig:
         " (FastSLAM: the particles' spread, over-confident on long runs)",
         choices=("consistent", "filter"),
     )
+    covariance_drift: float = _f(
+        0.005,
+        "consistent covariance: the error no pixel model holds, as a fraction of the path explored since the"
+        " map's landmarks last fixed the pose (a standard deviation per metre, in every direction)",
+        min=0.0,
+        max=1.0,
+    )
     n_particles: int = _f(100, "FastSLAM particles (bounded by memory and deadline: docs/reliability.md)", min=1)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)
     fs2_weights: str = _f(

@@ -187,7 +187,11 @@ class Pipeline:
         # covariance carries the map already)
         model = measurement_model(params)
         self.covariance = ReportedCovariance(
-            cfg.slam.covariance, self.kind.anchored_covariance, model, pixel_noise(params) if model.intrinsics else None
+            cfg.slam.covariance,
+            self.kind.anchored_covariance,
+            model,
+            pixel_noise(params) if model.intrinsics else None,
+            cfg.slam.covariance_drift,
         )
         self.counters = PipelineCounters()
         self.tracker = TrackingMonitor(self.counters)

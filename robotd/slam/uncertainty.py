@@ -87,9 +87,12 @@ class AnchoredCovariance:
     taken as the map's frame itself: zero covariance, the world being defined by that map.
     """
 
-    def __init__(self, max_landmarks: int = 200_000, min_support: int = 3) -> None:
+    def __init__(self, max_landmarks: int = 200_000, min_support: int = 3, drift_per_m: float = 0.0) -> None:
+        if not (math.isfinite(drift_per_m) and drift_per_m >= 0.0):
+            raise ValueError(f"drift per metre: expected a finite value >= 0, got {drift_per_m}")
         self.max_landmarks = int(max_landmarks)
         self.min_support = int(min_support)
+        self.drift_per_m = float(drift_per_m)
         self.reset()
 
     def reset(self) -> None:
@@ -98,7 +101,10 @@ class AnchoredCovariance:
         self._p = np.zeros((0, 3))
         self._C = np.zeros((0, 6, 6))
         self._n = np.zeros(0)  # observations fused per landmark
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # (p, C) of the previous frame
+        self._u = np.zeros(0)  # the explored path behind each landmark's creation [m]
+        self._pc = np.zeros((0, 3))  # where each landmark was created
+        self._last: tuple[np.ndarray, np.ndarray, float] | None = None  # (p, C, u) of the previous frame
+        self.explored_m = 0.0  # the explored path behind this frame's pose (:meth:`step`)
 
     @property
     def n_anchored(self) -> int:
@@ -120,6 +126,7 @@ class AnchoredCovariance:
         used = np.asarray(used_ids, dtype=np.int64)
         if used.size >= self.min_support or self._last is None:
             C_map = np.zeros((6, 6))
+            u = 0.0
             k = np.zeros(0, np.int64)
             if used.size and self._ids.size:
                 pos = np.minimum(np.searchsorted(self._ids, used), self._ids.size - 1)
@@ -128,14 +135,19 @@ class AnchoredCovariance:
                     # the convex combination, each landmark weighing 1 / (landmarks used)
                     Ck = transport(self._C[k], p - self._p[k])
                     C_map = Ck.sum(axis=0) / float(used.size)
+                    # the same combination of the path explored up to each landmark and on from it
+                    reach = self._u[k] + np.linalg.norm(p - self._pc[k], axis=1)
+                    u = float(reach.sum()) / float(used.size)
         else:
             # too little of the map was seen: the fix is relative to the previous pose
-            p0, C0 = self._last
+            p0, C0, u0 = self._last
             C_map = transport(C0[None], (p - p0)[None])[0]
+            u = u0 + float(np.linalg.norm(p - p0))
             k = np.zeros(0, np.int64)
         C = C_map + C_fix
         C = 0.5 * (C + C.T)
-        self._last = (p.copy(), C)
+        self._last = (p.copy(), C, u)
+        self.explored_m = u
         if k.size:
             # the filter moved each re-observed landmark towards where this pose sees it: its error
             # now shares this pose's, by this observation's share of its information (1/n after n)
@@ -143,7 +155,13 @@ class AnchoredCovariance:
             self._C[k] = (1.0 - a)[:, None, None] * Ck + a[:, None, None] * C
             self._p[k] = p
             self._n[k] += 1.0
-        self._anchor(np.unique(np.asarray(new_ids, dtype=np.int64)), p, C)
+        self._anchor(np.unique(np.asarray(new_ids, dtype=np.int64)), p, C, u)
+        if self.drift_per_m > 0.0 and u > 0.0:
+            # the error no pixel model holds (calibration, timing, the far points' depth): a
+            # fraction of the explored path, in every direction; kept out of the anchors, which
+            # carry the path itself (u), so it is not counted twice
+            C = C.copy()
+            C[:3, :3] += np.eye(3) * (self.drift_per_m * u) ** 2
         return _from_world_error(C, G)
 
     def forget(self, ids: np.ndarray) -> None:
@@ -153,8 +171,9 @@ class AnchoredCovariance:
         if len(ids) and self._ids.size:
             keep = ~np.isin(self._ids, np.asarray(ids, dtype=np.int64))
             self._ids, self._p, self._C, self._n = self._ids[keep], self._p[keep], self._C[keep], self._n[keep]
+            self._u, self._pc = self._u[keep], self._pc[keep]
 
-    def _anchor(self, new: np.ndarray, p: np.ndarray, C: np.ndarray) -> None:
+    def _anchor(self, new: np.ndarray, p: np.ndarray, C: np.ndarray, u: float) -> None:
         if not new.size:
             return
         pos = np.searchsorted(self._ids, new)
@@ -165,15 +184,20 @@ class AnchoredCovariance:
             self._p[pos[have]] = p
             self._C[pos[have]] = C
             self._n[pos[have]] = 1.0
+            self._u[pos[have]] = u
+            self._pc[pos[have]] = p
         add, at = new[~have], pos[~have]
         self._ids = np.insert(self._ids, at, add)
         self._p = np.insert(self._p, at, p, axis=0)
         self._C = np.insert(self._C, at, C, axis=0)
         self._n = np.insert(self._n, at, 1.0)
+        self._u = np.insert(self._u, at, u)
+        self._pc = np.insert(self._pc, at, p, axis=0)
         extra = self._ids.size - self.max_landmarks
         if extra > 0:
             self._ids, self._p = self._ids[extra:], self._p[extra:]
             self._C, self._n = self._C[extra:], self._n[extra:]
+            self._u, self._pc = self._u[extra:], self._pc[extra:]
 
 
 @dataclass
@@ -269,14 +293,16 @@ class ReportedCovariance:
     for the pixel model, its constant pixel covariance.
     """
 
-    def __init__(self, mode: str, anchored: bool, model: MeasurementModel, q_px: np.ndarray | None) -> None:
+    def __init__(
+        self, mode: str, anchored: bool, model: MeasurementModel, q_px: np.ndarray | None, drift_per_m: float = 0.0
+    ) -> None:
         if mode not in ("consistent", "filter"):
             raise ValueError(f"covariance mode: expected consistent or filter, got {mode!r}")
         self.mode = mode
         self.model = model
         self.q_px = q_px
         self.monitor = ConsistencyMonitor()
-        self.anchors = AnchoredCovariance() if anchored else None
+        self.anchors = AnchoredCovariance(drift_per_m=drift_per_m) if anchored else None
         self._extra = np.zeros((6, 6))  # added to the next report (:meth:`add_uncertainty`)
 
     @property
@@ -352,4 +378,6 @@ class ReportedCovariance:
         h: dict[str, object] = {"mode": self.mode, **self.monitor.health()}
         if self.anchors is not None:
             h["anchored_landmarks"] = self.anchors.n_anchored
+            h["explored_m"] = round(self.anchors.explored_m, 2)
+            h["drift_per_m"] = self.anchors.drift_per_m
         return h
