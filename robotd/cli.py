@@ -552,6 +552,10 @@ frame, as evo_rpe's defaults);
 drift_m (end-point error after aligning the first poses only) and drift_pct (the same in % of
 path_length_m); similarity_scale (diagnostic). drift_pct and similarity_scale are undefined
 (n/a, JSON null) when the ground-truth path is shorter than 1 m (a stationary sequence);
+travel_offset_deg and gt_travel_offset_deg (diagnostic): the median angle between heading and
+direction of travel over 2 m steps, estimate's and truth's; a vehicle's camera mount gives both
+the same, and a difference is an orientation the truth or the estimate gets wrong, which
+drift_pct carries as lateral error (null without 3 forward steps);
 association: how the poses were paired ("time", or "index" when one side has no recorded times
 and both have one pose per frame).
 

@@ -28,6 +28,7 @@ from robotd.research.evaluate import (
     read_tum,
     rpe,
     similarity_scale,
+    travel_offset_deg,
     write_tum,
 )
 from tests.support.tolerances import ANGLE_FROM_COSINE_FLOOR_DEG, CONDITIONED_ATOL, CONDITIONED_RTOL
@@ -417,3 +418,36 @@ def test_kitti_rotations_printed_to_seven_digits_are_read_orthonormal(tmp_path):
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12) and np.allclose(np.linalg.det(R), 1.0)
     assert np.allclose(T[:, :3, 3], np.round(G[:, :3, 3], 5), atol=1e-5)
     assert rpe(T, G)["rpe_rot_deg"] < 1e-3, "rounding alone (1e-7) is not a 0.01-degree rotation error"
+
+
+def _crabbing(offset_deg: float, n: int = 60, yaw0: float = 0.3) -> np.ndarray:
+    """A drive along a gentle curve, 1 m a pose, travelling ``offset_deg`` to the left of its heading."""
+    yaw = yaw0 + np.linspace(0.0, 0.4, n)
+    travel = 0.5 * (yaw[:-1] + yaw[1:]) + math.radians(offset_deg)  # each step at its mid heading
+    steps = np.column_stack([np.cos(travel), np.sin(travel), np.zeros(n - 1)])
+    p = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
+    return np.stack([se3(rot_z(y), q) for y, q in zip(yaw, p)])
+
+
+def test_travel_offset_is_the_angle_between_heading_and_travel_for_each_side():
+    est, gt = _crabbing(-0.2), _crabbing(1.2, yaw0=-1.0)
+    e, g = travel_offset_deg(est, gt)
+    assert e == pytest.approx(-0.2, abs=0.02) and g == pytest.approx(1.2, abs=0.02)
+    # going backwards, or standing still, says nothing
+    assert all(math.isnan(v) for v in travel_offset_deg(est[::-1], gt[::-1]))
+    still = np.repeat(gt[:1], 20, axis=0)
+    assert all(math.isnan(v) for v in travel_offset_deg(still, still))
+
+
+def test_a_truth_turned_against_its_positions_shows_as_drift_and_as_travel_offset():
+    """The estimate exact but the truth's orientations all 1.4° off its positions: the first-pose
+    drift reads about 1.4° × path (2.4 %), the travel offsets differ by 1.4° and say why."""
+    gt = _crabbing(0.0)
+    est = gt.copy()
+    bad = gt.copy()
+    bad[:, :3, :3] = gt[:, :3, :3] @ rot_z(math.radians(-1.4))
+    e, g = travel_offset_deg(est, bad)
+    assert e == pytest.approx(0.0, abs=0.01) and g == pytest.approx(1.4, abs=0.01)
+    from robotd.research.evaluate import drift_pct
+
+    assert drift_pct(est, bad) == pytest.approx(100 * math.radians(1.4), rel=0.05)
