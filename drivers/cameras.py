@@ -25,7 +25,9 @@ What a kind declares, and who reads it:
   paths ending with one of its ``suffixes`` are its too); or ``"nothing"`` (the URL is the whole
   source: a simulator). ``robotd replay-many`` expands globs, names and digests sources by it;
 - ``truth``: its frames carry ``truth_T_world_robot``; ``truth_by_row``: the file a
-  KITTI-format trajectory of it pairs with by row, when the source has one (``robotd replay``).
+  KITTI-format trajectory of it pairs with by row, when the source has one (``robotd replay``);
+- ``libraries``: the hardware libraries (depthai) that only its driver's module, or package,
+  may import (``tests/test_layering.py`` holds every other module to it).
 
 What a driver does (:class:`CameraDriver`; :class:`CameraBase` gives every default):
 
@@ -101,6 +103,7 @@ class CameraKind:
     truth_by_row: str | None = None  # the file a KITTI-format trajectory of it pairs with by row
     folder: str | None = None  # reads == "folder": the folder it replays, for messages
     suffixes: tuple[str, ...] = ()  # reads == "file": bare paths ending so are its
+    libraries: tuple[str, ...] = ()  # the hardware libraries only its driver's module (package) imports
 
     def __post_init__(self) -> None:
         if self.reads not in READS:
@@ -327,6 +330,7 @@ register_camera(
         hardware=True,
         factory_calibration="the OAK's factory calibration",
         calibration_size_in_url=True,
+        libraries=("depthai",),
     ),
     "drivers.oak:OAK_CAMERA",
 )
