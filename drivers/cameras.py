@@ -40,6 +40,9 @@ What a driver does (:class:`CameraDriver`; :class:`CameraBase` gives every defau
 - ``claims_folder``: a folder is one of its sources (``robotd replay-many``);
 - ``host_checks``: ``robotd doctor``'s checks of this machine for it (a USB device, a udev rule),
   listed for every registered camera, run for the configured one and skipped for the others.
+
+The camera ``open`` returns satisfies :class:`StereoCamera` (also ``drivers.StereoCamera``).
+docs/architecture.md, "A camera driver", shows a new one added.
 """
 
 from __future__ import annotations
