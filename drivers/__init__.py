@@ -1,10 +1,12 @@
 """Drivers: the only code that touches hardware, each chosen by URL.
 
-``open_camera(url)`` and ``open_vehicle(url)`` pick the module from the URL scheme, like
-pyserial's ``serial_for_url``. Mocks are drivers in their own right (``sim://``, dataset replay)
-and feed the same pipeline as the hardware. Each module is the only importer of its library
-(``drivers.oak`` of depthai, ``drivers.serial_link`` of pyserial, ``drivers.mavlink_link`` of
-pymavlink); modules are imported lazily so a missing optional library only breaks its scheme.
+``open_camera(url)`` and ``open_vehicle(url)`` pick the driver from the URL scheme, like
+pyserial's ``serial_for_url``: the cameras from their registry (:mod:`drivers.cameras`, where each
+camera driver declares what it is), the vehicle links from ``_VEHICLES`` below. Mocks are drivers
+in their own right (``sim://``, dataset replay) and feed the same pipeline as the hardware. Each
+module is the only importer of its library (``drivers.oak`` of depthai, ``drivers.serial_link`` of
+pyserial, ``drivers.mavlink_link`` of pymavlink); modules are imported lazily so a missing
+optional library only breaks its scheme.
 
 Contract shared by every driver:
 
@@ -26,9 +28,9 @@ Contract shared by every driver:
 - A user's calibration (``camera.calibration``, a :class:`robotd.stereo.StereoCalibration` read from
   the camchain file) reaches a camera as the keyword ``calibration``. The cameras that rectify raw
   images take it instead of their own (``oak://`` with ``rectify=host``, ``euroc://``); a camera
-  whose rig is its own (:data:`_OWN_RIG`) refuses it with a :class:`robotd.errors.CalibrationError`
-  saying why, from :func:`open_camera` and :func:`check_camera_url` alike. ``calibration=None`` is
-  no calibration, for every camera.
+  whose rig is its own (its kind's ``own_rig``, :mod:`drivers.cameras`) refuses it with a
+  :class:`robotd.errors.CalibrationError` saying why, from :func:`open_camera` and
+  :func:`check_camera_url` alike. ``calibration=None`` is no calibration, for every camera.
 """
 
 from __future__ import annotations
@@ -36,45 +38,18 @@ from __future__ import annotations
 import importlib
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
-from urllib.parse import urlsplit
 
+from drivers.cameras import StereoCamera as StereoCamera  # the camera's protocol, with its registry
+from drivers.cameras import camera_driver, camera_kind, scheme_of
 from robotd.errors import CalibrationError, DriverError
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from robotd.msgs import Odometry, PoseEstimate, StereoFrame
-    from robotd.stereo import RectifiedStereo
+    from robotd.msgs import Odometry, PoseEstimate
 
 # what AutopilotLink.set_health accepts (besides None)
 HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
-
-
-@runtime_checkable
-class StereoCamera(Protocol):
-    url: str
-    # for recordings, what the images were rectified from: the device's own calibration dump (OAK
-    # EEPROM JSON), or the user's StereoCalibration (camera.calibration); None when the rig is all
-    raw_calibration: Any
-
-    @property
-    def fps(self) -> float | None:
-        """Nominal frame rate [Hz] (the daemon's latency budget follows it); None when unknown (replay)."""
-        ...
-
-    @property
-    def host_clock(self) -> bool:
-        """True when frames are stamped on this host's monotonic clock (a live camera, ``sim://`` in
-        real time); False on a dataset's own clock (a replay): the daemon then measures latency
-        from each frame's delivery, not from its stamp."""
-        ...
-
-    def __enter__(self) -> StereoCamera: ...
-    def __exit__(self, *exc: object) -> None: ...
-    def frames(self, timeout_s: float = 1.0) -> Iterator[StereoFrame]: ...
-    def rectified_model(self) -> RectifiedStereo: ...
-    def close(self) -> None: ...
-    def stats(self) -> dict[str, Any]: ...
 
 
 @runtime_checkable
@@ -112,14 +87,9 @@ class VehicleLink(Protocol):
         ...
 
 
-# scheme -> (module, factory attribute). The factory takes (url, **options).
-_CAMERAS: dict[str, tuple[str, str]] = {
-    "sim": ("drivers.sim", "open_sim_camera"),
-    "oak": ("drivers.oak", "open_oak_camera"),
-    "kitti": ("drivers.dataset", "open_kitti"),
-    "euroc": ("drivers.dataset", "open_euroc"),
-    "mcap": ("drivers.dataset", "open_mcap"),
-}
+# The cameras are registered in drivers.cameras, each driver once with what it declares about
+# itself (drivers.cameras.CameraDriver). The vehicle links: scheme -> (module, factory attribute);
+# the factory takes (url, **options).
 _VEHICLES: dict[str, tuple[str, str]] = {
     "sim": ("drivers.sim", "open_sim_vehicle"),
     "none": ("drivers.sim", "open_null_vehicle"),
@@ -132,27 +102,10 @@ _VEHICLES: dict[str, tuple[str, str]] = {
     "mcap": ("drivers.dataset", "open_mcap_vehicle"),
 }
 
-
-# scheme -> why its camera takes no calibration file: its rig is its own. Every other camera takes the
-# keyword ``calibration`` (a StereoCalibration) and rectifies with it.
-_OWN_RIG: dict[str, str] = {
-    "sim": "sim:// renders its own rectified rig (set it with ?f=, ?baseline=, ?width=, ?height=)",
-    "kitti": "kitti:// images are rectified already and its rig is the folder's calib.txt (P0/P1)",
-    "mcap": "a recording replays its rectified images with the rig it was recorded with",
-}
-
-
 # scheme -> (module, checker attribute). The checker takes (url, **options), as the factory does, and
 # raises DriverError for what the factory would refuse in the URL itself (scheme, parameter names and
 # values) without opening a device or reading a file: the config is checked with it at start-up,
 # before the kernels load (robotd.device_urls).
-_CAMERA_CHECKS: dict[str, tuple[str, str]] = {
-    "sim": ("drivers.sim", "check_sim_url"),
-    "oak": ("drivers.oak.camera", "check_oak_url"),
-    "kitti": ("drivers.dataset", "check_kitti_url"),
-    "euroc": ("drivers.dataset", "check_euroc_url"),
-    "mcap": ("drivers.dataset", "check_mcap_url"),
-}
 _VEHICLE_CHECKS: dict[str, tuple[str, str]] = {
     "sim": ("drivers.sim", "check_sim_url"),
     "none": ("drivers.sim", "check_null_url"),
@@ -164,20 +117,15 @@ _VEHICLE_CHECKS: dict[str, tuple[str, str]] = {
     "mcap": ("drivers.dataset", "check_mcap_vehicle_url"),
 }
 
-
-def _scheme(url: str) -> str:
-    if "://" not in url:
-        # a bare path to a recording is a replay source
-        if url.endswith((".mcap", ".mcap.tmp")):  # .tmp: a recording whose recorder was killed
-            return "mcap"
-        raise DriverError(f"{url!r}: expected a URL such as sim://, oak://, kitti://DIR, got no scheme")
-    return urlsplit(url).scheme.lower()
+# vehicle links that can appear later (plugged in, powered up): the daemon retries opening them, as
+# it does a camera whose kind declares ``hardware``
+_HARDWARE_VEHICLES = frozenset({"serial", "mavlink+udp", "mavlink+serial"})
 
 
 def _entry(table: dict[str, tuple[str, str]], kind: str, url: str) -> Any:
     """The function ``table`` names for ``url``'s scheme (imported); DriverError for an unknown
     scheme or a driver that cannot be loaded."""
-    scheme = _scheme(url)
+    scheme = scheme_of(url)
     if scheme not in table:
         known = ", ".join(f"{s}://" for s in sorted(table))
         raise DriverError(f"{url!r}: unknown {kind} scheme {scheme!r}; known: {known}")
@@ -192,16 +140,12 @@ def _entry(table: dict[str, tuple[str, str]], kind: str, url: str) -> Any:
     return fn
 
 
-def _open(table: dict[str, tuple[str, str]], kind: str, url: str, **options: Any) -> Any:
-    return _entry(table, kind, url)(url, **options)
-
-
 def _calibration_option(url: str, options: dict[str, Any]) -> dict[str, Any]:
     """``options`` without ``calibration=None``; CalibrationError when a calibration is given to a
-    camera whose rig is its own (:data:`_OWN_RIG`)."""
+    camera whose rig is its own (its kind's ``own_rig``)."""
     if options.get("calibration") is None:
         return {k: v for k, v in options.items() if k != "calibration"}
-    why = _OWN_RIG.get(_scheme(url))
+    why = camera_kind(url).own_rig
     if why is not None:
         raise CalibrationError(f"{url!r} takes no calibration file: {why}")
     return options
@@ -210,8 +154,8 @@ def _calibration_option(url: str, options: dict[str, Any]) -> dict[str, Any]:
 def check_camera_url(url: str, **options: Any) -> None:
     """Raise DriverError when :func:`open_camera` would refuse ``url`` for its scheme or its
     parameters; opens nothing, reads no file (a missing device or folder is found when opened)."""
-    _entry(_CAMERAS, "camera", url)  # an unknown scheme says so as open_camera does
-    _entry(_CAMERA_CHECKS, "camera", url)(url, **_calibration_option(url, options))
+    driver = camera_driver(url)  # an unknown scheme says so as open_camera does
+    driver.check_url(url, **_calibration_option(url, options))
 
 
 def check_vehicle_url(url: str, **options: Any) -> None:
@@ -222,19 +166,28 @@ def check_vehicle_url(url: str, **options: Any) -> None:
 
 
 def open_camera(url: str, **options: Any) -> StereoCamera:
-    """Open a stereo source by URL: sim://, oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap.
-    ``calibration``: a StereoCalibration to rectify with instead of the camera's own (module docstring)."""
-    _entry(_CAMERAS, "camera", url)  # an unknown scheme before anything about the calibration
-    return _open(_CAMERAS, "camera", url, **_calibration_option(url, options))  # type: ignore[no-any-return]
+    """Open a stereo source by URL (the registered cameras: drivers.cameras), e.g. sim://,
+    oak://[device-id], kitti://DIR, euroc://DIR, FILE.mcap. ``calibration``: a StereoCalibration
+    to rectify with instead of the camera's own (module docstring)."""
+    driver = camera_driver(url)  # an unknown scheme before anything about the calibration
+    return driver.open(url, **_calibration_option(url, options))
 
 
 def open_vehicle(url: str, **options: Any) -> VehicleLink:
     """Open a vehicle link by URL: sim://, none://, serial:///dev/ttyX?baud=…, mavlink+udp://…, mavlink+serial://…"""
-    return _open(_VEHICLES, "vehicle", url, **options)  # type: ignore[no-any-return]
+    return _entry(_VEHICLES, "vehicle", url)(url, **options)  # type: ignore[no-any-return]
 
 
-def camera_schemes() -> list[str]:
-    return sorted(_CAMERAS)
+def is_hardware(kind: str, url: str) -> bool:
+    """``url`` (a ``kind`` "camera", else a vehicle link) names a device that can appear later
+    (plugged in, powered up), whose opening the daemon retries (a camera's kind declares it);
+    False for a URL no driver takes."""
+    try:
+        if kind == "camera":
+            return camera_kind(url).hardware
+        return scheme_of(url) in _HARDWARE_VEHICLES
+    except DriverError:
+        return False
 
 
 def vehicle_schemes() -> list[str]:

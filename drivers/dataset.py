@@ -19,9 +19,10 @@ Dataset-specific options: EuRoC ``alpha`` (0.0, OpenCV free scaling of the recti
 ``pair_tolerance_ns`` (1 ms, cam0/cam1 stamp pairing), and ``calibration`` (a StereoCalibration,
 the config's ``camera.calibration``: the raw images are rectified with it instead of with the
 folder's ``sensor.yaml``; it must be for the images' size). KITTI images and recordings are
-rectified already and refuse one (``drivers._OWN_RIG``). Ground truth, where the dataset has it, is
-attached to each frame as ``truth_T_world_robot`` (robot frame FRD at the baseline centre of the
-rectified rig, world = robot frame at the first frame with truth); it is for evaluation only.
+rectified already and refuse one (their drivers' ``own_rig``, at the end of this module). Ground
+truth, where the dataset has it, is attached to each frame as ``truth_T_world_robot`` (robot frame
+FRD at the baseline centre of the rectified rig, world = robot frame at the first frame with
+truth); it is for evaluation only.
 
 Vehicle links: by default the dataset vehicle is **visual only**: ``odometry()`` yields nothing
 and the pipeline runs on its visual (or constant-velocity) prediction. A KITTI raw folder that
@@ -51,6 +52,7 @@ import numpy as np
 from drivers import AutopilotLink
 from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw, check_calibration_size, user_rectifier
 from drivers.base import Driver
+from drivers.cameras import CameraBase, DatasetOdometry
 from robotd.errors import DatasetError, DriverError
 from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
 from robotd.msgs import Odometry, PoseEstimate, StereoFrame
@@ -731,7 +733,7 @@ def _kitti_recorded_vehicle(camera: KittiCamera, url: str, opts: dict[str, Any])
 
 
 # --------------------------------------------------------------------------------------------
-# Factories named in drivers.__init__
+# Factories named in drivers.__init__ and the cameras' registrations below
 
 
 def open_kitti(url: str, **options: Any) -> KittiCamera:
@@ -946,3 +948,94 @@ def open_mcap_vehicle(url: str | Path, **options: Any) -> DatasetVehicle:
     cam = McapCamera(path)
     samples = cam.recorded_odometry()
     return DatasetVehicle(str(url), samples, realtime)
+
+
+# --------------------------------------------------------------------------------------------
+# The cameras' drivers (registered with their kinds in drivers.cameras)
+
+
+def is_kitti_folder(p: Path) -> bool:
+    """A KITTI sequence: ``calib.txt`` and ``image_0/`` (odometry) or ``image_l/`` (raw, rectified)."""
+    return (p / "calib.txt").is_file() and ((p / "image_0").is_dir() or (p / "image_l").is_dir())
+
+
+def is_euroc_folder(p: Path) -> bool:
+    """An EuRoC sequence: ``mav0/`` (or its ``cam0/`` and ``cam1/`` directly)."""
+    mav = p / "mav0" if (p / "mav0").is_dir() else p
+    return (mav / "cam0").is_dir() and (mav / "cam1").is_dir()
+
+
+class _ImageDatasetDriver(CameraBase):
+    """A folder of images replayed: its selected frames listed when opened."""
+
+    def frame_total(self, camera: Any) -> int | None:
+        return len(camera.entries)  # the selected frames, listed when opened
+
+
+class KittiCameraDriver(_ImageDatasetDriver):
+    """``kitti://DIR``; its OXTS odometry when the dataset's is asked for."""
+
+    def open(self, url: str, **options: Any) -> KittiCamera:
+        return open_kitti(url, **options)
+
+    def check_url(self, url: str, **options: Any) -> None:
+        check_kitti_url(url, **options)
+
+    def claims_folder(self, path: Path) -> bool:
+        return is_kitti_folder(path)
+
+    def replay_vehicle(self, source: str, url: str, odometry: DatasetOdometry | None) -> str | None:
+        """With the dataset's odometry asked for: the raw drive's OXTS records (when the folder
+        keeps them; else the vehicle is visual only) with the configured noise."""
+        if odometry is None:
+            return None
+        sep = "&" if "?" in url else "?"
+        return (
+            f"{url}{sep}odometry=oxts&oxts_sigma_vel_mps={odometry.sigma_vel_mps!r}"
+            f"&oxts_sigma_rate_radps={odometry.sigma_rate_radps!r}"
+        )
+
+
+class EurocCameraDriver(_ImageDatasetDriver):
+    """``euroc://DIR``: visual only."""
+
+    def open(self, url: str, **options: Any) -> EurocCamera:
+        return open_euroc(url, **options)
+
+    def check_url(self, url: str, **options: Any) -> None:
+        check_euroc_url(url, **options)
+
+    def claims_folder(self, path: Path) -> bool:
+        return is_euroc_folder(path)
+
+
+class RecordingCameraDriver(CameraBase):
+    """A ``robotd record`` session: its frames, and always its recorded odometry."""
+
+    def open(self, url: str, **options: Any) -> McapCamera:
+        return open_mcap(url, **options)
+
+    def check_url(self, url: str, **options: Any) -> None:
+        check_mcap_url(url, **options)
+
+    def frame_total(self, camera: Any) -> int | None:
+        """Selected frames, from the MCAP summary's message counts (no message is read; None for
+        a file without a summary, e.g. an interrupted recording)."""
+        n = camera.reader.frame_count()
+        if n is None:
+            return None
+        sel = camera.replay
+        stop = n if sel.stop is None else min(sel.stop, n)
+        return len(sel.select(stop))
+
+    def replay_vehicle(self, source: str, url: str, odometry: DatasetOdometry | None) -> str | None:
+        """The recorded odometry, unpaced (the replay feeds it by the frames' stamps)."""
+        return source if "://" in source else f"mcap://{source}"
+
+    def status(self, camera: Any) -> dict[str, Any] | None:
+        return camera.recording_status()  # type: ignore[no-any-return]
+
+
+KITTI_CAMERA = KittiCameraDriver()
+EUROC_CAMERA = EurocCameraDriver()
+RECORDING_CAMERA = RecordingCameraDriver()

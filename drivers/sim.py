@@ -103,6 +103,7 @@ import numpy as np
 from drivers import HEALTH_STATES, AutopilotLink
 from drivers._render import ViewRenderer
 from drivers.base import Driver
+from drivers.cameras import CameraBase, DatasetOdometry
 from drivers.simfollow import FollowedTrajectory, parse_follow, truth_push_args
 from drivers.simworld import WORLDS, World, build_world, rig_baseline_m
 from robotd.errors import DriverError
@@ -837,7 +838,7 @@ class NullVehicle(Driver):
 
 
 # --------------------------------------------------------------------------------------------
-# Factories named in drivers/__init__.py
+# Factories named in drivers/__init__.py and the camera's registration below
 
 
 def open_sim_camera(url: str, **options: Any) -> SimCamera:
@@ -877,3 +878,48 @@ def check_null_url(url: str, **options: Any) -> None:
 def param_names() -> list[str]:
     """Every ``sim://`` URL parameter, for docs and error messages."""
     return [f.name for f in fields(SimParams)]
+
+
+def sim_url(world: str = "", **params: Any) -> str:
+    """``sim://WORLD?key=value&...`` of the parameters given (in their order), for programs that
+    drive the simulated rover (robotd.research.sitl)."""
+    query = "&".join(f"{k}={v}" for k, v in params.items())
+    return f"sim://{world}{'?' if query else ''}{query}"
+
+
+# --------------------------------------------------------------------------------------------
+# The camera's registration (drivers.cameras)
+
+# the clock start of an unpaced replay (realtime=0): fixed, so two replays of the same URL write
+# the same trajectory file, stamps included (a paced one runs on the host's monotonic clock)
+SIM_REPLAY_T0_NS = 1_000_000_000
+
+
+class SimCameraDriver(CameraBase):
+    """``sim://`` (its kind is registered in drivers.cameras): endless or ``duration`` long, paced by
+    default, its own rover's odometry."""
+
+    def open(self, url: str, **options: Any) -> SimCamera:
+        return open_sim_camera(url, **options)
+
+    def check_url(self, url: str, **options: Any) -> None:
+        check_sim_url(url, **options)
+
+    def frame_total(self, camera: Any) -> int | None:
+        return camera.n_frames  # type: ignore[no-any-return]
+
+    def paced(self, url: str) -> str:
+        return url  # realtime=1 is its default
+
+    def replay_options(self, url: str) -> dict[str, Any]:
+        """Unpaced (``realtime=0``), the clock starts at :data:`SIM_REPLAY_T0_NS`."""
+        realtime = dict(parse_qsl(urlsplit(url).query)).get("realtime", "1")
+        return {"t0_ns": SIM_REPLAY_T0_NS} if realtime.strip() in ("0", "false", "False") else {}
+
+    def replay_vehicle(self, source: str, url: str, odometry: DatasetOdometry | None) -> str | None:
+        """The simulated rover's own noisy odometry, same world and clock as its camera (none with
+        ``odometry=0`` in the URL: vision only)."""
+        return url
+
+
+SIM_CAMERA = SimCameraDriver()

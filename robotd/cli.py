@@ -28,8 +28,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from drivers.cameras import usages
 from robotd import __version__, journal
-from robotd.config import Config, load_config, to_toml
+from robotd.config import CameraConfig, Config, load_config, to_toml
 from robotd.errors import InputError, RobotdError
 from robotd.journal import SYSLOG_PRIORITY, JournalFormatter
 
@@ -405,6 +406,26 @@ class _Parser(argparse.ArgumentParser):
             super().error(message)
 
 
+def _truth_sources() -> str:
+    """The cameras whose frames carry a truth (their registrations, drivers.cameras), for help texts."""
+    from drivers.cameras import cameras, schemes_text
+
+    return schemes_text([r.scheme for r in cameras() if r.kind.truth], "and")
+
+
+def _replay_many_sources() -> str:
+    """replay-many's sources, from the registered cameras (drivers.cameras), for its help."""
+    import textwrap
+
+    text = (
+        f"Sources: URLs of the cameras that are not hardware ({', '.join(usages(hardware=False))}), recordings, "
+        "dataset folders (those a camera's driver recognises), folders of recordings, and globs of any of these "
+        "('archive/**/*.mcap', or in a URL's path); the shell's braces give one source per seed: "
+        "'URL&seed='{1..8} (docs/fleet.md)."
+    )
+    return textwrap.fill(text, 100)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="robotd", description="Onboard stereo-vision SLAM daemon.")
     p.add_argument("--version", action="version", version=f"robotd {__version__}")
@@ -418,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.set_defaults(func=fn)
         return sp
 
-    sp = add("run", cmd_run, "run the daemon (default: on the simulated rover, sim://)")
+    sp = add("run", cmd_run, f"run the daemon (default: on the simulated rover, {CameraConfig().url})")
     sp.add_argument("--camera", metavar="URL", help="override camera.url")
     sp.add_argument("--vehicle", metavar="URL", help="override vehicle.url")
     sp.add_argument(
@@ -441,11 +462,13 @@ robotd's robot frame (FRD, origin at the stereo baseline centre), world = the ro
 frame. --format kitti: a KITTI pose file, the left rectified camera's optical frame (x right,
 y down, z forward) relative to its first pose, one row per replayed frame, as a KITTI poses.txt,
 so `evo_ape kitti DIR/poses.txt T.txt -a` compares like with like. --truth-out G.txt writes the
-truth the source carries (kitti://, euroc://, sim://) for the same frames, in the same format and
-frame: `evo_ape tum G.txt T.txt -a` then gives truth_ate_umeyama_rmse_m and `evo_rpe tum G.txt
-T.txt` truth_rpe_trans_m (docs/experiments.md, "Metrics")."""
+truth the source carries (TRUTH_SOURCES do) for the same frames,
+in the same format and frame: `evo_ape tum G.txt T.txt -a` then gives truth_ate_umeyama_rmse_m
+and `evo_rpe tum G.txt T.txt` truth_rpe_trans_m (docs/experiments.md, "Metrics").""".replace(
+        "TRUTH_SOURCES", _truth_sources()
+    )
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
-    sp.add_argument("source", help="FILE.mcap, kitti://DIR, euroc://DIR or sim://…")
+    sp.add_argument("source", help=", ".join(usages(hardware=False)))
     sp.add_argument("--realtime", action="store_true", help="pace frames at their recorded rate")
     sp.add_argument("--out", metavar="TRAJ", help="write the trajectory (TUM format; see --format)")
     sp.add_argument(
@@ -463,10 +486,9 @@ T.txt` truth_rpe_trans_m (docs/experiments.md, "Metrics")."""
     sp.add_argument("--quiet", action="store_true", help="no progress bar (the final summary line stays)")
 
     sp = add("replay-many", cmd_replay_many, "replay many sources × configurations, locally or on Ray", config=False)
-    sp.epilog = """\
-Sources: URLs (sim://..., kitti://DIR, euroc://DIR, mcap://FILE), recordings (FILE.mcap), KITTI or
-EuRoC folders, folders of recordings, and globs of any of these ('archive/**/*.mcap',
-kitti:///data/kitti-*); the shell's braces give seeds: 'sim://?duration=20&realtime=0&seed='{1..8}.
+    sp.epilog = (
+        _replay_many_sources()
+        + """
 
 Configurations: each --config FILE (none: the defaults) times each --variant ('NAME: slam.filter=ekf
 frontend.detector=sift'; none: one per file), with every --set applied to all. The first is the
@@ -481,6 +503,7 @@ document) and to DIR/table.md, DIR/results.json and DIR/table.csv.
 
 Exit status: 0 every replay ok, 1 some failed, 130 interrupted (finished rows kept), 2 usage error.
 `robotd replay-many compare A B` compares two results (see its --help). docs/fleet.md."""
+    )
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("sources", nargs="*", metavar="SOURCE", help="URL, recording, dataset folder, folder or glob")
     sp.add_argument("--sources-file", action="append", default=[], metavar="FILE", help="sources, one a line")
@@ -589,8 +612,8 @@ has no segment: the figures are n/a (JSON null) and segment_note says why.
 A KITTI poses.txt is read as a replay of its folder carries its truth: moved from the left
 camera's optical frame to the robot frame at the stereo baseline centre (baseline from the
 calib.txt beside it, else the one beside the other file) and stamped from the times.txt beside
-it, so `robotd replay kitti://DIR --out T.txt` (TUM or --format kitti) then `robotd eval T.txt
-DIR/poses.txt` gives the replay's own truth_* figures."""
+it, so a replay of the folder (`robotd replay URL --out T.txt`, TUM or --format kitti) then
+`robotd eval T.txt DIR/poses.txt` gives the replay's own truth_* figures."""
     sp.formatter_class = argparse.RawDescriptionHelpFormatter
     sp.add_argument("traj", help="estimated trajectory (TUM, or KITTI poses)")
     sp.add_argument("gt", help="ground truth (TUM, or KITTI poses.txt)")

@@ -11,8 +11,8 @@ typo in ``camera.url`` is one error line at once, not a log line after the load 
 The calibration path (docs/architecture.md "Calibration"): :func:`camera_options` reads the
 camchain file ``camera.calibration`` names (``calib.camchain``, the one reader of the format) into
 a :class:`robotd.stereo.StereoCalibration` and hands it to the camera's driver as the keyword
-``calibration``; the driver rectifies with it or refuses it (``drivers._OWN_RIG``, a size or mode it
-cannot use). Either way a calibration that cannot be used is a ConfigError naming the key, at
+``calibration``; the driver rectifies with it or refuses it (its declared ``own_rig``, a size or mode
+it cannot use: drivers.cameras). Either way a calibration that cannot be used is a ConfigError naming the key, at
 start-up, never a file silently ignored.
 """
 

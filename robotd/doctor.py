@@ -2,9 +2,11 @@
 
 Every check is a small function of the config returning a :class:`CheckResult` (name, status,
 one-line message naming the config key, device or file and what to do). Checks that the config
-makes irrelevant (the OAK checks for a ``sim://`` camera) return ``skip`` with the reason, so the
-output always lists the same checks. Statuses: ``ok``; ``warn`` (works, but not as it should on a
-rover, e.g. a cold numba cache); ``fail`` (robotd will not work like this); ``skip``.
+makes irrelevant (the OAK's checks for another camera) return ``skip`` with the reason, so the
+output always lists the same checks. The camera's checks are its driver's (``host_checks``,
+drivers.cameras): every registered driver's are listed, the configured camera's run. Statuses:
+``ok``; ``warn`` (works, but not as it should on a rover, e.g. a cold numba cache); ``fail``
+(robotd will not work like this); ``skip``.
 
 The checks only look: they open no camera and send the autopilot nothing but a heartbeat (as
 robotd does). The exceptions are the state directory, which is created when missing (the daemon
@@ -21,19 +23,18 @@ import pwd
 import re
 import socket
 import stat
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+import drivers
+from drivers.cameras import Registration, cameras, loaded, registration
 from robotd.config import Config
 from robotd.errors import RobotdError
 
 OK, WARN, FAIL, SKIP = "ok", "warn", "fail", "skip"
-LUXONIS_VENDOR_ID = "03e7"
-SYSFS_USB = Path("/sys/bus/usb/devices")
-UDEV_RULE_DIRS = (Path("/etc/udev/rules.d"), Path("/lib/udev/rules.d"), Path("/usr/lib/udev/rules.d"))
 HEARTBEAT_TIMEOUT_S = 3.0  # ArduPilot sends HEARTBEAT at 1 Hz: three chances
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -69,57 +70,32 @@ def to_json(results: Sequence[CheckResult]) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------------------------
-# OAK camera
+# The camera's host checks (its driver's)
 
 
-def _is_oak(cfg: Config) -> bool:
-    return cfg.camera.url.startswith("oak://")
+def _camera(cfg: Config) -> Registration | None:
+    """The registration of ``camera.url``'s camera; None when none takes it (its own check says why)."""
+    try:
+        return registration(cfg.camera.url)
+    except RobotdError:
+        return None
 
 
-def check_oak_usb(cfg: Config, sysfs_root: Path = SYSFS_USB) -> CheckResult:
-    """A Luxonis device (USB vendor 03e7) on the bus, read from sysfs (no lsusb needed)."""
-    name = "oak-usb"
-    if not _is_oak(cfg):
-        return CheckResult(name, SKIP, f"camera.url is {cfg.camera.url!r}, not oak://")
-    found = []
-    for vendor_file in sorted(sysfs_root.glob("*/idVendor")):
-        try:
-            if vendor_file.read_text().strip().lower() == LUXONIS_VENDOR_ID:
-                product_file = vendor_file.parent / "idProduct"
-                product = product_file.read_text().strip() if product_file.exists() else "?"
-                found.append(f"{vendor_file.parent.name} ({LUXONIS_VENDOR_ID}:{product})")
-        except OSError:
-            continue  # a device unplugged while we read: not ours to report
-    if not found:
-        return CheckResult(
-            name,
-            FAIL,
-            f"no Luxonis device (USB vendor {LUXONIS_VENDOR_ID}) under {sysfs_root} (camera.url={cfg.camera.url}): "
-            "plug the OAK in (USB3 port and cable), or set camera.url",
-        )
-    return CheckResult(name, OK, f"Luxonis device on USB: {', '.join(found)}")
-
-
-def check_oak_udev(cfg: Config, rule_dirs: Iterable[Path] = UDEV_RULE_DIRS) -> CheckResult:
-    """A udev rule for vendor 03e7: without it only root can open the OAK."""
-    name = "oak-udev"
-    if not _is_oak(cfg):
-        return CheckResult(name, SKIP, f"camera.url is {cfg.camera.url!r}, not oak://")
-    dirs = list(rule_dirs)
-    for d in dirs:
-        for rule in sorted(d.glob("*.rules")):
-            try:
-                if LUXONIS_VENDOR_ID in rule.read_text(errors="replace").lower():
-                    return CheckResult(name, OK, f"{rule} grants access to vendor {LUXONIS_VENDOR_ID}")
-            except OSError:
+def check_camera_host(cfg: Config) -> list[CheckResult]:
+    """Every registered camera driver's checks of this machine (a USB device, a udev rule): run for
+    the camera of ``camera.url``, skipped with the reason for the others."""
+    configured = _camera(cfg)
+    results = []
+    for reg in cameras():
+        driver = loaded(reg)
+        for check in driver.host_checks() if driver is not None else ():
+            if reg is not configured:
+                why = f"camera.url is {cfg.camera.url!r}, not {reg.scheme}://"
+                results.append(CheckResult(check.name, SKIP, why))
                 continue
-    return CheckResult(
-        name,
-        FAIL,
-        f"no udev rule mentioning {LUXONIS_VENDOR_ID} in {', '.join(map(str, dirs))}: "
-        "sudo cp systemd/60-robotd-oak.rules /etc/udev/rules.d/ && sudo udevadm control --reload-rules "
-        "&& sudo udevadm trigger",
-    )
+            passed, message = check.run(cfg.camera.url)
+            results.append(CheckResult(check.name, OK if passed else FAIL, message))
+    return results
 
 
 # --------------------------------------------------------------------------------------------
@@ -359,11 +335,11 @@ def check_calibration(cfg: Config) -> CheckResult:
     streamed size must be the file's; a source with its own rig refuses one)."""
     name = "calibration"
     path = cfg.camera.calibration
+    camera = _camera(cfg)
     if not path:
-        if _is_oak(cfg):
-            return CheckResult(name, OK, "camera.calibration unset: the OAK's factory calibration will be used")
+        if camera is not None and camera.kind.factory_calibration:
+            return CheckResult(name, OK, f"camera.calibration unset: {camera.kind.factory_calibration} will be used")
         return CheckResult(name, SKIP, f"camera.calibration unset: {cfg.camera.url} brings its own")
-    import drivers
     from calib.camchain import load_calibration
     from robotd.errors import CalibrationError
 
@@ -378,7 +354,7 @@ def check_calibration(cfg: Config) -> CheckResult:
         return CheckResult(name, FAIL, f"{path}: {exc} (camera.calibration)")
     except RobotdError as exc:
         return CheckResult(name, FAIL, f"{exc} (camera.url)")
-    if not _is_oak(cfg):
+    if camera is None or not camera.kind.calibration_size_in_url:
         return CheckResult(
             name, OK, f"{path}: {w}x{h}; {cfg.camera.url} rectifies with it (its size is checked at open)"
         )
@@ -392,14 +368,12 @@ def run_checks(
     cfg: Config,
     *,
     warm: bool = False,
-    sysfs_root: Path = SYSFS_USB,
-    udev_dirs: Iterable[Path] = UDEV_RULE_DIRS,
     heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
 ) -> list[CheckResult]:
-    """Every check, in the order a rover fails them: devices, links, ports, disk, cache, calibration."""
+    """Every check, in the order a rover fails them: devices (the camera's, then the vehicle's), links,
+    ports, disk, cache, calibration."""
     checks: list[Callable[[], CheckResult | list[CheckResult]]] = [
-        lambda: check_oak_usb(cfg, sysfs_root),
-        lambda: check_oak_udev(cfg, udev_dirs),
+        lambda: check_camera_host(cfg),
         lambda: check_serial(cfg),
         lambda: check_mavlink(cfg, heartbeat_timeout_s),
         lambda: check_zenoh(cfg),

@@ -267,7 +267,7 @@ def pose_estimate_from_msg(d: Mapping[str, Any]) -> PoseEstimate:
 def encode_png(img: np.ndarray, level: int) -> bytes:
     """A grey uint8 image as PNG. Huffman-only deflate after PNG's per-row filters: sensor noise
     leaves LZ77 nothing to find, so this is both smaller and faster than the default strategy
-    (on sim:// 640×400: 8.4 vs 9.5 MB/s of stereo at 30 Hz, ~3.5 vs ~4.5 ms per image)."""
+    (on the simulated rover's 640×400: 8.4 vs 9.5 MB/s of stereo at 30 Hz, ~3.5 vs ~4.5 ms per image)."""
     params = [cv2.IMWRITE_PNG_COMPRESSION, int(level), cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
     ok, buf = cv2.imencode(".png", img, params)
     if not ok:

@@ -8,7 +8,7 @@ rests on ``MIN_INLIERS`` inliers. Until then the pipeline leaves the map untouch
 tracking; after ``MAX_FRAMES`` frames without a fix it carries on from the saved pose and says so.
 
 3-D maps only: a planar map has no landmark heights, and the 3-D consensus against it found 0–10
-inliers on sim:// (a planar resume continues from the saved pose).
+inliers on the simulated rover (a planar resume continues from the saved pose).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from robotd.slam.estimator import Estimator
 
 logger = logging.getLogger(__name__)
 
-# sim://, map of 120 frames: 10–30 inliers, pose within 4–8 cm of the first run's
+# the simulated rover, map of 120 frames: 10–30 inliers, pose within 4–8 cm of the first run's
 MIN_INLIERS = 12
 MAX_FRAMES = 30
 # the covariance a relocalised pose starts from: 5 cm, 0.02 rad (1.1°)

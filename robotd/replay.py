@@ -13,8 +13,11 @@ odometry would arrive (``drivers.kitti_oxts``); a folder without them stays visu
 summary's ``odometry`` says which was used ("none", "oxts", "sim", "gt-synthetic", or a recording's
 source). ``gt_odometry=True`` synthesises odometry from ground truth with documented noise, for
 experiments only; such runs are labelled in the summary and never reported as results.
-A ``sim://`` source runs with its rover's own noisy odometry; ``odometry=0`` in its URL makes that
-rover give none, so the same world runs on vision alone (docs/sim.md).
+The simulated rover runs with its own noisy odometry; ``odometry=0`` in its URL makes that rover
+give none, so the same world runs on vision alone (docs/sim.md).
+
+Which odometry a source brings, how it is paced, how many frames it has and what it says at the
+end are its camera driver's declarations (:mod:`drivers.cameras`), never its scheme.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from typing import Any
 import numpy as np
 
 import drivers
+from drivers.cameras import CameraDriver, DatasetOdometry, camera_driver, camera_kind, cameras, schemes_text
 from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
 from robotd.device_urls import calibration_refusals, camera_options
@@ -51,37 +55,21 @@ def _progress_bar(total: int | None, enabled: bool) -> Any:
     return progress_bar(total, "frame", "replay", enabled=enabled)
 
 
-def _frame_total(camera: Any, max_frames: int) -> int | None:
+def _frame_total(camera: Any, max_frames: int, driver: CameraDriver | None = None) -> int | None:
     """Frames the replay will process, when the source can tell without reading them (the bar's
-    total; None: the bar shows a count and a rate only)."""
-    total: int | None = getattr(camera, "n_frames", None)
-    if total is None and hasattr(camera, "entries"):  # KITTI / EuRoC: the selected frames, listed
-        total = len(camera.entries)
-    if total is None and hasattr(camera, "reader") and hasattr(camera, "replay"):  # a robotd recording
-        total = _mcap_frame_total(camera.reader, camera.replay)
+    total, from the camera's driver; None: the bar shows a count and a rate only)."""
+    driver = driver or camera_driver(camera.url)
+    total = driver.frame_total(camera)
     if max_frames:
         total = max_frames if total is None else min(total, max_frames)
     return total
 
 
-def _mcap_frame_total(reader: Any, sel: Any) -> int | None:
-    """Selected frames of a recording, from the MCAP summary's message counts (no message is
-    read; None for a file without a summary, e.g. an interrupted recording)."""
-    n = reader.frame_count()
-    if n is None:
-        return None
-    stop = n if sel.stop is None else min(sel.stop, n)
-    return len(sel.select(stop))
-
-
-def _is_recording(source: str) -> bool:
-    return source.startswith("mcap://") or ("://" not in source and source.endswith((".mcap", ".mcap.tmp")))
-
-
 def _opening_line(source: str) -> str:
     """What replay is doing during its silent start: opening (indexing) a recording takes seconds."""
-    path = source.removeprefix("mcap://").split("?", 1)[0]
-    if "://" not in path and os.path.isfile(path):
+    path = source.partition("://")[2] if "://" in source else source
+    path = path.split("?", 1)[0]
+    if camera_kind(source).reads == "file" and os.path.isfile(path):
         return f"opening {path} ({os.path.getsize(path) / 1e6:.0f} MB)..."
     return f"opening {source}..."
 
@@ -111,26 +99,10 @@ def summary_line(summary: dict[str, Any]) -> str:
     return line
 
 
-# the clock start of an unpaced sim:// replay (realtime=0): fixed, so two replays of the same URL
-# write the same trajectory file, stamps included (a paced one runs on the host's monotonic clock)
-SIM_REPLAY_T0_NS = 1_000_000_000
-
-
-def _sim_options(url: str) -> dict[str, Any]:
-    """Options for opening an unpaced sim:// source: its clock starts at SIM_REPLAY_T0_NS."""
-    if not url.startswith("sim://"):
-        return {}
-    from urllib.parse import parse_qsl, urlsplit
-
-    realtime = dict(parse_qsl(urlsplit(url).query)).get("realtime", "1")
-    return {"t0_ns": SIM_REPLAY_T0_NS} if realtime.strip() in ("0", "false", "False") else {}
-
-
-def _source_url(source: str, realtime: bool) -> str:
-    if realtime and "://" in source and not source.startswith("sim://"):
-        sep = "&" if "?" in source else "?"
-        return f"{source}{sep}realtime=1"
-    return source
+def _source_url(source: str, realtime: bool, driver: CameraDriver) -> str:
+    """The URL replay opens: ``source``, paced at its own rate with ``realtime`` (a URL's driver
+    says how)."""
+    return driver.paced(source) if realtime and "://" in source else source
 
 
 def replay(
@@ -158,7 +130,8 @@ def replay(
     """
     if out_format not in TRAJECTORY_FORMATS:
         raise RobotdError(f"replay: trajectory format {out_format!r}: expected one of {list(TRAJECTORY_FORMATS)}")
-    url = _source_url(source, realtime)
+    driver = camera_driver(source)  # what the source declares (drivers.cameras)
+    url = _source_url(source, realtime, driver)
     rng = np.random.default_rng(cfg.robot.seed)
     results: list[StepResult] = []
     truths: list[tuple[int, np.ndarray]] = []
@@ -171,28 +144,23 @@ def replay(
         if progress:
             # opening a recording is seconds of silence otherwise (the MCAP index is read first)
             print(_opening_line(source), file=sys.stderr, flush=True)
-        sim_opts = _sim_options(url)
+        replay_opts = driver.replay_options(url)  # e.g. a fixed clock start, so two replays agree
         cam_opts = camera_options(cfg, url)  # camera.calibration, for a source that rectifies (else refused)
         with calibration_refusals(cfg):
-            camera = stack.enter_context(drivers.open_camera(url, **sim_opts, **cam_opts))
+            camera = stack.enter_context(drivers.open_camera(url, **replay_opts, **cam_opts))
         vehicle = None
         if gt_odometry:
             logger.warning("EXPERIMENT: odometry synthesised from ground truth (never for reported figures)")
             # the truth's robot frame is the rectified rig's: the same calibration as the camera's
-            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source), **sim_opts, **cam_opts))
-        elif _is_recording(source):
-            vehicle = stack.enter_context(drivers.open_vehicle(source if "://" in source else f"mcap://{source}"))
-        elif source.startswith("sim://"):
-            # the simulated rover's own noisy odometry (same world and clock as its camera);
-            # none with odometry=0 in the URL (vision only)
-            vehicle = stack.enter_context(drivers.open_vehicle(url, **sim_opts))
-        elif source.startswith("kitti://") and cfg.replay.odometry == "dataset":
-            vehicle = stack.enter_context(drivers.open_vehicle(_recorded_odometry_url(url, cfg)))
+            vehicle = stack.enter_context(drivers.open_vehicle(_gt_odometry_url(source), **replay_opts, **cam_opts))
+        elif (vehicle_url := driver.replay_vehicle(source, url, _dataset_odometry(cfg))) is not None:
+            # the source's own odometry: a recording's, a simulated rover's, a dataset's when asked for
+            vehicle = stack.enter_context(drivers.open_vehicle(vehicle_url, **replay_opts))
         odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
         pending = None
         rig = camera.rectified_model()
         pipeline = Pipeline(cfg, rig, rng)
-        prog = stack.enter_context(_progress_bar(_frame_total(camera, max_frames), progress))
+        prog = stack.enter_context(_progress_bar(_frame_total(camera, max_frames, driver), progress))
         if not prog.disable:
             # log lines (a skipped frame) go above the bar instead of through it
             from tqdm.contrib.logging import logging_redirect_tqdm
@@ -228,7 +196,7 @@ def replay(
             prog.update(1)
             if max_frames and len(results) >= max_frames:
                 break
-    recording = camera.recording_status() if hasattr(camera, "recording_status") else None
+    recording = driver.status(camera)
     if not results:
         why = f": {recording['stopped']}" if recording and recording.get("stopped") else ""
         raise RobotdError(f"{source}: no frame was processed{why}")
@@ -244,11 +212,13 @@ def replay(
             out_format.upper(),
             cov_path_for(out_traj),
         )
-    if out_traj and out_format == "kitti" and source.startswith("kitti://") and seqs != list(range(len(seqs))):
+    by_row = camera_kind(source).truth_by_row
+    if out_traj and out_format == "kitti" and by_row and seqs != list(range(len(seqs))):
         logger.warning(
             "%s has one row per replayed frame, and frames of the source are missing (start/stride/drop or a skipped "
-            "frame): it pairs by row with the truth --truth-out writes, not with the folder's poses.txt",
+            "frame): it pairs by row with the truth --truth-out writes, not with %s",
             out_traj,
+            by_row,
         )
     if truth_out:
         _write_truth(truth_out, source, truths, len(results), out_format, rig.baseline_m)
@@ -306,7 +276,8 @@ def _write_truth(
     the trajectory's format and frame, so a tool that knows nothing of robotd's frames (evo) compares
     like with like. A KITTI file pairs by row, so it needs a truth for every replayed frame."""
     if not truths:
-        raise RobotdError(f"--truth-out {path}: {source} carries no ground truth (kitti://, euroc:// and sim:// do)")
+        which = schemes_text([r.scheme for r in cameras() if r.kind.truth], "and")
+        raise RobotdError(f"--truth-out {path}: {source} carries no ground truth ({which} do)")
     if fmt == "kitti" and len(truths) != n_poses:
         raise RobotdError(
             f"--truth-out {path}: {len(truths)} of the {n_poses} replayed frames carry a truth, and a KITTI file "
@@ -386,14 +357,12 @@ def _odometry_name(vehicle: Any, source: str) -> str:
     return str(getattr(vehicle, "odometry_source", None) or source.partition("://")[0])
 
 
-def _recorded_odometry_url(url: str, cfg: Config) -> str:
-    """The kitti vehicle URL with the dataset's recorded odometry (OXTS) and its configured noise."""
-    sep = "&" if "?" in url else "?"
-    r = cfg.replay
-    return (
-        f"{url}{sep}odometry=oxts&oxts_sigma_vel_mps={r.oxts_sigma_vel_mps!r}"
-        f"&oxts_sigma_rate_radps={r.oxts_sigma_rate_radps!r}"
-    )
+def _dataset_odometry(cfg: Config) -> DatasetOdometry | None:
+    """``replay.odometry = "dataset"``: the dataset's recorded odometry (KITTI's OXTS) with its
+    configured noise; None: vision only (a source whose driver always brings odometry still does)."""
+    if cfg.replay.odometry != "dataset":
+        return None
+    return DatasetOdometry(cfg.replay.oxts_sigma_vel_mps, cfg.replay.oxts_sigma_rate_radps)
 
 
 def _gt_odometry_url(source: str) -> str:

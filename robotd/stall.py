@@ -5,8 +5,8 @@ of seconds between two frames. When odometry covers it, the odometry is the moti
 frame. When nothing does, the constant-velocity prediction used between normal frames is no
 prior at all: its uncertainty grows with the acceleration bound × Δt² (σ = 84 m over 4 s at
 1 m/s), and a particle filter spread over tens of metres, with no map landmark in view to weigh
-its particles, puts its estimate wherever the noisiest particle is (21.8 m off on sim://, then
-the pitch singularity; kitti-seq1 with a 4 s hole: 24 m).
+its particles, puts its estimate wherever the noisiest particle is (21.8 m off on the simulated
+rover, then the pitch singularity; kitti-seq1 with a 4 s hole: 24 m).
 
 So the first frame after a gap that nothing measured gets its motion from evidence, in order:
 
@@ -100,7 +100,7 @@ def blind_motion(
     manoeuvre model: a vehicle in a curve does not go round in circles), roll and pitch held (their
     rates are the terrain's rocking), integrated along the path.
 
-    Why not the constant twist: on sim://, a stall entered at 0.27 rad/s in the loop's changing
+    Why not the constant twist: on the simulated rover, a stall entered at 0.27 rad/s in the loop's changing
     curvature turned a constant-rate guess 47° too far (the error then grew to 3.7 m within 4 s);
     and a straight-ahead guess is 3 m off after 4 s in a 1.8 m radius curve."""
     w_last = so3_log(R_last) / dt_last_s

@@ -18,6 +18,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from drivers.cameras import CAMERAS
 from tests.support.paths import REPO
 
 PACKAGES = ("robotd", "drivers", "calib")
@@ -95,8 +96,27 @@ STDLIB_OK = {
     "collections.abc",
     "concurrent",  # compute parallelism (both images detected at once), not I/O
 }
+
+
+def _camera_library_owners() -> dict[str, str]:
+    """library -> the camera driver's module or package that alone may import it, from the cameras'
+    registrations (drivers.cameras: each kind's ``libraries``)."""
+    owners: dict[str, str] = {}
+    for reg in CAMERAS.values():
+        module = reg.target.partition(":")[0] if isinstance(reg.target, str) else type(reg.target).__module__
+        path = module.replace(".", "/")
+        owners.update({lib: path if (REPO / path).is_dir() else f"{path}.py" for lib in reg.kind.libraries})
+    return owners
+
+
+# each hardware library -> its one importer: the cameras' from their registrations, the vehicle links'
+HARDWARE_OWNERS = {
+    **_camera_library_owners(),
+    "serial": "drivers/serial_link.py",
+    "pymavlink": "drivers/mavlink_link.py",
+}
 # the I/O libraries that must stay in drivers/, the outputs and the daemon
-FORBIDDEN = {"zenoh", "serial", "pymavlink", "depthai", "socket", "mcap", "threading", "subprocess", "matplotlib"}
+FORBIDDEN = {"zenoh", "socket", "mcap", "threading", "subprocess", "matplotlib", *HARDWARE_OWNERS}
 
 
 def _files(entries: list[str]) -> list[Path]:
@@ -277,7 +297,8 @@ def test_the_cycle_finder_finds_a_cycle() -> None:
 
 
 def test_each_hardware_library_has_one_importer() -> None:
-    owners = {"depthai": "drivers/oak", "serial": "drivers/serial_link.py", "pymavlink": "drivers/mavlink_link.py"}
+    owners = HARDWARE_OWNERS
+    assert owners["depthai"] == "drivers/oak"  # the OAK's, declared at its registration
     bad: list[str] = []
     for f in sorted(REPO.glob("**/*.py")):
         rel = f.relative_to(REPO).as_posix()
@@ -322,7 +343,7 @@ RULES: dict[str, Rule] = {
     "drivers": Rule(
         layers=frozenset({"core"}),
         modules=("robotd.queues", "robotd.autopilot", "robotd.record"),
-        third_party=frozenset({"numpy", "cv2", "numba", "yaml", "depthai", "serial", "pymavlink"}),
+        third_party=frozenset({"numpy", "cv2", "numba", "yaml", *HARDWARE_OWNERS}),
     ),
     "service": Rule(layers=frozenset({"core", "pipeline", "formats", "drivers"}), modules=("calib.camchain",)),
     "tools": Rule(layers=BELOW_TOOLS, modules=("robotd.research.evaluate", "robotd.research.experiments")),

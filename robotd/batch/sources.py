@@ -2,12 +2,15 @@
 
 A source argument is one of:
 
-- a URL: ``sim://…`` (the simulated rover; its query names the world, the seed, the length),
-  ``kitti://DIR``, ``euroc://DIR``, ``mcap://FILE``; a glob in a folder's or file's path
-  (``kitti:///data/kitti-*``) gives one source per match;
-- a path or a glob (``archive/**/*.mcap``): a ``.mcap`` file is a recording, a folder with
-  ``calib.txt`` and ``image_0/`` or ``image_l/`` a KITTI sequence, a folder with ``mav0/`` (or
-  ``cam0/`` and ``cam1/``) an EuRoC sequence, any other folder the recordings directly in it.
+- a URL of a camera that is not hardware (the registered cameras, drivers.cameras: the simulated
+  rover, whose query names the world, the seed, the length; a dataset folder; a recording); a glob
+  in a folder's or file's path gives one source per match;
+- a path or a glob (``archive/**/*.mcap``): a file with a recording's suffix is a recording, a
+  folder a camera driver claims (a KITTI or an EuRoC sequence: ``claims_folder``) that driver's
+  URL, any other folder the recordings directly in it.
+
+Which is which is what each camera driver declares (``reads``: a folder, a file, or nothing: the
+URL is the source), never its scheme.
 
 Paths become absolute, so a Ray worker on another machine reads the same path (it must see it:
 docs/fleet.md, "Ray").
@@ -15,8 +18,8 @@ docs/fleet.md, "Ray").
 The digest names a source's content, so results are reused across runs (and across machines that
 see the data under other paths) exactly when the data are the same:
 
-- ``sim://``: the URL's scheme, world and query, sorted (the world is code, and the code's version
-  is in the result's key besides);
+- a simulated source (its URL reads nothing): the URL's scheme, world and query, sorted (the world
+  is code, and the code's version is in the result's key besides);
 - a recording: the SHA-256 of the file (exact). Hashing a 10 GB file takes a while, so the digest
   is cached by (path, size, mtime, inode) in the results folder: a rerun reads no recording twice;
 - a dataset folder: every file's relative path, size and mtime, plus the SHA-256 of its small
@@ -39,10 +42,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
-from robotd.errors import InputError
+from drivers.cameras import Registration, cameras, loaded, path_scheme, scheme_of, suffixes
+from robotd.errors import DriverError, InputError
 
-SCHEMES = ("sim", "kitti", "euroc", "mcap")
-RECORDING_SUFFIXES = (".mcap", ".mcap.tmp")
 # small files of a dataset folder whose content goes into its digest (the index, the calibration,
 # the truth); images are named, sized and dated only
 INDEX_SUFFIXES = (".txt", ".csv", ".yaml", ".yml", ".json")
@@ -66,26 +68,36 @@ class Source:
 def source_scheme(url: str) -> str:
     if "://" in url:
         return url.partition("://")[0]
-    return "mcap"
+    return path_scheme(url) or ""
+
+
+def _replayable() -> dict[str, Registration]:
+    """scheme -> registration of every camera that is not hardware (what replay-many replays)."""
+    return {r.scheme: r for r in cameras(hardware=False)}
+
+
+def _reads(url: str) -> str | None:
+    """What ``url``'s camera reads (drivers.cameras.READS), None when it is no replayable camera's."""
+    try:
+        reg = _replayable().get(scheme_of(url))
+    except DriverError:
+        return None
+    return None if reg is None else reg.kind.reads
+
+
+def _reads_nothing(url: str) -> bool:
+    """The URL is the whole source (a simulated world), no file or folder."""
+    return _reads(url) == "nothing"
 
 
 def _has_magic(text: str) -> bool:
     return glob.has_magic(text)
 
 
-def is_kitti_folder(p: Path) -> bool:
-    return (p / "calib.txt").is_file() and ((p / "image_0").is_dir() or (p / "image_l").is_dir())
-
-
-def is_euroc_folder(p: Path) -> bool:
-    mav = p / "mav0" if (p / "mav0").is_dir() else p
-    return (mav / "cam0").is_dir() and (mav / "cam1").is_dir()
-
-
 def _name(url: str) -> str:
-    """A short name for the table: the file or folder name (with the query), or the sim URL."""
-    scheme = source_scheme(url)
-    if scheme == "sim":
+    """A short name for the table: the file or folder name (with the query), or the URL of a source
+    that reads nothing (a simulated world)."""
+    if _reads_nothing(url):
         return url
     rest = url.partition("://")[2] if "://" in url else url
     path, _, query = rest.partition("?")
@@ -96,30 +108,32 @@ def _name(url: str) -> str:
 def _classify(path: Path, where: str) -> list[str]:
     """A path -> source URLs (a recording, a dataset folder, or a folder's recordings)."""
     p = path.resolve()
+    recording = suffixes()
     if p.is_file():
-        if p.name.endswith(RECORDING_SUFFIXES):
+        if recording and p.name.endswith(recording):
             return [str(p)]
-        raise InputError(f"{where}: {path} is not a recording (.mcap)")
+        raise InputError(f"{where}: {path} is not a recording ({', '.join(recording)})")
     if p.is_dir():
-        if is_kitti_folder(p):
-            return [f"kitti://{p}"]
-        if is_euroc_folder(p):
-            return [f"euroc://{p}"]
-        recs = sorted(str(f) for f in p.iterdir() if f.is_file() and f.name.endswith(RECORDING_SUFFIXES))
+        folders = [r for r in _replayable().values() if r.kind.reads == "folder"]
+        for reg in folders:
+            driver = loaded(reg)
+            if driver is not None and driver.claims_folder(p):
+                return [f"{reg.scheme}://{p}"]
+        recs = sorted(str(f) for f in p.iterdir() if f.is_file() and recording and f.name.endswith(recording))
         if recs:
             return recs
-        raise InputError(
-            f"{where}: {path} is neither a KITTI folder (calib.txt, image_0/ or image_l/), an EuRoC folder (mav0/) "
-            "nor a folder of .mcap recordings"
-        )
+        kinds = ", ".join(r.kind.folder or f"a {r.scheme}:// folder" for r in folders)
+        recordings = f"{recording[0]} recordings" if recording else "recordings"
+        raise InputError(f"{where}: {path} is neither {kinds} nor a folder of {recordings}")
     raise InputError(f"{where}: {path} does not exist")
 
 
 def _expand_url(item: str) -> list[str]:
     scheme, _, rest = item.partition("://")
-    if scheme not in SCHEMES:
-        raise InputError(f"source {item!r}: unknown scheme {scheme!r}; known: {', '.join(SCHEMES)}")
-    if scheme == "sim":
+    known = _replayable()
+    if scheme not in known:
+        raise InputError(f"source {item!r}: unknown scheme {scheme!r}; known: {', '.join(known)}")
+    if known[scheme].kind.reads == "nothing":
         return [item]
     path, sep, query = rest.partition("?")
     if _has_magic(path):
@@ -249,7 +263,8 @@ def folder_digest(root: Path) -> str:
 def source_digest(url: str, cache: DigestCache | None = None) -> str:
     """The digest of a source's content and selection (module docstring); 32 hex digits."""
     scheme = source_scheme(url)
-    if scheme == "sim":
+    reads = _reads(url)
+    if reads == "nothing":
         parts = urlsplit(url)
         content = f"world={parts.netloc}"
         query = parts.query
@@ -263,7 +278,7 @@ def source_digest(url: str, cache: DigestCache | None = None) -> str:
             content = "folder=" + folder_digest(path)
         else:
             raise InputError(f"source {url}: {path} does not exist")
-        if scheme == "mcap":
+        if reads == "file":
             scheme = "recording"
     h = hashlib.sha256(f"{scheme}\n{_canonical_query(query)}\n{content}\n".encode())
     return h.hexdigest()[:32]

@@ -20,8 +20,6 @@ from robotd.errors import DriverError
 
 logger = logging.getLogger(__name__)
 
-# devices that can appear later (plugged in, powered up): opening them is retried
-HARDWARE_SCHEMES = ("oak", "serial", "mavlink+udp", "mavlink+serial")
 D = TypeVar("D")
 
 
@@ -72,8 +70,9 @@ def open_with_retry(
     give_up_at: float = math.inf,
     **options: Any,
 ) -> D:
-    """Open a driver; a missing hardware device is retried (backing off to 10 s) until ``stop``,
-    or until the monotonic time ``give_up_at``, when a DriverError says how long it waited."""
+    """Open a driver; a missing hardware device (``drivers.is_hardware``: a camera whose driver
+    declares it, a serial or MAVLink link) is retried (backing off to 10 s) until ``stop``, or until
+    the monotonic time ``give_up_at``, when a DriverError says how long it waited."""
     delay = 0.5
     t0 = time.monotonic()
     while True:
@@ -82,7 +81,7 @@ def open_with_retry(
         except DriverError as exc:
             if stop.is_set():
                 raise
-            if url.split("://")[0] not in HARDWARE_SCHEMES:
+            if not drivers.is_hardware(kind, url):
                 raise  # a simulator or dataset that fails to open will not heal by waiting
             left = give_up_at - time.monotonic()
             if left <= 0:

@@ -45,7 +45,7 @@ class DetectorParams:
       Pyramid: 5 levels at scale 1.44 (span 1.44⁴ ≈ 4.3, more than OpenCV's default 8 × 1.2, 1.2⁷ ≈
       3.6) runs FAST on ≈ 40 % fewer pixels (detect 5.2 → 3.4 ms CPU per 640×400 image) and puts
       more of the quota on the fine levels: kitti-seq1 drift 0.84 → 0.56 %, ATE 0.105 → 0.052 m,
-      640×400 frame-to-frame median error 0.021 → 0.018; sim:// 300 frames ATE 22 → 9 mm.
+      640×400 frame-to-frame median error 0.021 → 0.018; the simulated rover's 300 frames ATE 22 → 9 mm.
     sift_*: cv2.SIFT knobs (contrast and edge thresholds, layers per octave).
     surf_hessian_threshold: passed to the SURF module when its params accept it (None: its default,
       OpenCV's 100). 20: low enough that the feature cap binds on every KITTI image, so the cap and

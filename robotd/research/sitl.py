@@ -5,11 +5,11 @@
     ardurover (SITL, --model JSON) ── servo PWM (UDP, lockstep) ──► drivers.rover_physics (here)
         ▲                                                               │ truth datagrams (UDP)
         │ ODOMETRY, HEARTBEAT, SET_GPS_GLOBAL_ORIGIN (MAVLink, UDP)      ▼
-    robotd run (its own process) ◄── rendered stereo pairs ── sim://yard?follow=…  (robotd's camera)
+    robotd run (its own process) ◄── rendered stereo pairs ── the simulated yard, follow=…  (drivers.sim)
 
 Everything is on loopback. The physics program (this process) integrates a car-like rover from
 the autopilot's steering and throttle outputs and answers SITL with the rover's IMU, pose and
-velocity; it streams the same truth to robotd's ``sim://`` camera, which renders the textured yard
+velocity; it streams the same truth to robotd's simulated camera, which renders the textured yard
 from it; robotd sends ``ODOMETRY`` to the SITL, whose EKF3 fuses it (GPS off) and whose mission
 code drives the rover through waypoints laid along the yard's loop. A pymavlink ground station
 (here) sets the mission, arms, switches to AUTO and watches; at the end every process is stopped
@@ -136,7 +136,7 @@ def latlon_to_ned(lat: np.ndarray, lon: np.ndarray, home: tuple[float, float, fl
 
 
 def loop_mission(laps: float, spacing_m: float, yaw0_deg: float = 0.0) -> np.ndarray:
-    """(K, 2) north, east [m] of waypoints laid along the ``sim://yard`` loop every ``spacing_m``
+    """(K, 2) north, east [m] of waypoints laid along the simulated yard's loop every ``spacing_m``
     for ``laps`` laps, from its start (NED's origin, heading ``yaw0_deg``): the obstacle-free path
     the yard was built around."""
     traj = LoopTrajectory()
@@ -411,7 +411,10 @@ def robotd_config(
     opts: LoopOptions, state_dir: Path, zenoh_ports: tuple[int, int], mav_port: int, truth_port: int
 ) -> str:
     """robotd's configuration for the loop (TOML)."""
-    cam = f"sim://yard?fps={opts.fps:g}&seed={opts.seed}&follow=127.0.0.1:{truth_port}&yaw0={opts.yaw0_deg:g}"
+    from drivers.sim import sim_url
+
+    follow = f"127.0.0.1:{truth_port}"
+    cam = sim_url("yard", fps=f"{opts.fps:g}", seed=opts.seed, follow=follow, yaw0=f"{opts.yaw0_deg:g}")
     mav = f"mavlink+udp://127.0.0.1:{mav_port}?mode=in&track_width_m={WHEEL_TRACK_M:g}"
     vehicle = mav if opts.vehicle == "mavlink" else cam
     lines = [

@@ -17,11 +17,11 @@ from calib.camchain import save_calibration
 from drivers.mavlink_link import wait_heartbeat
 from drivers.mavlink_mock import MockAutopilot
 from drivers.mcu_sim import open_pty
+from drivers.oak import host as oak_host
 from robotd import doctor
 from robotd.cli import main
 from robotd.config import Config, load_config
 from tests.calib.test_camchain import _calib
-from tests.support.paths import REPO
 
 
 def cfg_with(**sections: dict[str, Any]) -> Config:
@@ -45,28 +45,24 @@ def fake_sysfs(root: Path, devices: dict[str, tuple[str, str]]) -> Path:
     return root
 
 
-def test_oak_usb_finds_the_luxonis_vendor_in_sysfs(tmp_path: Path) -> None:
-    cfg = cfg_with(camera={"url": "oak://"})
-    hub = {"usb1": ("1d6b", "0002")}
-    present = fake_sysfs(tmp_path / "a", {**hub, "1-1": ("03e7", "2485")})
-    absent = fake_sysfs(tmp_path / "b", hub)
-    ok = doctor.check_oak_usb(cfg, present)
-    assert ok.status == doctor.OK and "1-1 (03e7:2485)" in ok.message
-    bad = doctor.check_oak_usb(cfg, absent)
-    assert bad.status == doctor.FAIL and "03e7" in bad.message and "camera.url" in bad.message
-    assert doctor.check_oak_usb(cfg_with(), present).status == doctor.SKIP  # sim:// camera
+def _camera_host(cfg: Config) -> dict[str, doctor.CheckResult]:
+    return {r.name: r for r in doctor.check_camera_host(cfg)}
 
 
-def test_oak_udev_rule_from_the_shipped_file(tmp_path: Path) -> None:
-    cfg = cfg_with(camera={"url": "oak://"})
-    (tmp_path / "rules").mkdir()
-    (tmp_path / "rules" / "99-other.rules").write_text('SUBSYSTEM=="tty", GROUP="dialout"\n')
-    assert doctor.check_oak_udev(cfg, [tmp_path / "rules", tmp_path / "missing"]).status == doctor.FAIL
-    shipped = REPO / "systemd" / "60-robotd-oak.rules"
-    (tmp_path / "rules" / shipped.name).write_text(shipped.read_text())
-    r = doctor.check_oak_udev(cfg, [tmp_path / "missing", tmp_path / "rules"])
-    assert r.status == doctor.OK and shipped.name in r.message
-    assert doctor.check_oak_udev(cfg_with(), [tmp_path / "rules"]).status == doctor.SKIP
+def test_the_oak_checks_are_its_drivers_run_for_an_oak_and_skipped_for_another_camera(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the checks themselves: tests/drivers/oak/test_host.py; here, that doctor runs them by the driver
+    monkeypatch.setattr(oak_host, "SYSFS_USB", fake_sysfs(tmp_path / "a", {"1-1": ("03e7", "2485")}))
+    monkeypatch.setattr(oak_host, "UDEV_RULE_DIRS", (tmp_path / "missing",))
+    oak = _camera_host(cfg_with(camera={"url": "oak://"}))
+    assert oak["oak-usb"].status == doctor.OK and "1-1 (03e7:2485)" in oak["oak-usb"].message
+    assert oak["oak-udev"].status == doctor.FAIL and "60-robotd-oak.rules" in oak["oak-udev"].message
+    sim = _camera_host(cfg_with())  # the default camera, the simulated rover
+    assert {r.status for r in sim.values()} == {doctor.SKIP} and set(sim) == set(oak)
+    assert sim["oak-usb"].message == f"camera.url is {cfg_with().camera.url!r}, not oak://"
+    # a camera.url no driver takes: the camera's checks are skipped (the URL's own check fails it)
+    assert {r.status for r in doctor.check_camera_host(cfg_with(camera={"url": "cam://x"}))} == {doctor.SKIP}
 
 
 # -- serial -----------------------------------------------------------------------------------
