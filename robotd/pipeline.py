@@ -11,8 +11,9 @@ the frame-to-frame motion the front end recovered from the images; failing that,
 constant-velocity prediction. Ground truth never reaches the filter.
 
 Landmark existence has one owner, the filter (its existence counter): the front end's descriptor
-store allocates the ids of the new landmarks the filter is given, and forgets the ids the filter
-reports as pruned (``UpdateReport.pruned_ids``).
+store allocates the ids of the new landmarks the filter is given, and the landmark registry
+(robotd.slam.landmarks) takes the landmarks the filter pruned or did not take out of every store
+that subscribed to it (the descriptors, the reported covariance's anchors).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 from robotd.choices import MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
-from robotd.errors import MapMismatchError, PersistenceError, RobotdError, SingularityError
+from robotd.errors import MapMismatchError, PersistenceError, SingularityError
 from robotd.frontend.association import IDENTIFIED, NEW, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
 from robotd.frontend.frontend import Frontend, Identification, Screening, VisualMotion
@@ -40,6 +41,7 @@ from robotd.relocalise import MIN_INLIERS, RESET_COV, Relocaliser, pose_from_sim
 from robotd.slam.common import measurement_model, model_cov6, pixel_noise
 from robotd.slam.estimator import Estimator, persistent
 from robotd.slam.factory import ESTIMATORS, estimator_kind, make_estimator
+from robotd.slam.landmarks import LandmarkRegistry
 from robotd.slam.measurement import covariance_at_prediction
 from robotd.slam.uncertainty import ReportedCovariance
 from robotd.stall import GapDetector, Reach, blind_motion, plausible, reach, still_prior
@@ -189,6 +191,10 @@ class Pipeline:
         self.covariance = ReportedCovariance(
             cfg.slam.covariance, self.kind.anchored_covariance, model, pixel_noise(params) if model.intrinsics else None
         )
+        # the map's landmark ids, and the stores that follow the filter's: the descriptors, the anchors
+        self.registry = LandmarkRegistry(self.estimator)
+        self.registry.subscribe(self.frontend)
+        self.registry.subscribe(self.covariance)
         self.counters = PipelineCounters()
         self.tracker = TrackingMonitor(self.counters)
         self.relocaliser = Relocaliser()
@@ -248,16 +254,14 @@ class Pipeline:
         # points seen to move since the previous frame are not mapped; on vision alone, when the
         # images gave no motion, nothing is known to move (the bare stretch needs its landmarks)
         moved = visual.increment is not None or increment is not None
-        obs = clock.run("select", self._select, meas, ident, t_ns, visual.moving if moved else None)
-        # predict with the motion prior, then fuse the frame's observations
-        try:
+        # the frame's new landmarks reach the filter and every store, or none (robotd.slam.landmarks)
+        with self.registry.frame():
+            obs = clock.run("select", self._select, meas, ident, t_ns, visual.moving if moved else None)
+            # predict with the motion prior, then fuse the frame's observations
             clock.run("predict", self._predict, inc)
             if self.covariance.enabled:
                 clock.run("consistency", self.covariance.observe, self.estimator.estimate(), obs, landmarks)
-        except RobotdError:
-            self._forget_new(obs)
-            raise
-        report = clock.run("update", self._update, obs, landmarks)
+            report = clock.run("update", self._update, obs, landmarks)
         pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising)
         return self._result(frame, clock, counts, report, pose, tracking, n_identified, relocalising, obs)
 
@@ -285,12 +289,6 @@ class Pipeline:
         with no new landmarks (the map left as it is), tracking suspended."""
         self.frontend.commit(meas, ident, frame.t_ns, NO_NEW)
         return self._result(frame, clock, counts, UpdateReport(), self.estimator.estimate(), self.tracker.suspend(), 0)
-
-    def _forget_new(self, obs: Observations) -> None:
-        """The filter did not take this frame's new landmarks: their descriptors go (the store
-        follows the filter exactly, or the saved map fails its own check)."""
-        assert self.frontend.descriptors is not None
-        self.frontend.descriptors.forget(obs.ids[obs.is_new])
 
     def _after_update(
         self, t_ns: int, obs: Observations, landmarks: LandmarkMap, moved: bool, relocalising: bool
@@ -476,6 +474,7 @@ class Pipeline:
             tr = np.trace(meas.cov_R[new], axis1=1, axis2=2)
             new = np.sort(new[np.argsort(tr, kind="stable")[:k_new]])
         self.frontend.commit(meas, ident, t_ns, new)
+        self.registry.propose(ident.corr.ids[new])
         return self.frontend.observations(meas, ident, t_ns, np.sort(np.concatenate([old, new])))
 
     def _predict(self, inc: MotionIncrement | None) -> None:
@@ -599,16 +598,8 @@ class Pipeline:
                 f.depth_min_m,
                 planar=self.cfg.slam.dim == 2,
             )
-        descriptors = self.frontend.descriptors
-        assert descriptors is not None  # made by the detect stage
-        try:
-            report = self.estimator.update(obs)
-        except RobotdError:
-            descriptors.forget(obs.ids[obs.is_new])  # the filter did not take them
-            raise
-        descriptors.forget(report.pruned_ids)  # the filter owns existence; the descriptors follow
-        self.covariance.forget(report.pruned_ids)  # and the reported covariance's anchors
-        return report
+        # the filter owns existence; what it pruned leaves the descriptors and the anchors with it
+        return self.registry.update(obs)
 
     def _choose_increment(
         self, odo: MotionIncrement | None, vis: MotionIncrement | None, t_ns: int
@@ -780,6 +771,7 @@ class Pipeline:
         fails, nothing of this pipeline has changed."""
         checked, descriptors = self.check_state_dict(state)
         persistent(self.estimator).restore(checked)
+        self.registry.reset(checked["ids"])  # the old map leaves the descriptors and the anchors
         if descriptors is not None:
             self.frontend.descriptors = descriptors
         self.frontend.reset()
