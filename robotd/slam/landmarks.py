@@ -91,7 +91,9 @@ class LandmarkRegistry:
         report = self.estimator.update(obs)
         taken = obs.ids[obs.is_new]
         self._live.update(taken.tolist())
-        left = self._pending[~np.isin(self._pending, taken)] if self._pending.size else _NONE
+        left = _NONE  # proposed, not given to the filter (usually none: the frame gives it all)
+        if self._pending.size and not np.array_equal(self._pending, taken):
+            left = self._pending[~np.isin(self._pending, taken)]
         self._pending = _NONE
         pruned = np.asarray(report.pruned_ids, np.int64)
         if pruned.size:
