@@ -253,8 +253,9 @@ class UpdateReport:
     """What one ``Estimator.update`` did.
 
     ``pruned_ids`` is how the rest of the system learns that landmarks left the map: the filter's
-    existence counter is the one owner of landmark existence, and the front end's descriptor
-    store forgets exactly these ids (robotd.pipeline).
+    existence counter is the one owner of landmark existence, and every store that keeps
+    something per landmark (the front end's descriptors, the reported covariance's anchors)
+    forgets exactly these ids, through the landmark registry (robotd.slam.landmarks).
     """
 
     n_updated: int = 0  # measurements fused into existing landmarks

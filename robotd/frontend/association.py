@@ -4,7 +4,8 @@ The :class:`LandmarkDescriptors` store holds what is global to the map and share
 FastSLAM particle: landmark ids and one descriptor per landmark (the left descriptor of its most
 recent accepted observation). It allocates the ids of new landmarks. Whether a landmark exists is
 the filter's business alone (its existence counter, robotd.slam._book): the filter reports the ids
-it deleted in ``UpdateReport.pruned_ids`` and this store forgets them; positions and covariances
+it deleted in ``UpdateReport.pruned_ids`` and the landmark registry (robotd.slam.landmarks) has
+this store forget them, and the new ones the filter did not take; positions and covariances
 are the filter's too, the caller passes them when it wants the outlier stage to check the matches.
 
 Outcome per measurement (``Correspondences.status``): IDENTIFIED (matched, passed the outlier

@@ -466,6 +466,13 @@ class Frontend:
         self.descriptors.commit(ident.corr, meas.desc, new)
         self._prev = _PrevFrame(int(t_ns), meas, ident.corr.ids.copy())
 
+    def forget(self, ids: np.ndarray) -> None:
+        """The landmarks ``ids`` (K,) left the map (the filter pruned them, or never took them):
+        their descriptors go. The front end's side of the landmark registry
+        (robotd.slam.landmarks: the pipeline subscribes it)."""
+        if self.descriptors is not None:
+            self.descriptors.forget(ids)
+
     def observe_pose(self, T_world_robot: np.ndarray) -> bool:
         """The filter's pose of the frame just committed: its stereo measurements feed the
         disparity offset's estimate (robotd.frontend.disparity_bias). True if it fused one."""

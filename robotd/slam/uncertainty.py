@@ -344,7 +344,9 @@ class ReportedCovariance:
             mon.observe(innovation_nis(self.model.h, x, P, m, Sigma, z, Q), self.model.dz)
 
     def forget(self, ids: np.ndarray) -> None:
-        """The filter deleted these landmarks: their anchors go too (:meth:`AnchoredCovariance.forget`)."""
+        """These landmarks left the map: their anchors go too (:meth:`AnchoredCovariance.forget`). The
+        pipeline subscribes the reported covariance to the landmark registry (robotd.slam.landmarks),
+        which calls this."""
         if self.anchors is not None:
             self.anchors.forget(ids)
 

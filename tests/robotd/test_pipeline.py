@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 import drivers
-from robotd import pipeline
 from robotd.config import load_config
 from robotd.errors import InputError
 from robotd.geometry import se3_inverse
 from robotd.pipeline import Pipeline
+from robotd.stages import fuse
 from robotd.stereo import triangulate
 from tests.support.tolerances import ROUNDOFF_ATOL
 
@@ -144,7 +144,7 @@ def test_the_pixel_model_gets_the_front_ends_pixels_and_tracks(sim_frames, monke
     given = []
     update = p.estimator.update
     monkeypatch.setattr(p.estimator, "update", lambda obs: given.append(obs) or update(obs))
-    monkeypatch.setattr(pipeline, "covariance_at_prediction", lambda *a, **k: pytest.fail("cov_at applied"))
+    monkeypatch.setattr(fuse, "covariance_at_prediction", lambda *a, **k: pytest.fail("cov_at applied"))
     T0_inv = se3_inverse(frames[0].truth_T_world_robot)
     for f in frames:
         r = p.step(f, None)
@@ -173,10 +173,10 @@ def test_non_finite_odometry_never_reaches_the_motion_stage_and_a_zero_interval_
     p = _pipeline(rig)
     for f in frames[:5]:
         p.step(f, None)
-    velocity = p._velocity
+    velocity = p.motion.velocity
     zero = MotionIncrement(frames[4].t_ns, frames[4].t_ns, np.zeros(3), np.zeros(3), np.eye(6) * 1e-4)
     r = p.step(frames[5], zero)
-    assert r.tracking and p._velocity is velocity  # not a velocity: no division by a zero interval
+    assert r.tracking and p.motion.velocity is velocity  # not a velocity: no division by a zero interval
     for f in frames[6:10]:
         assert p.step(f, None).tracking
 
@@ -198,7 +198,7 @@ def test_gravity_tilted_beyond_any_rover_is_never_fused(sim_frames, max_tilt_deg
     t = frames[0].t_ns
     for g in [g_level] + [g_glitch] * 30:
         inc = MotionIncrement(t, t + 100_000_000, np.zeros(3), np.zeros(3), np.eye(6) * 1e-6, g, 0.02)
-        p._predict(inc)
+        p.fuse.predict(inc)
         t += 100_000_000
     pitch = abs(float(p.estimator.estimate().rpy_rad[1]))
     c = p.counters

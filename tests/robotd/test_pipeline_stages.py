@@ -1,16 +1,18 @@
 """The stage list docs/architecture.md documents is the one ``Pipeline.step`` runs.
 
 The document holds it as one line between ``<!-- stages -->`` markers, stages in order and the
-optional ones in parentheses. It is compared with the ``clock.run("name", ...)`` calls in the
-source of ``Pipeline.step`` and with the stages a real step on the simulated rover timed
-(``StepResult.timings_ms`` keeps them in the order the clock saw them), so a stage added to, moved
-in or renamed in the step without the document fails here.
+optional ones in parentheses. It is compared with the stage methods (``robotd.timing.stage``, on
+the objects of robotd/stages/) that the source of ``Pipeline.step`` calls and with the stages a
+real step on the simulated rover timed (``StepResult.timings_ms`` keeps them in the order the clock
+saw them), so a stage added to, moved in or renamed in the step without the document fails here.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 import inspect
+import pkgutil
 import re
 import textwrap
 
@@ -18,11 +20,14 @@ import numpy as np
 import pytest
 
 import drivers
+import robotd.stages
 from robotd.config import load_config
 from robotd.pipeline import Pipeline
+from robotd.stereo import RectifiedStereo
 from tests.support.paths import REPO
 
 DOC = REPO / "docs" / "architecture.md"
+RIG = RectifiedStereo(700.0, 320.0, 200.0, 0.12, 640, 400)
 
 
 def documented_stages() -> list[tuple[str, bool]]:
@@ -41,25 +46,52 @@ def documented_stages() -> list[tuple[str, bool]]:
     return out
 
 
+def stage_methods() -> dict[str, str]:
+    """Qualified name -> stage name of every stage method of robotd/stages/ (a method decorated
+    with ``robotd.timing.stage``)."""
+    out: dict[str, str] = {}
+    for info in pkgutil.iter_modules(robotd.stages.__path__):
+        module = importlib.import_module(f"robotd.stages.{info.name}")
+        for cls in vars(module).values():
+            if isinstance(cls, type) and cls.__module__ == module.__name__:
+                for fn in vars(cls).values():
+                    if hasattr(fn, "stage_name"):
+                        out[fn.__qualname__] = fn.stage_name
+    return out
+
+
+def _pipeline_attr(node: ast.expr) -> str | None:
+    """``x`` of the expression ``self.x``, else None."""
+    if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
+        return node.attr
+    return None
+
+
 def stages_in_source() -> list[str]:
-    """The names of the ``clock.run("name", ...)`` calls in ``Pipeline.step``, in source order."""
+    """The stages ``Pipeline.step`` calls, in source order: the calls of a stage method on one of
+    the pipeline's objects, ``self.gap.across(...)``, or through a local name bound to one
+    (``fe = self.measure``; ``fe.detect(frame)``)."""
+    p = Pipeline(load_config(None), RIG, np.random.default_rng(0))
     tree = ast.parse(textwrap.dedent(inspect.getsource(Pipeline.step)))
-    calls = [
-        n
-        for n in ast.walk(tree)
-        if isinstance(n, ast.Call)
-        and isinstance(n.func, ast.Attribute)
-        and n.func.attr == "run"
-        and isinstance(n.func.value, ast.Name)
-        and n.func.value.id == "clock"
-    ]
-    calls.sort(key=lambda n: (n.lineno, n.col_offset))
-    names = []
-    for c in calls:
-        arg = c.args[0] if c.args else None
-        assert isinstance(arg, ast.Constant) and isinstance(arg.value, str), "a stage name that is not a literal"
-        names.append(arg.value)
-    return names
+    bound: dict[str, str] = {}  # local name -> the pipeline's attribute bound to it
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Assign) and len(n.targets) == 1:
+            target, value = n.targets[0], n.value
+            pairs = (
+                zip(target.elts, value.elts)
+                if isinstance(target, ast.Tuple) and isinstance(value, ast.Tuple)
+                else [(target, value)]
+            )
+            bound |= {t.id: a for t, v in pairs if isinstance(t, ast.Name) and (a := _pipeline_attr(v))}
+    calls = []
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute):
+            recv = n.func.value
+            attr = bound.get(recv.id) if isinstance(recv, ast.Name) else _pipeline_attr(recv)
+            fn = getattr(type(getattr(p, attr)), n.func.attr, None) if attr else None
+            if hasattr(fn, "stage_name"):
+                calls.append((n.lineno, n.col_offset, fn.stage_name))
+    return [name for *_, name in sorted(calls)]
 
 
 def check_order(timed: list[str], doc: list[tuple[str, bool]]) -> list[str]:
@@ -83,10 +115,25 @@ def test_the_documented_stages_are_the_ones_in_the_source() -> None:
 STEP_MAX_LINES = 45  # issue 28: a screenful; docs/architecture.md "Data flow"
 
 
+def test_the_step_calls_every_stage_and_no_clock() -> None:
+    """Every stage method of robotd/stages/ is called by the step, and the step wraps nothing in
+    the clock (``clock.run``): its calls are the stages' own."""
+    assert sorted(stages_in_source()) == sorted(set(stage_methods().values()))
+    assert "clock.run" not in inspect.getsource(Pipeline.step)
+
+
 def test_the_step_is_a_screenful() -> None:
     """``Pipeline.step`` reads as a screenful of plain calls; the choices between stages are named methods."""
     n = len(inspect.getsource(Pipeline.step).splitlines())
     assert n <= STEP_MAX_LINES, f"Pipeline.step is {n} lines: move a choice between stages into a named method"
+
+
+PIPELINE_MAX_LINES = 300  # issue 28: the stages live in robotd/stages/, the Pipeline wires them
+
+
+def test_the_pipeline_class_stays_small() -> None:
+    n = len(inspect.getsource(Pipeline).splitlines())
+    assert n <= PIPELINE_MAX_LINES, f"Pipeline is {n} lines: move a cohesive group of methods into robotd/stages/"
 
 
 def test_the_order_check_catches_what_it_is_for() -> None:
