@@ -168,6 +168,13 @@ class SlamConfig:
         80, "identified measurements fused per frame at most (the filter's cost grows with it)", min=3, max=10000
     )
     max_new_per_frame: int = _f(40, "landmarks initialised per frame at most (nearest first)", min=0, max=10000)
+    new_landmarks: str = _f(
+        "nearest",
+        "which new measurements become landmarks when there are more than max_new_per_frame: nearest (the"
+        " most precise), or adaptive (nearest while the map is re-observed; spread over depth in a frame"
+        " that re-observed fewer than 6 landmarks, so a map whose near points do not last gets far ones)",
+        choices=("nearest", "adaptive"),
+    )
     motion_noise_scale: float = _f(
         1.0, "multiplier on the motion prior's covariance (odometry or visual motion)", min=0.01, max=100.0
     )

@@ -20,6 +20,10 @@ from robotd.msgs import LandmarkMap, MotionIncrement, Observations, StereoFrame
 from robotd.slam.landmarks import LandmarkRegistry
 from robotd.timing import StageClock, stage
 
+# a frame that re-observed fewer map landmarks than this (the outlier stage's minimum) cannot be
+# fixed by the map: with slam.new_landmarks = "adaptive" its new landmarks are spread over depth
+ADAPTIVE_MIN_REOBSERVED = 6
+
 
 class Measure:
     """The measuring stages of the step: ``frontend``'s, then select."""
@@ -89,8 +93,19 @@ class Measure:
         if old.size > k_upd:
             old = np.sort(self.rng.choice(old, size=k_upd, replace=False))
         if new.size > k_new:
-            tr = np.trace(meas.cov_R[new], axis1=1, axis2=2)
-            new = np.sort(new[np.argsort(tr, kind="stable")[:k_new]])
+            new = self._pick_new(meas, new, k_new, reobserved=old.size)
         self.frontend.commit(meas, ident, t_ns, new)
         self.registry.propose(ident.corr.ids[new])
         return self.frontend.observations(meas, ident, t_ns, np.sort(np.concatenate([old, new])))
+
+    def _pick_new(self, meas: StereoMatches, new: np.ndarray, k: int, reobserved: int) -> np.ndarray:
+        """``k`` of the ``new`` measurements (indices, sorted) to become landmarks, by precision
+        (the trace of their covariance): the most precise; with ``slam.new_landmarks = "adaptive"``
+        in a frame that re-observed fewer than ``ADAPTIVE_MIN_REOBSERVED`` landmarks, ``k`` spread
+        evenly over the precision ranks instead (near to far)."""
+        order = np.argsort(np.trace(meas.cov_R[new], axis1=1, axis2=2), kind="stable")
+        if self.cfg.slam.new_landmarks == "adaptive" and reobserved < ADAPTIVE_MIN_REOBSERVED:
+            pick = order[np.unique(np.linspace(0, order.size - 1, k).round().astype(np.int64))]
+        else:
+            pick = order[:k]
+        return np.sort(new[pick])

@@ -184,3 +184,31 @@ def test_a_real_step_times_the_documented_stages_in_order(sim) -> None:
     # every documented stage, the optional ones included, was seen at least once
     timed = {s for keys in seen for s in keys}
     assert timed == {n for n, _ in doc}, sorted({n for n, _ in doc} - timed)
+
+
+def test_new_landmarks_nearest_or_spread_over_depth_when_the_map_is_not_reobserved():
+    """slam.new_landmarks: "nearest" keeps the k most precise new measurements; "adaptive" does the
+    same while the frame re-observed the map, and spreads the k over the precision ranks (near to
+    far) in a frame that re-observed fewer than ADAPTIVE_MIN_REOBSERVED landmarks."""
+    from types import SimpleNamespace
+
+    from robotd.stages.measure import ADAPTIVE_MIN_REOBSERVED, Measure
+
+    rng = np.random.default_rng(4)
+    sig = rng.permutation(np.arange(1, 101, dtype=float))  # 100 measurements, precisions shuffled
+    meas = SimpleNamespace(cov_R=sig[:, None, None] * np.eye(3))
+    new = np.arange(100)
+    rank = np.argsort(np.argsort(sig))  # 0 = most precise
+
+    def pick(policy: str, reobserved: int) -> np.ndarray:
+        me = SimpleNamespace(cfg=load_config(None, {"slam": {"new_landmarks": policy}}))
+        out = Measure._pick_new(me, meas, new, 10, reobserved)  # type: ignore[arg-type]
+        assert np.all(np.diff(out) > 0) and out.size == 10
+        return rank[out]
+
+    nearest = set(range(10))
+    assert set(pick("nearest", 0)) == nearest
+    assert set(pick("adaptive", ADAPTIVE_MIN_REOBSERVED)) == nearest
+    spread = np.sort(pick("adaptive", ADAPTIVE_MIN_REOBSERVED - 1))
+    assert spread[0] == 0 and spread[-1] == 99  # the most precise and the farthest
+    assert np.all(np.diff(spread) >= 10)  # evenly over the ranks
