@@ -29,9 +29,9 @@ from robotd.choices import MEASUREMENTS
 from robotd.config import Config
 from robotd.config_params import frontend_params_from_config, slam_params_from_config
 from robotd.errors import MapMismatchError, PersistenceError
-from robotd.frontend.association import LandmarkDescriptors
+from robotd.frontend.association import IDENTIFIED, LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
-from robotd.frontend.frontend import Frontend, Identification
+from robotd.frontend.frontend import Frontend, Identification, Screening
 from robotd.frontend.stereo_match import StereoMatches
 from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, StepResult, StereoFrame, UpdateReport
 from robotd.relocalise import MIN_INLIERS
@@ -118,14 +118,15 @@ class Pipeline:
         else:
             inc = motion.choose(increment, visual.increment, t_ns, relocalising)
         # identify against the map (guided by the predicted pose), then screen out the outliers
-        ident = fe.identify(meas, landmarks, None if relocalising else motion.view(landmarks, inc))
-        screen = fe.outliers(meas, ident)
-        counts = self.frontend.counts(feats, meas, ident, screen, visual)
-        if relocalising and not self.relocalising.attempt(screen):
-            return self._not_relocalised(frame, meas, ident, counts)
+        view = None if relocalising else motion.view(landmarks, inc)
+        ident = fe.identify(meas, landmarks, view)
         # points seen to move since the previous frame are not mapped; on vision alone, when the
         # images gave no motion, nothing is known to move (the bare stretch needs its landmarks)
         moved = visual.increment is not None or increment is not None
+        screen = self._plausible(ident, fe.outliers(meas, ident), view, inc, moved, t_ns)
+        counts = self.frontend.counts(feats, meas, ident, screen, visual)
+        if relocalising and not self.relocalising.attempt(screen):
+            return self._not_relocalised(frame, meas, ident, counts)
         # the frame's new landmarks reach the filter and every store, or none (robotd.slam.landmarks)
         with self.registry.frame():
             obs = fe.select(meas, ident, t_ns, visual.moving if moved else None)
@@ -144,6 +145,26 @@ class Pipeline:
         """The relocalising path's end while the map is not found yet (robotd.stages.relocalising)."""
         pose, tracking = self.relocalising.not_found(meas, ident, frame.t_ns)
         return self._result(frame, counts, UpdateReport(), pose, tracking, 0)
+
+    def _plausible(
+        self,
+        ident: Identification,
+        screen: Screening,
+        view: np.ndarray | None,
+        inc: MotionIncrement | None,
+        measured: bool,
+        t_ns: int,
+    ) -> Screening:
+        """``screen``, unless, while tracking, the pose its consensus implies is one the prediction
+        ``view`` cannot explain (``MotionModel.fix_is_plausible``): then its matches are neither
+        fused nor mapped again this frame, and the pose follows the prediction. Lost, or without a
+        prediction, any fix is welcome."""
+        if view is None or not self.tracking:
+            return screen
+        if self.motion.fix_is_plausible(screen.similarity, view, inc, measured, t_ns):
+            return screen
+        ident.corr.reject(ident.corr.status == IDENTIFIED)
+        return Screening(screen.result, None)
 
     def _after_update(
         self, t_ns: int, obs: Observations, landmarks: LandmarkMap, moved: bool, relocalising: bool

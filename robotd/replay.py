@@ -255,6 +255,7 @@ def replay(
         "fused_priors": pipeline.counters.fused_priors,
         "fusion_refused": pipeline.counters.fusion_refused,
         "attitude_resets": pipeline.counters.attitude_resets,
+        "implausible_fixes": pipeline.counters.implausible_fixes,
         **pipeline.frontend.disparity_bias.stats(),
     }
     stages = sorted({k for r in results for k in r.timings_ms})

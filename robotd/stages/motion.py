@@ -11,6 +11,7 @@ filter. Across a gap no odometry covers, robotd.stages.gap decides instead.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -25,10 +26,19 @@ from robotd.slam.params import SlamParams
 from robotd.stages.tracking import PipelineCounters
 from robotd.stall import Reach, still_prior
 
+logger = logging.getLogger("robotd.pipeline")
+
 # the odometry and the images' motion over one interval are fused when they agree within this
 # Mahalanobis distance (χ²(6) at 0.999)
 FUSE_CHI2 = 22.458
 VELOCITY_INTERVALS = 3  # measured intervals the constant-velocity model averages
+# a map fix is refused when the pose its consensus implies is farther from the prediction than
+# FIX_SIGMAS standard deviations of the prediction and than the reach of the filter's update,
+# which is linearised at the prediction: on the open-terrain lap a right consensus 17 m and 6°
+# away became a pose 85 m and 58° off (docs/slam.md "Map fixes the prediction cannot explain")
+FIX_SIGMAS = 5.0
+FIX_REACH_M = 1.0
+FIX_REACH_RAD = math.radians(5.0)
 
 
 class MotionModel:
@@ -175,6 +185,55 @@ class MotionModel:
         if inc is not None:
             T = T @ se3(so3_exp(inc.drot_R_rad), inc.dp_R_m)
         return T
+
+    def fix_is_plausible(
+        self,
+        similarity: np.ndarray | None,
+        view: np.ndarray,
+        inc: MotionIncrement | None,
+        measured: bool,
+        t_ns: int,
+    ) -> bool:
+        """Whether the pose the outlier stage's consensus implies (``similarity`` maps world points
+        into the robot frame) may be fused, given the predicted pose ``view``: within
+        ``FIX_SIGMAS`` standard deviations of the prediction (the increment's own covariance when
+        ``measured`` by odometry or the images, else what the vehicle's speed and turn-rate limits
+        allow since the last frame), or within the update's reach (``FIX_REACH_M``,
+        ``FIX_REACH_RAD``). Beyond both, the consensus is a wrong one that agrees with itself (a
+        repeated texture, few matches in a degenerate layout: on kitti-seq1, 1.9 m and 21° off
+        a right prediction) or a loop closed after a long drive, which the update, linearised at
+        the prediction, cannot take in one step; either way it is not fused."""
+        if similarity is None or self.last_t_ns is None:
+            return True
+        A = np.asarray(similarity, dtype=float)
+        s = float(np.cbrt(np.linalg.det(A[:3, :3])))
+        if not (math.isfinite(s) and s > 0):
+            return True
+        R_wr = (A[:3, :3] / s).T
+        p_wr = -R_wr @ A[:3, 3] / s
+        dp = float(np.linalg.norm(p_wr - view[:3, 3]))
+        dang = float(np.linalg.norm(so3_log(view[:3, :3].T @ R_wr)))
+        if dp <= FIX_REACH_M and dang <= FIX_REACH_RAD:
+            return True
+        if measured and inc is not None and np.any(inc.cov):
+            C = np.asarray(inc.cov, dtype=float)
+            sp, sr = math.sqrt(float(np.trace(C[:3, :3]))), math.sqrt(float(np.trace(C[3:, 3:])))
+        else:
+            dt = max(0.0, (t_ns - self.last_t_ns) * 1e-9)
+            sp = self.cfg.vehicle.max_speed_mps * dt / FIX_SIGMAS
+            sr = self.cfg.vehicle.max_rate_radps * dt / FIX_SIGMAS
+        if dp <= max(FIX_REACH_M, FIX_SIGMAS * sp) and dang <= max(FIX_REACH_RAD, FIX_SIGMAS * sr):
+            return True
+        self.counters.implausible_fixes += 1
+        if self.counters.implausible_fixes in (1, 10, 100, 1000):
+            logger.warning(
+                "map fix refused (%d so far): its matches put the robot %.2f m and %.1f° from the "
+                "predicted pose, beyond the prediction's uncertainty and the update's reach",
+                self.counters.implausible_fixes,
+                dp,
+                math.degrees(dang),
+            )
+        return False
 
     # ---------------------------------------------------------------- after the update
     def track(self, t_ns: int, T: np.ndarray, relocalising: bool) -> None:

@@ -42,6 +42,9 @@ class PipelineCounters:
     # 3D: the filter's attitude tilted beyond vehicle.max_tilt_deg (or at the ZYX singularity):
     # roll and pitch reset to level, the frame reported lost (robotd.stages.attitude)
     attitude_resets: int = 0
+    # map fixes refused: the outlier stage's consensus put the robot farther from the predicted pose
+    # than the prediction's own uncertainty and the filter's linear reach allow (robotd.stages.motion)
+    implausible_fixes: int = 0
 
 
 class TrackingMonitor:

@@ -212,3 +212,49 @@ def test_new_landmarks_nearest_or_spread_over_depth_when_the_map_is_not_reobserv
     spread = np.sort(pick("adaptive", ADAPTIVE_MIN_REOBSERVED - 1))
     assert spread[0] == 0 and spread[-1] == 99  # the most precise and the farthest
     assert np.all(np.diff(spread) >= 10)  # evenly over the ranks
+
+
+def test_a_map_fix_beyond_the_predictions_uncertainty_and_the_updates_reach_is_refused():
+    """MotionModel.fix_is_plausible: the consensus's pose against the predicted pose. Within the
+    update's reach (1 m, 5°) it is fused; beyond it, only within 5σ of a measured increment, or of
+    what the vehicle's limits allow since the last frame when nothing measured the motion."""
+    import math
+    from types import SimpleNamespace
+
+    from robotd.geometry import se3, se3_inverse
+    from robotd.msgs import MotionIncrement
+    from robotd.stages.motion import MotionModel
+    from robotd.stages.tracking import PipelineCounters
+
+    cfg = load_config(None, {"vehicle": {"max_speed_mps": 10.0, "max_rate_radps": 2.0}})
+    me = SimpleNamespace(cfg=cfg, last_t_ns=0, counters=PipelineCounters())
+    view = se3(np.eye(3), np.array([5.0, 1.0, 0.0]))
+
+    def similarity_of(T_world_robot: np.ndarray) -> np.ndarray:
+        return se3_inverse(T_world_robot)  # maps world points into the robot frame, s = 1
+
+    def rot_z(deg: float) -> np.ndarray:
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    tight = MotionIncrement(0, 100_000_000, np.array([1.0, 0, 0]), np.zeros(3), np.diag([1e-4] * 3 + [1e-6] * 3))
+    dt_ns = 100_000_000  # 0.1 s: the limits allow 1 m and 0.2 rad
+
+    def ok(T: np.ndarray, inc: MotionIncrement | None, measured: bool) -> bool:
+        return MotionModel.fix_is_plausible(me, similarity_of(T), view, inc, measured, dt_ns)  # type: ignore[arg-type]
+
+    assert MotionModel.fix_is_plausible(me, None, view, tight, True, dt_ns)  # type: ignore[arg-type]
+    near = view @ se3(rot_z(3.0), np.array([0.6, 0.3, 0.0]))
+    assert ok(near, tight, True)  # within the update's reach
+    far = view @ se3(np.eye(3), np.array([17.0, 0.0, 0.0]))
+    turned = view @ se3(rot_z(20.0), np.zeros(3))
+    assert not ok(far, tight, True) and not ok(turned, tight, True)
+    assert me.counters.implausible_fixes == 2
+    # nothing measured the motion: what the vehicle's limits allow since the last frame is the
+    # prediction's 5σ: over 0.1 s (1 m, 11.5°) 17 m and 20° stay refused; over 0.5 s (5 m, 57°)
+    # a 3 m, 20° fix passes
+    assert not ok(far, None, False) and not ok(turned, None, False)
+    slow = view @ se3(rot_z(20.0), np.array([3.0, 0, 0]))
+    assert MotionModel.fix_is_plausible(me, similarity_of(slow), view, None, False, 5 * dt_ns)  # type: ignore[arg-type]
+    loose = MotionIncrement(0, 100_000_000, np.array([1.0, 0, 0]), np.zeros(3), np.diag([1.0] * 3 + [0.01] * 3))
+    assert ok(view @ se3(rot_z(20.0), np.array([3.0, 0, 0])), loose, True)  # a loose odometry prior allows more
