@@ -77,6 +77,10 @@ COMPILING_UNCACHED = (
 
 
 class Daemon:
+    """``robotd run`` and ``robotd record``: startup (devices, pipeline, budget, state, outputs),
+    the threads (inputs.py, slam_thread.py, publisher.py; supervisor.py on the main thread), the
+    health documents, and shutdown (module docstring)."""
+
     def __init__(
         self,
         cfg: Config,
@@ -285,7 +289,6 @@ class Daemon:
             self.health,
             queues,
             runner,
-            self.outputs,
             self.host_clock,
             self._deliveries,
             self._frame_period_s,

@@ -14,7 +14,6 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +22,7 @@ from robotd.daemon.budget import LatencyBudget
 from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, HealthMonitor
 from robotd.feed import Feed
 from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
-from robotd.outputs import Output, OutputRunner
+from robotd.outputs import OutputRunner
 from robotd.outputs.base import shortest_period
 from robotd.queues import DropOldestQueue
 
@@ -81,7 +80,6 @@ class SlamThread:
         health: HealthMonitor,
         queues: tuple[DropOldestQueue[StereoFrame], DropOldestQueue[Odometry], DropOldestQueue[Stepped]],
         runner: OutputRunner,
-        outputs: Sequence[Output],
         host_clock: bool,
         deliveries: Deliveries,
         frame_period_s: float,
@@ -92,8 +90,8 @@ class SlamThread:
         self.host_clock = host_clock
         self.deliveries = deliveries
         self.frame_period_s = frame_period_s
-        self.map_period = shortest_period(outputs, "map_period_s")
-        self.state_period = shortest_period(outputs, "state_period_s")
+        self.map_period = shortest_period(runner.outputs, "map_period_s")
+        self.state_period = shortest_period(runner.outputs, "state_period_s")
         self.next_map, self.next_state = 0.0, time.monotonic() + self.state_period
 
     def run(self, stop: threading.Event) -> None:

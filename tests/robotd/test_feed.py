@@ -196,7 +196,7 @@ def _through_the_slam_thread(cfg: Any, ahead: bool, step_errors: int = 0) -> lis
     budget = LatencyBudget(1e9, cfg.frontend.max_features, cfg.slam.n_particles, 1, 1, frame_period_ms=1e9)
     pub_q: DropOldestQueue[Any] = DropOldestQueue(10_000)
     queues = (DropOldestQueue[StereoFrame](1), DropOldestQueue[Odometry](1), pub_q)
-    slam = SlamThread(feed, budget, health, queues, OutputRunner([]), [], False, Deliveries(4), 1 / 30)
+    slam = SlamThread(feed, budget, health, queues, OutputRunner([]), False, Deliveries(4), 1 / 30)
     taken = 0
     for frame in frames:
         n = len(odometry) if ahead else sum(o.t_ns <= frame.t_ns for o in odometry)
