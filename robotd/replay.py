@@ -3,7 +3,8 @@
 Replay reads every frame of a recording or dataset in order (no drops: determinism matters more
 than real time here, unless ``--realtime`` paces the source), integrates the recorded odometry to
 each frame's capture time, steps the pipeline and writes the trajectory in TUM format. The same
-seed and input give bit-identical poses.
+seed and input give bit-identical poses. Each frame goes through the daemon's own per-frame loop
+(robotd.feed: gate, integrate, step, a failed step skipped and counted in ``step_errors``).
 
 KITTI and EuRoC run visual only by default (``replay.odometry = "none"``): the motion prior
 comes from the images (the outlier stage's frame-to-frame transform) and ground truth never
