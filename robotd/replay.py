@@ -3,7 +3,8 @@
 Replay reads every frame of a recording or dataset in order (no drops: determinism matters more
 than real time here, unless ``--realtime`` paces the source), integrates the recorded odometry to
 each frame's capture time, steps the pipeline and writes the trajectory in TUM format. The same
-seed and input give bit-identical poses.
+seed and input give bit-identical poses. Each frame goes through the daemon's own per-frame loop
+(robotd.feed: gate, integrate, step, a failed step skipped and counted in ``step_errors``).
 
 KITTI and EuRoC run visual only by default (``replay.odometry = "none"``): the motion prior
 comes from the images (the outlier stage's frame-to-frame transform) and ground truth never
@@ -29,7 +30,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -40,7 +41,8 @@ from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
 from robotd.device_urls import calibration_refusals, camera_options
 from robotd.errors import RobotdError
-from robotd.msgs import StepResult
+from robotd.feed import Feed
+from robotd.msgs import Odometry, StepResult
 from robotd.odometry import OdometryGate, OdometryIntegrator
 from robotd.pipeline import Pipeline
 from robotd.progress import progress_bar
@@ -136,8 +138,6 @@ def replay(
     results: list[StepResult] = []
     truths: list[tuple[int, np.ndarray]] = []
     seqs: list[int] = []  # the source's frame numbers of the poses
-    step_errors = 0  # frames the step refused (logged and skipped)
-    integ = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
     gate = OdometryGate(odometry_limits_from_config(cfg))
     t_wall = time.monotonic()
     with contextlib.ExitStack() as stack:
@@ -156,36 +156,22 @@ def replay(
         elif (vehicle_url := driver.replay_vehicle(source, url, _dataset_odometry(cfg))) is not None:
             # the source's own odometry: a recording's, a simulated rover's, a dataset's when asked for
             vehicle = stack.enter_context(drivers.open_vehicle(vehicle_url, **replay_opts))
-        odo_iter = vehicle.odometry(timeout_s=0.0) if vehicle is not None else None
-        pending = None
+        recorded = _RecordedOdometry(vehicle.odometry(timeout_s=0.0) if vehicle is not None else None)
         rig = camera.rectified_model()
         pipeline = Pipeline(cfg, rig, rng)
+        feed = Feed(pipeline, OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s), gate, log=logger)
         prog = stack.enter_context(_progress_bar(_frame_total(camera, max_frames, driver), progress))
         if not prog.disable:
             # log lines (a skipped frame) go above the bar instead of through it
             from tqdm.contrib.logging import logging_redirect_tqdm
 
             stack.enter_context(logging_redirect_tqdm())
-        last_t: int | None = None
         for frame in camera.frames(timeout_s=1.0):
-            if odo_iter is not None:
-                # feed odometry up to this frame's time (recorded order; no clocks involved)
-                while True:
-                    if pending is None:
-                        pending = next(odo_iter, None)
-                    if pending is None or pending.t_ns > frame.t_ns:
-                        break
-                    if gate.accept(pending):  # as the daemon does: an implausible sample is never integrated
-                        integ.add(pending)
-                    pending = None
-            inc = integ.integrate(last_t, frame.t_ns) if (last_t is not None and odo_iter is not None) else None
-            try:
-                res = pipeline.step(frame, inc)
-            except RobotdError as exc:
-                logger.error("frame %d skipped: %s", frame.seq, exc)
-                step_errors += 1
+            # the odometry up to this frame's time, as the daemon's SLAM thread takes it (robotd.feed)
+            fed = feed.process(frame, recorded.until(frame.t_ns))
+            if fed is None:
                 continue
-            last_t = frame.t_ns
+            res = fed.result
             results.append(dataclasses.replace(res, observations=None))  # the run's poses, not its features
             seqs.append(frame.seq)
             if on_step is not None:
@@ -244,7 +230,7 @@ def replay(
         "tracking_lost_episodes": int(
             sum(not r.tracking and (i == 0 or results[i - 1].tracking) for i, r in enumerate(results))
         ),
-        "step_errors": step_errors,
+        "step_errors": feed.counters.step_errors,
         "visual_priors": pipeline.counters.visual_priors,
         "odometry_priors": pipeline.counters.odometry_priors,
         "odometry_rejected": sum(gate.rejected.values()),
@@ -268,6 +254,26 @@ def replay(
     if out_traj:
         summary["trajectory"] = str(out_traj)
     return summary
+
+
+class _RecordedOdometry:
+    """A source's odometry in recorded order, handed out up to each frame's time (no clocks involved)."""
+
+    def __init__(self, samples: Iterator[Odometry] | None) -> None:
+        self._it = samples
+        self._pending: Odometry | None = None
+
+    def until(self, t_ns: int) -> list[Odometry]:
+        """The samples stamped at or before ``t_ns`` not handed out yet."""
+        out: list[Odometry] = []
+        while self._it is not None:
+            if self._pending is None:
+                self._pending = next(self._it, None)
+            if self._pending is None or self._pending.t_ns > t_ns:
+                break
+            out.append(self._pending)
+            self._pending = None
+        return out
 
 
 def _write_truth(

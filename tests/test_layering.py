@@ -49,6 +49,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         "robotd/relocalise.py",
         "robotd/stall.py",
         "robotd/odometry.py",
+        "robotd/feed.py",
         "robotd/config_params.py",
         "robotd/config.py",
         "robotd/config_bounds.py",

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robotd.config import Config
+
 DEGRADE_LOAD = 0.9
 RECOVER_LOAD = 0.75
 SKIP_RECOVER_LOAD = 0.8
@@ -217,3 +219,20 @@ class LatencyBudget:
             "recent_misses": int(sum(self._misses)),
             "frames_at_level": list(self.frames_at_level),
         }
+
+
+def budget_for(cfg: Config, fps: float, particles: bool) -> LatencyBudget:
+    """The daemon's budget for a camera at ``fps``: the configured deadline (else the frame
+    period), the configured floors, and no particle rungs for a filter without particles; the
+    first second (caches, the first map) is warm-up."""
+    b = cfg.budget
+    return LatencyBudget(
+        b.deadline_ms or 1000.0 / fps,
+        cfg.frontend.max_features,
+        cfg.slam.n_particles if particles else 1,
+        min(b.min_features, cfg.frontend.max_features),
+        min(b.min_particles, cfg.slam.n_particles) if particles else 1,
+        b.recover_after_frames,
+        warmup_frames=int(fps),
+        frame_period_ms=1000.0 / fps,
+    )

@@ -26,6 +26,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from robotd.daemon.budget import LatencyBudget, StageTimer
+from robotd.feed import FeedCounters
 from robotd.geometry import se3_inverse
 from robotd.outputs.base import StepReport
 from robotd.queues import DropOldestQueue
@@ -57,16 +58,17 @@ class HasStats(Protocol):
 
 
 @dataclass
-class DaemonStats:
+class DaemonStats(FeedCounters):
+    """The daemon threads' counters; the SLAM thread's feed counts its own (robotd.feed.FeedCounters:
+    step_errors, seq_gaps, frames_without_odometry, frames_before_odometry and their stamps) here too."""
+
     started_ns: int = field(default_factory=time.monotonic_ns)
     frames_in: int = 0
     odometry_in: int = 0
     steps: int = 0
-    step_errors: int = 0
     last_step_ns: int = 0
     published: int = 0
     latencies_ms: list[float] = field(default_factory=list)  # capture → publish, last window
-    seq_gaps: int = 0
     reset_counter: int = 0
     last_error_m: float = float("nan")
     max_latency_window: int = 2000
@@ -76,11 +78,7 @@ class DaemonStats:
     longest_stall_s: float = 0.0
     last_stall_s: float = 0.0
     last_stall_ns: int = 0  # monotonic time the last stall (either kind) was seen
-    frames_without_odometry: int = 0  # processed frames whose interval no odometry covered
-    frames_before_odometry: int = 0  # ... before the vehicle's first sample (not counted above)
-    last_without_odometry_ns: int = 0
     stalls_without_odometry: int = 0  # of the stalls, those no odometry covered (a pose discontinuity)
-    last_step_error_ns: int = 0
     # 3D: steps whose attitude (roll, pitch) no rover can have was reset to level (Pipeline)
     attitude_resets: int = 0
     last_attitude_reset_ns: int = 0

@@ -5,16 +5,17 @@ Threads:
 - camera: ``camera.frames()`` → the outputs' tees (the recorder's sensor log: every frame) → frame
   queue (bounded, drop-oldest, counted)
 - vehicle: ``vehicle.odometry()`` → the tees (every sample) → odometry queue (bounded, drop-oldest, counted)
-- slam: frame queue → odometry integrated to the frame's capture time → ``Pipeline.step`` →
-  publish queue; the latency budget degrades (features, particles, frame skipping) and recovers.
-  It is the only thread that touches the pipeline: the map and state snapshots the outputs ask
-  for are taken here, between steps.
-- publisher: every step's :class:`~robotd.outputs.base.StepReport` (reset counter, quality) to the
-  outputs
+- slam (slam_thread.py): frame queue → :class:`robotd.feed.Feed`, the per-frame loop ``robotd
+  replay`` runs too (odometry gated and integrated to the frame's capture time → ``Pipeline.step``,
+  a failed step skipped) → publish queue; the latency budget degrades (features, particles, frame
+  skipping) and recovers. It is the only thread that touches the pipeline: the map and state
+  snapshots the outputs ask for are taken here, between steps.
+- publisher (publisher.py): every step's :class:`~robotd.outputs.base.StepReport` (reset counter,
+  quality) to the outputs
 - one worker per output (robotd.outputs.runner): the output's ``record_inputs``, ``publish`` and
   ``publish_health``, which the SLAM, publisher and supervisor threads only queue; every hook of
   every output under one error policy (logged once, counted, in health, stopping nothing else)
-- main: supervises: sd_notify (READY=1 once camera and vehicle deliver, WATCHDOG=1 only on real
+- main: supervises (supervisor.py): sd_notify (READY=1 once camera and vehicle deliver, WATCHDOG=1 only on real
   SLAM progress, STATUS=), the once-a-second health line, the health document for the outputs,
   and the stop flag that the signal handlers set (they do nothing else).
 """
@@ -26,9 +27,7 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -38,20 +37,24 @@ from robotd import jit
 from robotd.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.config import Config
 from robotd.config_params import odometry_limits_from_config
-from robotd.daemon.budget import LatencyBudget, StageTimer
+from robotd.daemon.budget import LatencyBudget, StageTimer, budget_for
 from robotd.daemon.devices import open_devices
-from robotd.daemon.health import MAX_POSE_SIGMA_M, STALL_MIN_S, STALL_PERIODS, DaemonStats, HealthMonitor
+from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, DaemonStats, HealthMonitor
 from robotd.daemon.inputs import pump_frames, pump_odometry
+from robotd.daemon.publisher import Publisher
 from robotd.daemon.sdnotify import Notifier
 from robotd.daemon.signals import StopSignals
+from robotd.daemon.slam_thread import Deliveries, SlamThread, Stepped
+from robotd.daemon.state import open_state
+from robotd.daemon.supervisor import Supervisor
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
 from robotd.device_urls import check_device_urls
 from robotd.errors import ConfigError, RobotdError
+from robotd.feed import Feed
 from robotd.jit import CompileWatch
-from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
+from robotd.msgs import Odometry, StereoFrame
 from robotd.odometry import OdometryGate, OdometryIntegrator
-from robotd.outputs import Output, OutputContext, OutputRunner, StepReport, build_outputs, enter_output, pose_quality
-from robotd.outputs.base import shortest_period
+from robotd.outputs import Output, OutputContext, OutputRunner, build_outputs
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
 from robotd.persist import CounterFile, StateDirLock, default_state_dir
@@ -73,44 +76,11 @@ COMPILING_UNCACHED = (
 )
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class _Stepped:
-    """One SLAM result on its way from the SLAM thread to the publisher thread, with the
-    snapshots taken for the outputs that asked for them."""
-
-    frame: StereoFrame
-    result: StepResult
-    event: str | None  # a pose discontinuity in this step (ResetEvent)
-    odometry: MotionIncrement | None  # the vehicle's motion from the previous step's frame to this one
-    landmarks: LandmarkMap | None
-    state: dict[str, Any] | None
-    t_ref_ns: int  # where its latency is measured from (host monotonic): capture, or delivery (Daemon.host_clock)
-
-
-class _Deliveries:
-    """When each frame was delivered (host monotonic ns), for a camera whose stamps are not on the
-    host's clock (a dataset replayed by ``robotd run``): its latency is measured from delivery.
-    The camera thread adds (a tee), the SLAM thread takes, both in sequence order; frames the
-    queue dropped are passed over, and at most ``maxlen`` wait."""
-
-    def __init__(self, maxlen: int) -> None:
-        self._d: deque[tuple[int, int]] = deque(maxlen=maxlen)
-
-    def tee(self, frame: StereoFrame) -> None:
-        self._d.append((frame.seq, time.monotonic_ns()))
-
-    def take(self, seq: int) -> int | None:
-        while self._d:
-            s, t = self._d[0]
-            if s > seq:
-                return None
-            self._d.popleft()
-            if s == seq:
-                return t
-        return None
-
-
 class Daemon:
+    """``robotd run`` and ``robotd record``: startup (devices, pipeline, budget, state, outputs),
+    the threads (inputs.py, slam_thread.py, publisher.py; supervisor.py on the main thread), the
+    health documents, and shutdown (module docstring)."""
+
     def __init__(
         self,
         cfg: Config,
@@ -139,7 +109,7 @@ class Daemon:
         self.health = HealthMonitor()
         self.frame_q: DropOldestQueue[StereoFrame] = DropOldestQueue(cfg.camera.queue_size)
         self.odo_q: DropOldestQueue[Odometry] = DropOldestQueue(cfg.vehicle.queue_size)
-        self.pub_q: DropOldestQueue[_Stepped] = DropOldestQueue(64)
+        self.pub_q: DropOldestQueue[Stepped] = DropOldestQueue(64)
         self.integrator = OdometryIntegrator(max_gap_s=cfg.vehicle.max_gap_s)
         self.odometry_gate = OdometryGate(odometry_limits_from_config(cfg))
         self.camera: drivers.StereoCamera | None = None
@@ -149,17 +119,18 @@ class Daemon:
         self.counter_file: CounterFile | None = None
         self._pending_event: str | None = None  # a discontinuity before the first step (map load)
         self.pipeline: Pipeline | None = None
+        self.feed: Feed | None = None  # the per-frame loop the SLAM thread runs (robotd.feed)
         self.budget: LatencyBudget | None = None
         self.maps: MapFileOutput | None = None
         self.recorder: RecorderOutput | None = None
         self.outputs: list[Output] = []
         self.output_runner = OutputRunner([])  # every output's hooks, under one error policy
         self.threads: list[threading.Thread] = []
-        self._ready = False
+        self._supervisor: Supervisor | None = None
         # the camera stamps frames on this host's monotonic clock (a live camera); False for a
         # dataset's clock (kitti://, euroc://, a recording, sim:// not in real time)
         self.host_clock = True
-        self._deliveries = _Deliveries(cfg.camera.queue_size + 16)
+        self._deliveries = Deliveries(cfg.camera.queue_size + 16)
         self._frame_period_s = 1.0 / 30.0  # the camera's, once it is open
         self.resumed = False
         self.exit_code = 0
@@ -203,19 +174,14 @@ class Daemon:
         # opened only then, so no camera streams into a queue nobody reads (and sim:// starts its
         # path when the daemon can follow it). The compile is announced only when numba finds no
         # cached kernel (robotd.jit.CompileWatch), never on a warm start.
-        logger.info("loading the filter and matcher kernels")
-        with CompileWatch(lambda: logger.info(COMPILING_UNCACHED if jit.UNCACHED else COMPILING)) as watch:
-            seconds = Pipeline.warmup((cfg.slam.measurement,))
-        how = "loaded from the numba cache"
-        if watch.compiled:
-            how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")
-        logger.info("filter and matcher kernels ready in %.1f s (%s)", seconds, how)
+        _load_kernels(cfg)
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
         dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
         rig = dev.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
+        self.feed = Feed(self.pipeline, self.integrator, self.odometry_gate, self.stats, log=logger)
         self._limits = limit_threads(self.pipeline.frontend.params.parallel_detect, cfg.slam.blas_threads)
         self.host_clock = dev.camera.host_clock
         if not self.host_clock:
@@ -223,21 +189,15 @@ class Daemon:
             logger.info("camera stamps are not on this host's clock: latency is measured from each frame's delivery")
         fps = dev.camera.fps or 30.0
         self._frame_period_s = 1.0 / fps
-        deadline = cfg.budget.deadline_ms or 1000.0 / fps
-        particles = self.pipeline.kind.particles is not None  # what the filter declared
-        self.budget = LatencyBudget(
-            deadline,
-            cfg.frontend.max_features,
-            cfg.slam.n_particles if particles else 1,
-            min(cfg.budget.min_features, cfg.frontend.max_features),
-            min(cfg.budget.min_particles, cfg.slam.n_particles) if particles else 1,
-            cfg.budget.recover_after_frames,
-            warmup_frames=int(fps),  # the first second: caches and the first map
-            frame_period_ms=1000.0 / fps,
+        self.budget = budget_for(cfg, fps, self.pipeline.kind.particles is not None)  # what the filter declared
+        logger.info(
+            "latency budget: deadline %.1f ms, %d degradation levels", self.budget.deadline_ms, self.budget.max_level
         )
-        logger.info("latency budget: deadline %.1f ms, %d degradation levels", deadline, self.budget.max_level)
         if self.keep_state:
-            self._open_state(stack)
+            state = open_state(cfg, stack, self.pipeline, self.reset_policy)
+            self.counter_file, self.maps, self.resumed = state.counter_file, state.maps, state.resumed
+            if self.resumed:
+                self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
         else:
             logger.info("state: none (no map, no reset counter file; the state directory is not touched)")
         meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
@@ -247,171 +207,6 @@ class Daemon:
         self.output_runner = OutputRunner(self.outputs)
         self.recorder = next((o for o in self.outputs if isinstance(o, RecorderOutput)), None)
         logger.info("outputs: %s", ", ".join(o.name for o in self.outputs))
-
-    def _open_state(self, stack: contextlib.ExitStack) -> None:
-        """The reset counter and the map file under the state directory."""
-        cfg = self.cfg
-        assert self.pipeline is not None
-        # the autopilot's view of robotd's pose stream: a new run is a new segment (its counter
-        # differs from the last one the previous run sent)
-        self.counter_file = CounterFile(default_state_dir(cfg.persistence.state_dir))
-        last = self.counter_file.load()
-        if last is not None:
-            self.reset_policy.counter = (last + 1) & 0xFF
-            logger.info("reset_counter starts at %d (the last run sent %d)", self.reset_policy.counter, last)
-        self.counter_file.save(self.reset_policy.counter)
-        # the map file is an input too: resume before the first step, then save like any output
-        if not isinstance(self.pipeline.estimator, Persistent):
-            logger.warning("map file: none (the %r filter cannot be saved or resumed)", self.pipeline.estimator.name)
-            return
-        self.maps = enter_output(stack, MapFileOutput(cfg.persistence, cfg.robot.id))
-        if cfg.persistence.resume and self.maps.resume(self.pipeline):
-            self.resumed = True
-            self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
-
-    # ------------------------------------------------------------------ threads
-    def _slam_loop(self) -> None:
-        assert self.pipeline is not None and self.budget is not None
-        pipeline, budget = self.pipeline, self.budget
-        last_t: int | None = None  # the last frame stepped
-        last_in: int | None = None  # the last frame given to the step (it may have failed)
-        last_seq: int | None = None
-        first_odo_ns: int | None = None  # the first plausible odometry sample's time
-        map_period = shortest_period(self.outputs, "map_period_s")
-        state_period = shortest_period(self.outputs, "state_period_s")
-        next_map, next_state = 0.0, time.monotonic() + state_period
-        while not self.stop_event.is_set():
-            frame = self.frame_q.get(timeout=0.2)
-            if frame is None:
-                if self.frame_q.closed:
-                    break
-                continue
-            odometry = self.odo_q.drain()
-            # what SLAM consumes, queued for the outputs' workers (the recorder got every sample at the pumps)
-            self.output_runner.record_inputs(frame, odometry)
-            # delivery stands for capture when the stamps are on another clock (a dataset's), whose
-            # vehicle samples are on that clock too: no future-stamp check against the host's then
-            t_ref_ns = frame.t_ns if self.host_clock else self._deliveries.take(frame.seq) or time.monotonic_ns()
-            now_ns = time.monotonic_ns() if self.host_clock else None
-            for odo in odometry:
-                if self.odometry_gate.accept(odo, now_ns):  # an implausible sample is never integrated
-                    self.integrator.add(odo)
-                    if first_odo_ns is None:
-                        first_odo_ns = odo.t_ns
-            if last_seq is not None and frame.seq > last_seq + 1:
-                self.stats.seq_gaps += 1
-            last_seq = frame.seq
-            if not budget.should_process():
-                continue
-            inc = self.integrator.integrate(last_t, frame.t_ns) if last_t is not None else None
-            if last_t is not None and inc is None:
-                if first_odo_ns is None or last_t < first_odo_ns:
-                    # the vehicle has not measured anything yet (an autopilot's EKF sends no
-                    # velocity for its first seconds): counted apart, not a fault of the link
-                    self.stats.frames_before_odometry += 1
-                else:
-                    self.stats.frames_without_odometry += 1
-                    self.stats.last_without_odometry_ns = time.monotonic_ns()
-            # a stall: measured between frames that reached the step, whether or not the step worked
-            stalled = last_in is not None and self._check_gap(frame.t_ns - last_in, inc is not None, budget)
-            last_in = frame.t_ns
-            t0 = time.perf_counter()
-            try:
-                result = pipeline.step(frame, inc)
-            except RobotdError as exc:
-                self.stats.step_errors += 1
-                self.stats.last_step_error_ns = time.monotonic_ns()
-                logger.error("frame %d skipped: %s", frame.seq, exc)
-                continue
-            frame_ms = (time.perf_counter() - t0) * 1e3
-            # the budget judges what the deadline is about: capture (or delivery) to result, queue
-            # wait included
-            latency_ms = (time.monotonic_ns() - t_ref_ns) / 1e6
-            last_t = frame.t_ns
-            self.integrator.prune_before(frame.t_ns)
-            self.health.on_step(result.timings_ms)
-            state = budget.record(frame_ms, latency_ms)
-            pipeline.set_max_features(state.max_features)
-            if pipeline.kind.particles is not None:
-                pipeline.set_particles(state.n_particles)
-            now = time.monotonic()
-            landmarks = snapshot = None
-            if now >= next_map:
-                next_map, landmarks = now + map_period, pipeline.estimator.landmarks()
-            if now >= next_state:
-                next_state, snapshot = now + state_period, pipeline.state_dict()
-            event = ResetEvent.RELOCALISATION if result.relocalised else None
-            if result.attitude_reset:
-                # the pose jumped to level: the autopilot must not take the jump as motion
-                self.health.on_attitude_reset()
-                event = event or ResetEvent.ATTITUDE_RESET
-            if stalled and inc is None:
-                # nothing measured the motion across the stall: the pose after it is a guess, and
-                # the autopilot must not fuse the jump as motion (docs/interfaces.md §1.5)
-                event = event or ResetEvent.STALL
-            self.pub_q.put(_Stepped(frame, result, event, inc, landmarks, snapshot, t_ref_ns))
-        self.pub_q.close()
-
-    def _publisher_loop(self) -> None:
-        seq = 0
-        while True:
-            item = self.pub_q.get(timeout=0.2)
-            if item is None:
-                if self.pub_q.closed:
-                    break
-                continue
-            res = item.result
-            seq += 1
-            event, self._pending_event = self._pending_event or item.event, None
-            bumps = self.reset_policy.bumps
-            reset_counter = self.reset_policy.update(res.pose, event, item.odometry)
-            if self.reset_policy.bumps != bumps:
-                logger.info(
-                    "reset_counter %d: %s at frame %d", reset_counter, self.reset_policy.last_reason, item.frame.seq
-                )
-                if self.counter_file is not None:
-                    self.counter_file.save(reset_counter)
-            report = StepReport(
-                result=res,
-                seq=seq,
-                frame_seq=item.frame.seq,
-                quality=pose_quality(res, self.cfg.frontend.min_inliers, self.cfg.mavlink.quality_good_sigma_m),
-                reset_counter=reset_counter,
-                latency_ms=(time.monotonic_ns() - item.t_ref_ns) / 1e6,
-                health=self._health_state(res),
-                landmarks=item.landmarks,
-                state=item.state,
-                vel_R_mps=self.reset_policy.velocity_R,
-            )
-            self.health.on_published(report, item.frame.truth_T_world_robot)
-            self.output_runner.publish(report)
-
-    def _check_gap(self, gap_ns: int, covered: bool, budget: LatencyBudget) -> bool:
-        """Count a stall (a gap between processed frames beyond STALL_PERIODS frame periods, times
-        the budget's frame skipping, and STALL_MIN_S); True on a stall."""
-        gap_s = gap_ns / 1e9
-        limit_s = max(STALL_MIN_S, STALL_PERIODS * self._frame_period_s * budget.state.skip_every)
-        if gap_s <= limit_s:
-            return False
-        self.health.on_stall(gap_s, camera=False)
-        if not covered:
-            self.stats.stalls_without_odometry += 1
-        logger.warning(
-            "stall: %.2f s between processed frames (more than %.2f s)%s",
-            gap_s,
-            limit_s,
-            "" if covered else "; no odometry covers it, the pose after it is a discontinuity",
-        )
-        return True
-
-    def _health_state(self, result: StepResult) -> str:
-        if not result.tracking:
-            return "failed"
-        if self.budget is not None and self.budget.state.level > 0:
-            return "degraded"
-        if not np.trace(result.pose.cov[:3, :3]) <= MAX_POSE_SIGMA_M**2:  # NaN too
-            return "degraded"
-        return "tracking"
 
     # ------------------------------------------------------------------ health
     def record_summary(self) -> dict[str, Any]:
@@ -434,7 +229,8 @@ class Daemon:
     def health_doc(self) -> dict[str, Any]:
         assert self.budget is not None
         devices = {"camera": self.camera, "vehicle": self.vehicle}
-        doc = self.health.doc(self._ready, self.budget, self.frame_q, self.odo_q, devices)
+        ready = self._supervisor is not None and self._supervisor.ready
+        doc = self.health.doc(ready, self.budget, self.frame_q, self.odo_q, devices)
         doc["odometry"] = {**self.odometry_gate.stats(), "gaps": self.integrator.gaps}
         if self.pipeline is not None:
             c = self.pipeline.counters
@@ -449,7 +245,12 @@ class Daemon:
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
         doc.update(self.output_runner.health())  # every output's counters and stats
-        return self.health.assess(doc, needs_vehicle=not self.cfg.vehicle.url.startswith("none:"))
+        return self.health.assess(doc, needs_vehicle=self._needs_vehicle)
+
+    @property
+    def _needs_vehicle(self) -> bool:
+        """A vehicle link is configured: readiness waits for its odometry, health judges it."""
+        return not self.cfg.vehicle.url.startswith("none:")
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> int:
@@ -476,15 +277,37 @@ class Daemon:
 
     def _start_threads(self) -> None:
         assert self.camera is not None and self.vehicle is not None
+        assert self.feed is not None and self.budget is not None
         vehicle, stop, stats = self.vehicle, self.stop_event, self.stats
         runner = self.output_runner
         runner.start()
         tees = [runner.tee_odometry] if runner.tees_odometry else []
+        queues = (self.frame_q, self.odo_q, self.pub_q)
+        slam = SlamThread(
+            self.feed,
+            self.budget,
+            self.health,
+            queues,
+            runner,
+            self.host_clock,
+            self._deliveries,
+            self._frame_period_s,
+        )
+        publisher = Publisher(
+            self.cfg,
+            self.pub_q,
+            self.health,
+            self.budget,
+            runner,
+            self.reset_policy,
+            self.counter_file,
+            self._pending_event,
+        )
         for name, fn in (
             ("camera", self._pump_frames),
             ("vehicle", lambda: pump_odometry(vehicle, self.odo_q, stop, stats, tees)),
-            ("slam", self._slam_loop),
-            ("publisher", self._publisher_loop),
+            ("slam", lambda: slam.run(stop)),
+            ("publisher", publisher.run),
         ):
             t = threading.Thread(target=self._guarded, args=(name, fn), name=f"robotd-{name}", daemon=True)
             t.start()
@@ -524,48 +347,23 @@ class Daemon:
         self.stop_event.set()
 
     def _supervise(self) -> None:
-        cfg = self.cfg
-        t_start = time.monotonic()
-        next_status = t_start + cfg.log.status_period_s
-        health_period = shortest_period(self.outputs, "health_period_s")
-        next_health = t_start + health_period
-        wd = self.notifier.watchdog_interval_s
-        next_wd = t_start
-        last_steps = 0
-        last_rate_t, last_rate_steps = t_start, 0
-        needs_vehicle = not cfg.vehicle.url.startswith("none:")
-        while not self.stop_event.wait(0.05):
-            now = time.monotonic()
-            if self.duration_s and now - t_start >= self.duration_s:
-                self.stop_reason = "duration reached"
-                break
-            if not self.threads[2].is_alive():
-                self.stop_reason = "source ended"
-                break
-            if self.recorder is not None and self.recorder.error is not None:
-                self._fail("recorder", f"recording failed: {self.recorder.error}")
-                break
-            if not self._ready and self.stats.steps > 0 and (self.stats.odometry_in > 0 or not needs_vehicle):
-                self._ready = True
-                self.notifier.ready("tracking")
-                logger.info("ready: camera and vehicle link deliver (first step after %.2f s)", now - t_start)
-            if wd is not None and now >= next_wd:
-                # ping only on real progress: SLAM completed a step since the last ping
-                if self.stats.steps > last_steps:
-                    self.notifier.watchdog()
-                    last_steps = self.stats.steps
-                next_wd = now + wd / 2
-            if now >= next_health:
-                next_health = now + health_period
-                self.output_runner.publish_health(self.health_doc())
-            if now >= next_status:
-                next_status = now + cfg.log.status_period_s
-                fps = (self.stats.steps - last_rate_steps) / max(now - last_rate_t, 1e-6)
-                last_rate_t, last_rate_steps = now, self.stats.steps
-                line = self.health.status_line(self.health_doc(), fps)
-                logger.info(line)
-                self.notifier.status(line[:200])
-        if self.stop_event.is_set() and not self.stop_reason:
+        self._supervisor = Supervisor(
+            self.cfg,
+            self.duration_s,
+            self.stop_event,
+            self.notifier,
+            self.health,
+            self.output_runner,
+            self.recorder,
+            self.health_doc,
+            self.threads[2].is_alive,  # the SLAM thread: it ends when the source does
+            self._fail,
+            self._needs_vehicle,
+        )
+        why = self._supervisor.run()
+        if why:
+            self.stop_reason = why
+        elif self.stop_event.is_set() and not self.stop_reason:
             self.stop_reason = "stop requested"
 
     def final_state(self) -> dict[str, Any] | None:
@@ -609,6 +407,18 @@ class Daemon:
             time.monotonic() - t0,
         )
         self.notifier.close()
+
+
+def _load_kernels(cfg: Config) -> None:
+    """Compile or load every numba kernel a step uses; the compile is announced only when numba
+    finds no cached kernel (robotd.jit.CompileWatch), never on a warm start."""
+    logger.info("loading the filter and matcher kernels")
+    with CompileWatch(lambda: logger.info(COMPILING_UNCACHED if jit.UNCACHED else COMPILING)) as watch:
+        seconds = Pipeline.warmup((cfg.slam.measurement,))
+    how = "loaded from the numba cache"
+    if watch.compiled:
+        how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")
+    logger.info("filter and matcher kernels ready in %.1f s (%s)", seconds, how)
 
 
 def _plain_stats(dev: Any) -> dict[str, Any]:

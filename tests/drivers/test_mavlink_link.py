@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 
 from drivers import AutopilotLink, VehicleLink, mavlink_guard, mavlink_pose, open_vehicle
-from drivers.mavlink_link import DEFAULT_RATES_HZ, ORIGIN_CHECK_S, MavlinkVehicle, mavlink_module, parse_mavlink_url
+from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_url
 from drivers.mavlink_mock import MockAutopilot
+from drivers.mavlink_options import DEFAULT_RATES_HZ
+from drivers.mavlink_setup import ORIGIN_CHECK_S
 from robotd import autopilot
 from robotd.autopilot import DIAG_INDEX
 from robotd.errors import DriverError

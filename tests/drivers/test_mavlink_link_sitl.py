@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.mavlink_link import DEFAULT_RATES_HZ, MavlinkVehicle
+from drivers.mavlink_link import MavlinkVehicle
+from drivers.mavlink_options import DEFAULT_RATES_HZ
 from robotd.odometry import OdometryIntegrator
 from tests.support.paths import REPO
 
@@ -132,7 +133,7 @@ def test_rover_grants_the_default_rates_refuses_the_rest_and_its_odometry_covers
     caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
     rates = {**DEFAULT_RATES_HZ, "ATTITUDE": 50.0, "WHEEL_DISTANCE": 10.0}
     link = MavlinkVehicle(sitl.url, rates_hz=rates)
-    link._rates.ack_timeout_s = 5.0  # SITL answers within a loop or two; a busy CI machine may be slower
+    link._setup.rates.ack_timeout_s = 5.0  # SITL answers within a loop or two; a busy CI machine may be slower
     n_requests = len(rates) + 2  # ATTITUDE and WHEEL_DISTANCE asked twice
     with link:
         assert wait_for(lambda: link.link_up, 20.0), f"no heartbeat from SITL (log: {sitl.log})"
