@@ -244,6 +244,8 @@ class Daemon:
             )
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
+            # map fixes the prediction could not explain, refused (robotd.stages.motion)
+            doc["implausible_fixes"] = c.implausible_fixes
         doc.update(self.output_runner.health())  # every output's counters and stats
         return self.health.assess(doc, needs_vehicle=self._needs_vehicle)
 
