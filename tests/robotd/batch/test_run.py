@@ -145,7 +145,7 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
     )
     try:
         rows = out / "rows.jsonl"
-        assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 60.0), "no row finished"
+        assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 180.0), "no row finished"
         os.killpg(proc.pid, signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
