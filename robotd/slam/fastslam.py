@@ -3,17 +3,18 @@
 One particle store, a struct of arrays:
 
 - ``pose``    (P, dx)          particle poses, world frame (dx = 3 | 6)
-- ``lm_mean`` (P, cap, dm)     landmark means per particle, world frame (dm = 2 | 3)
-- ``lm_cov``  (P, cap, dm, dm) landmark covariances
+- ``store``   the landmark Gaussians (dm = 2 | 3) of every particle, copy-on-write blocks
+  (:class:`~robotd.slam._store.LandmarkStore`)
 - ``log_w``   (P,)             normalised log weights
 
 Landmark slots ``0 … n_slots-1`` are shared by all particles through the global
 :class:`~robotd.slam._book.LandmarkBook` (ids -> slots); freed slots are reused.
 
-The hot path is split into pure kernels, vectorised over particles × observations, which take
-every random number as an argument (``eps``), so that ``tests/support/reference_fastslam.py`` (plain
-per-particle loops) can be compared with them exactly. FastSLAM 2.0's proposal incorporates the
-observations one after another (loop over observations, vectorised over particles).
+The measurement step (every model, both dimensions, both versions) is the numba kernel
+:func:`robotd.slam._kernels.fastslam_step_store`, which takes every random number as an argument
+(``eps``) so that the tests hold it to its readable per-particle twin
+(tests/support/reference_fastslam.py). This module keeps the filter's state and everything around
+the step: motion, gating, resampling, pruning, outputs, persistence.
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ from robotd.slam.models import (
     gravity3d_tilt,
     motion3d,
     odometry2d,
-    stereo_basis,
     velocity2d,
     velocity2d_noise,
     wrap_pose,
@@ -71,174 +71,6 @@ from robotd.statecheck import check_finite as check_saved_finite
 logger = logging.getLogger(__name__)
 
 
-# ============================================================================================
-# Pure kernels (numpy, vectorised). Shapes: P particles, N observations.
-
-
-def _decorrelated(
-    model: MeasurementModel, nu: np.ndarray, Hx: np.ndarray | None, Hm: np.ndarray, Q: np.ndarray
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-    """Pixel models: the innovations ν (..., dz), their Jacobians (..., dz, ·) and Q (..., dz, dz) in
-    the coordinates T z = (mean column, disparity[, row]); other models: unchanged.
-
-    The two columns of a landmark are almost equally uncertain and almost perfectly correlated (they
-    differ by the disparity), so in (x_L, x_R) the closed-form 2×2/3×3 inverses cancel
-    catastrophically (condition numbers ~1e6 cost ~1e-8 of the log-likelihoods). In T z the same
-    covariances are nearly diagonal. |det T| = 1 and T is invertible, so every Gaussian density,
-    gain and covariance update is the same.
-    """
-    if model.intrinsics is None:
-        return nu, Hx, Hm, Q
-    T = stereo_basis(model.dz)
-    return nu @ T.T, None if Hx is None else T @ Hx, T @ Hm, T @ Q @ T.T
-
-
-def landmark_updates(
-    pose: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> np.ndarray:
-    """EKF update of each observed landmark in every particle, at the particle's pose (§9 step 2).
-
-    Updates ``lm_mean[:, slots]`` and ``lm_cov[:, slots]`` in place (Joseph form, symmetrised).
-
-    Args:
-        pose: (P, dx); lm_mean: (P, cap, dm); lm_cov: (P, cap, dm, dm); slots: (N,) distinct;
-        z: (N, dz) measurements (robot frame); Q: (N, dz, dz).
-
-    Returns:
-        (P,) Σ_j log N(z_j; ẑ_j, Ψ_j) with Ψ = H_m Σ_j H_m^T + Q_j (the FastSLAM 1.0 weight).
-    """
-    P, N = pose.shape[0], slots.size
-    if N == 0:
-        return np.zeros(P)
-    dx, dm, dz = model.dx, model.dm, model.dz
-    mu = lm_mean[:, slots]  # (P, N, dm)
-    C = lm_cov[:, slots]  # (P, N, dm, dm)
-    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    zhat, _, Hm = model.h(x, mu.reshape(P * N, dm))
-    zhat = zhat.reshape(P, N, dz)
-    Hm = Hm.reshape(P, N, dz, dm)
-    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
-    nu, _, Hm, Q = _decorrelated(model, nu, None, Hm, Q)
-    HC = Hm @ C  # (P, N, dz, dm)
-    Psi = HC @ np.swapaxes(Hm, -1, -2) + Q
-    Pinv, det = inv_det_small(Psi)
-    K = np.swapaxes(HC, -1, -2) @ Pinv  # Σ H^T Ψ^{-1}, (P, N, dm, dz)
-    mu = mu + np.einsum("pnij,pnj->pni", K, nu)
-    IKH = np.eye(dm) - K @ Hm
-    C = IKH @ C @ np.swapaxes(IKH, -1, -2) + K @ Q @ np.swapaxes(K, -1, -2)
-    lm_mean[:, slots] = mu
-    lm_cov[:, slots] = sym(C)
-    return gauss_logpdf(nu, Pinv, det).sum(1)
-
-
-def init_landmarks(
-    pose: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-    floor: float,
-) -> None:
-    """New landmarks from each particle's pose (§9 step 3): μ = inverse(x, z), Σ = J_z Q J_z^T + floor·I."""
-    P, N = pose.shape[0], slots.size
-    if N == 0:
-        return
-    dx, dm, dz = model.dx, model.dm, model.dz
-    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    m, _, Jz = model.inverse(x, np.broadcast_to(z, (P, N, dz)).reshape(P * N, dz))
-    Jz = Jz.reshape(P, N, dm, dz)
-    lm_mean[:, slots] = m.reshape(P, N, dm)
-    lm_cov[:, slots] = sym(Jz @ Q @ np.swapaxes(Jz, -1, -2)) + floor * np.eye(dm)
-
-
-def fs2_weights(
-    pose_hat: np.ndarray,
-    S: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> np.ndarray:
-    """FastSLAM 2.0 log-weight increment (§10 "Importance weight"), (P,).
-
-    Σ_j log N(z_j; h(x̂, μ_j), L_j), L_j = H_x S H_x^T + H_m Σ_j H_m^T + Q_j, all at the prior x̂ and
-    the landmark estimates before the update.
-    """
-    P, N = pose_hat.shape[0], slots.size
-    if N == 0:
-        return np.zeros(P)
-    dx, dm, dz = model.dx, model.dm, model.dz
-    mu = lm_mean[:, slots]
-    C = lm_cov[:, slots]
-    x = np.broadcast_to(pose_hat[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    zhat, Hx, Hm = model.h(x, mu.reshape(P * N, dm))
-    zhat = zhat.reshape(P, N, dz)
-    Hx = Hx.reshape(P, N, dz, dx)
-    Hm = Hm.reshape(P, N, dz, dm)
-    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
-    nu, Hx_, Hm, Q = _decorrelated(model, nu, Hx, Hm, Q)
-    assert Hx_ is not None
-    L = Hx_ @ S[:, None] @ np.swapaxes(Hx_, -1, -2) + Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
-    Linv, det = inv_det_small(L)
-    return gauss_logpdf(nu, Linv, det).sum(1)
-
-
-def fs2_proposal(
-    pose_hat: np.ndarray,
-    S: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """FastSLAM 2.0 pose proposal (§10 "Proposal"), Kalman form, observations in turn.
-
-    Args:
-        pose_hat: (P, dx) prior means x̂ = g(x, u); S: (P, dx, dx) prior covariances S_t.
-
-    Returns:
-        μ_x (P, dx) with wrapped angles, Σ_x (P, dx, dx) symmetrised, and the sequential log-weight
-        (P,) Σ_j log N(z_j; ĥ_j, Ψ_j) with each Ψ_j = H_x Σ_x H_x^T + Q̃_j at the proposal so far:
-        the chain rule p(z_1..N) = Π_j p(z_j | z_<j), to first order, instead of the product of
-        marginals at the prior that counts S once per observation.
-    """
-    dim = 2 if model.dx == 3 else 3
-    mu_x = pose_hat.copy()
-    Sx = S.copy()
-    eye = np.eye(model.dx)
-    logw = np.zeros(pose_hat.shape[0])
-    for j in range(slots.size):
-        s = slots[j]
-        zhat, Hx, Hm = model.h(mu_x, lm_mean[:, s])
-        nu = model.innovation(np.broadcast_to(z[j], zhat.shape).copy(), zhat)
-        nu, Hx_, Hm, Qj = _decorrelated(model, nu, Hx, Hm, Q[j])
-        assert Hx_ is not None
-        Hx = Hx_
-        HmT = np.swapaxes(Hm, -1, -2)
-        HxT = np.swapaxes(Hx, -1, -2)
-        SHt = Sx @ HxT  # (P, dx, dz)
-        Psi = Hx @ SHt + Hm @ lm_cov[:, s] @ HmT + Qj  # H_x Σ_x H_x^T + Q̃_j
-        Pinv, det = inv_det_small(Psi)
-        logw += gauss_logpdf(nu, Pinv, det)
-        K = SHt @ Pinv  # (P, dx, dz)
-        mu_x = mu_x + np.einsum("pij,pj->pi", K, nu)
-        wrap_pose(mu_x, dim)
-        Sx = sym((eye - K @ Hx) @ Sx)
-    return mu_x, Sx, logw
-
-
 def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -> np.ndarray:
     """x = μ + chol(Σ) ε per particle, angles wrapped. mu (P, dx), Sigma (P, dx, dx), eps (P, dx)."""
     try:
@@ -250,65 +82,10 @@ def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -
     return wrap_pose(mu + np.einsum("pij,pj->pi", L, eps), dim)
 
 
-def fastslam_step(
-    version: int,
-    pose: np.ndarray,
-    S: np.ndarray | None,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots_old: np.ndarray,
-    z_old: np.ndarray,
-    Q_old: np.ndarray,
-    slots_new: np.ndarray,
-    z_new: np.ndarray,
-    Q_new: np.ndarray,
-    eps: np.ndarray | None,
-    model: MeasurementModel,
-    floor: float,
-    seq_weights: bool = False,
-    out_mu: np.ndarray | None = None,
-    out_Sx: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One FastSLAM measurement step for all particles; the landmark arrays are updated in place.
-
-    Version 1 (§9): ``pose`` are the sampled poses; landmark updates give the weights.
-    Version 2 (§10): ``pose`` are the priors x̂ with covariances ``S`` (P, dx, dx); the proposal
-    is built from the identified landmarks, a pose drawn with ``eps`` (P, dx) standard normals,
-    then the landmarks are updated at it. New landmarks are initialised from the final pose.
-    ``seq_weights`` takes the importance weight from the proposal's sequential innovations (see
-    :func:`fs2_proposal`) instead of §10's product at the prior; ``out_mu`` (P, dx) and ``out_Sx``
-    (P, dx, dx), when given, receive the proposal means and covariances (version 2).
-
-    Returns:
-        (pose (P, dx) after the step, log-weight increment (P,)).
-    """
-    dim = 2 if model.dx == 3 else 3
-    if version == 2:
-        assert S is not None and eps is not None
-        mu_x, Sx, seq_logw = fs2_proposal(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-        if seq_weights:
-            dlogw = seq_logw
-        else:
-            dlogw = fs2_weights(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-        if out_mu is not None:
-            out_mu[:] = mu_x
-        if out_Sx is not None:
-            out_Sx[:] = Sx
-        pose = sample_poses(mu_x, Sx, eps, dim)
-        landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-    else:
-        dlogw = landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-    init_landmarks(pose, lm_mean, lm_cov, slots_new, z_new, Q_new, model, floor)
-    return pose, dlogw
-
-
 def psd_sqrt(M: np.ndarray) -> np.ndarray:
     """A square root L with L L^T = M for a PSD matrix M (n, n) (zero rows allowed)."""
     w, V = np.linalg.eigh(0.5 * (M + M.T))
     return V * np.sqrt(np.maximum(w, 0.0))
-
-
-# ============================================================================================
 
 
 class FastSlam(UpdateEntryPoints):
@@ -337,8 +114,11 @@ class FastSlam(UpdateEntryPoints):
         self.t_ns = 0
         self.best = 0  # index of the highest-weight particle
         self.neff = float(P)
-        self._numba_step = _load_numba(params) if params.use_numba else None
-        self._predict3 = _load_predict3() if (params.use_numba and self.dim == 3) else None
+        # the numba kernel (robotd.slam._kernels), loaded here: importing this module loads no numba
+        from robotd.slam import _kernels
+
+        self._step = _kernels.fastslam_step_store
+        self._predict3 = _load_predict3() if self.dim == 3 else None
         # Rao-Blackwellised pose estimate of the last update (weights before resampling, means,
         # covariances or None): see estimate(); None after a predict or a particle-set change
         self._post: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
@@ -505,56 +285,28 @@ class FastSlam(UpdateEntryPoints):
                 S = np.tile(self.params.process_cov_floor * np.eye(dx), (P, 1, 1))
         slots_new = self.book.allocate(ids[is_new])
         self.store.ensure_capacity(self.book.n_slots)
-        n_old, n_new = slots_old.size, slots_new.size
-        seq = self.params.fs2_weights == "sequential"
-        mu_x = np.empty((P, dx)) if self.version == 2 else None
-        S_x = np.empty((P, dx, dx)) if self.version == 2 else None
-        if self._numba_step is not None and model is self.model:
-            # numba works in the copy-on-write store directly
-            self.pose, dlogw = self._numba_step(
-                self.version,
-                self.pose,
-                S,
-                self.store,
-                slots_old,
-                z_old,
-                Q_old,
-                slots_new,
-                z[is_new],
-                Q[is_new],
-                eps,
-                self.params.landmark_cov_floor,
-                seq,
-                mu_x,
-                S_x,
-                model.intrinsics,
-            )
-        else:
-            # the numpy kernels work on dense copies of the touched landmarks (P, N_old + N_new); the
-            # store writes them back with copy on write
-            mean = np.empty((P, n_old + n_new, self.dm))
-            cov = np.empty((P, n_old + n_new, self.dm, self.dm))
-            mean[:, :n_old], cov[:, :n_old] = self.store.gather(slots_old)
-            self.pose, dlogw = fastslam_step(
-                self.version,
-                self.pose,
-                S,
-                mean,
-                cov,
-                np.arange(n_old),
-                z_old,
-                Q_old,
-                np.arange(n_old, n_old + n_new),
-                z[is_new],
-                Q[is_new],
-                eps,
-                model,
-                self.params.landmark_cov_floor,
-                seq,
-                mu_x,
-                S_x,
-            )
-            self.store.scatter(np.concatenate([slots_old, slots_new]), mean, cov)
+        # FastSLAM 2.0's proposal means and covariances (the Rao-Blackwellised pose estimate)
+        mu_x, S_x = (np.empty((P, dx)), np.empty((P, dx, dx))) if self.version == 2 else (None, None)
+        # the kernel works in the copy-on-write store directly
+        self.pose, dlogw = self._step(
+            self.version,
+            self.pose,
+            S,
+            self.store,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z[is_new],
+            Q[is_new],
+            eps,
+            model,
+            self.params.landmark_cov_floor,
+            self.params.fs2_weights == "sequential",
+            mu_x,
+            S_x,
+            int(self.params.numba_threads),
+        )
         self.pending_S = None
 
         ln, w = normalize_log_weights(self.log_w + dlogw)
@@ -797,28 +549,7 @@ class FastSlam(UpdateEntryPoints):
 
 
 def _load_predict3() -> Any:
-    """``predict3_numba`` or None when numba cannot be used."""
-    try:
-        from robotd.slam._kernels import predict3_numba
-    except ImportError:
-        return None
+    """``predict3_numba``."""
+    from robotd.slam._kernels import predict3_numba
+
     return predict3_numba
-
-
-def _load_numba(params: SlamParams) -> Any:
-    """``fastslam_step_numba_store`` (threads set per call), or None when numba cannot be used."""
-    try:
-        import numba
-
-        from robotd.slam._kernels import fastslam_step_numba_store
-    except ImportError as e:  # the numpy path is complete; numba only makes it faster
-        logger.warning("numba unavailable (%s); FastSLAM uses the numpy path", e)
-        return None
-    threads = int(params.numba_threads)
-
-    def step(*args: Any) -> tuple[np.ndarray, np.ndarray]:
-        if threads:
-            numba.set_num_threads(min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))))
-        return fastslam_step_numba_store(*args)
-
-    return step
