@@ -10,17 +10,29 @@ other implementation of the step. Each particle is one iteration of a ``prange``
 contiguous range of particles per thread, sharing its scratch arrays), so there are no per-call
 numpy dispatch costs.
 
-One algorithm, written once (:func:`_particle`): the importance weight and the proposal in one
-pass over the identified landmarks, the pose drawn, the landmark EKFs at it, the new landmarks. It
+One algorithm, written once (``_particle``): the importance weight and the proposal in one pass
+over the identified landmarks, the pose drawn, the landmark EKFs at it, the new landmarks. It
 evaluates the §9/§10 formulas rewritten in the world frame (derivation above ``_rot3_cs``), which
 needs about a third fewer operations than the robot-frame form of the reference, on tuples that
 LLVM keeps in registers, and the proposal advances the cosines and sines of the pose angles
 instead of calling trig functions per observation. What differs between the dimensions and the
-models is small algebra behind a few helpers that numba resolves at compile time
-(``numba.extending.overload``): the dimension by the marker ``D`` (:class:`Dim2`, :class:`Dim3`),
-the model by ``rig`` (None: Cartesian; the pixel model's constants; :class:`RangeBearing`). numba
-compiles one specialised step per (dimension, model) in use, with no run-time branch in the loop
-(measured: a run-time model branch cost the Cartesian 2D and FastSLAM 1.0 steps 10–40 %).
+models is small algebra that numba resolves while compiling (``numba.extending.overload``): the
+dimension by the marker ``D`` (:class:`Dim2`, :class:`Dim3`: ``_particle``'s overload binds the
+3D or the 2D functions of "the per-dimension algebra" below), the model by ``rig`` (None:
+Cartesian; the pixel model's constants; :class:`RangeBearing`: ``_meas3``, ``_init3`` and their
+kin dispatch on its type). numba compiles one specialised step per (dimension, model) in use, with
+no run-time branch in the loop (measured: a run-time model branch cost the Cartesian 2D and
+FastSLAM 1.0 steps 10–40 %). Adding a measurement model: a ``rig`` type and its branches of
+``_meas*``, ``_init*``, ``_noise*`` and ``_depth_logw``; the algorithm does not change.
+
+The kernel gives bit for bit the results of the separate 3D and 2D kernels it replaced (robotd
+581c06c; 50 random problems, every model and version, cold and warm numba caches), so recorded
+trajectories stay the same. Under fast-math that is fragile: LLVM reassociates sums in an order
+that depends on the shape of the code, and variants that computed the same values differently
+(the proposal's trig state as a tuple or through a helper; the dimension dispatched by overloads
+inlined at every call) moved the 3D results in their last bits. Check an edit of ``_particle`` or
+its algebra the same way (old against new, cold against cold and warm against warm: numba's own
+compiled and cached code differ in the last bits in 3D).
 
 Compiled by :func:`robotd.jit.jit` (first call compiles for ~10–20 s, later processes load the disk
 cache; ``NUMBA_CACHE_DIR`` must be writable by the service, else every process compiles anew).
@@ -58,8 +70,8 @@ _FM = {"contract", "reassoc", "arcp", "nsz"}
 
 # The kernel's compile-time choices. The dimension is a marker type (an empty named tuple), the
 # measurement model is ``rig``: None (Cartesian), the pixel model's constants (a 10-tuple, see
-# ``_pixel_rig``) or the RangeBearing marker. numba types each as its own type, so every helper
-# below resolves them while compiling (``_step`` is specialised per (dimension, model)).
+# ``_pixel_rig``) or the RangeBearing marker. numba types each as its own type, so the overloads
+# below resolve them while compiling (``_step`` is specialised per (dimension, model)).
 
 
 class Dim2(NamedTuple):
@@ -725,304 +737,198 @@ def _joseph2(m, Cm, C, Qw, Pinv, nu) -> None:  # type: ignore[no-untyped-def]
 
 
 # ---------------------------------------------------------------------------------------------
-# The step's dimension-generic helpers: each resolves the marker D (or the size of its tuples) at
-# compile time to the 2D or 3D algebra above. A pose's angles are its last three entries (3D: roll,
-# pitch, yaw; 2D: x, y, ψ, of which only ψ is an angle and read). The proposal's trig state is
-# their cosines and sines, six scalars (cr, sr, cp, sp, cy, sy) evaluated in _particle itself:
-# written as a tuple or through a helper, the same operations left LLVM's fast-math reassociation
-# in another order and the 3D results moved in their last bits (measured). As written, the kernel
-# gives bit for bit the results of the two per-dimension kernels it replaced (robotd 581c06c),
-# which keeps the trajectories of every recorded run; check any edit of _particle the same way.
-# A frame ``F`` is what the measurement formulas take (3D (R, sin yaw, cos yaw), 2D (cos ψ, sin ψ)).
-# Symmetric matrices are their upper triangles as tuples (6 entries 3×3, 3 entries 2×2); the
-# measurement's dimension is the landmark's in the world frame (Ψ_w is dm × dm for every model).
+# The per-dimension algebra the step is written in. _particle's overload (below) picks the 3D or
+# the 2D set while compiling; each is a plain function that numba inlines into the step (no
+# dispatch at run time). A pose's angles are its last three entries (3D: roll, pitch, yaw; 2D:
+# x, y, ψ, of which only ψ is an angle and read); a frame ``F`` is what the measurement formulas
+# take (3D (R, sin yaw, cos yaw), 2D (cos ψ, sin ψ)). Symmetric matrices are their upper
+# triangles as tuples (6 entries 3×3, 3 entries 2×2), rows of the dx × dm arrays T and Lc are
+# dm-tuples; the measurement's dimension is the landmark's in the world frame (Ψ_w is dm × dm for
+# every model).
 
 
-def _dims(D):  # type: ignore[no-untyped-def]
-    """(dm, dx): landmark and pose sizes, compile-time constants. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _frame3(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float):  # type: ignore[no-untyped-def]
+    """The 3D frame of a trig state (cosines and sines of roll, pitch, yaw): (R, sin yaw, cos yaw)."""
+    return _rot3_cs(cr, sr, cp, sp, cy, sy), sy, cy
 
 
-@overload(_dims, inline="always")
-def _dims_impl(D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda D: (3, 6)
-    return lambda D: (2, 3)
+@jit(fastmath=_FM, inline="always")
+def _frame2(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float):  # type: ignore[no-untyped-def]
+    """The 2D frame (cos ψ, sin ψ) = (cy, sy) of a trig state (the other pairs are not angles)."""
+    return cy, sy
 
 
-def _frame(cr, sr, cp, sp, cy, sy, D):  # type: ignore[no-untyped-def]
-    """The frame F of a trig state: 3D (R as a 9-tuple, sin yaw, cos yaw), 2D (cos ψ, sin ψ) = (cy, sy).
-    numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _frame_at3(x):  # type: ignore[no-untyped-def]
+    """The frame of 3D pose x."""
+    return _rot3t(x[3], x[4], x[5])
 
 
-@overload(_frame, inline="always", jit_options={"fastmath": _FM})
-def _frame_impl(cr, sr, cp, sp, cy, sy, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda cr, sr, cp, sp, cy, sy, D: (_rot3_cs(cr, sr, cp, sp, cy, sy), sy, cy)
-    return lambda cr, sr, cp, sp, cy, sy, D: (cy, sy)
+@jit(fastmath=_FM, inline="always")
+def _frame_at2(x):  # type: ignore[no-untyped-def]
+    """The frame of 2D pose x."""
+    return math.cos(x[2]), math.sin(x[2])
 
 
-def _frame_at(x, D):  # type: ignore[no-untyped-def]
-    """The frame F of pose x (``_frame`` of its trig state). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _advance3(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float, new, old):  # type: ignore[no-untyped-def]
+    """The trig state after roll, pitch, yaw moved from ``old`` to ``new`` (``_turn``)."""
+    cr, sr = _turn(cr, sr, new[0] - old[0])
+    cp, sp = _turn(cp, sp, new[1] - old[1])
+    cy, sy = _turn(cy, sy, new[2] - old[2])
+    return cr, sr, cp, sp, cy, sy
 
 
-@overload(_frame_at, inline="always", jit_options={"fastmath": _FM})
-def _frame_at_impl(x, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda x, D: _rot3t(x[3], x[4], x[5])
-    return lambda x, D: (math.cos(x[2]), math.sin(x[2]))
+@jit(fastmath=_FM, inline="always")
+def _advance2(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float, new, old):  # type: ignore[no-untyped-def]
+    """The trig state after ψ (the last entry) moved from ``old`` to ``new``."""
+    cy, sy = _turn(cy, sy, new[2] - old[2])
+    return cr, sr, cp, sp, cy, sy
 
 
-def _advance(cr, sr, cp, sp, cy, sy, new, old, D):  # type: ignore[no-untyped-def]
-    """The trig state after the pose's last three entries moved from ``old`` to ``new`` (``_turn``;
-    2D: ψ's pair only). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _wrap_angles3(x, new) -> None:  # type: ignore[no-untyped-def]
+    """x's roll, pitch, yaw = ``new``'s wrapped."""
+    x[3] = _wrap(new[0])
+    x[4] = _wrap(new[1])
+    x[5] = _wrap(new[2])
 
 
-@overload(_advance, inline="always", jit_options={"fastmath": _FM})
-def _advance_impl(cr, sr, cp, sp, cy, sy, new, old, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
+@jit(fastmath=_FM, inline="always")
+def _wrap_angles2(x, new) -> None:  # type: ignore[no-untyped-def]
+    """x's ψ = ``new``'s last entry wrapped."""
+    x[2] = _wrap(new[2])
 
-        def spatial(cr, sr, cp, sp, cy, sy, new, old, D):  # type: ignore[no-untyped-def]
-            cr, sr = _turn(cr, sr, new[0] - old[0])
-            cp, sp = _turn(cp, sp, new[1] - old[1])
-            cy, sy = _turn(cy, sy, new[2] - old[2])
-            return cr, sr, cp, sp, cy, sy
 
-        return spatial
+@jit(fastmath=_FM, inline="always")
+def _noise3f(F, rig):  # type: ignore[no-untyped-def]
+    return _noise3(F[0], rig)
 
-    def planar(cr, sr, cp, sp, cy, sy, new, old, D):  # type: ignore[no-untyped-def]
-        cy, sy = _turn(cy, sy, new[2] - old[2])
-        return cr, sr, cp, sp, cy, sy
 
-    return planar
+@jit(fastmath=_FM, inline="always")
+def _noise2f(F, rig):  # type: ignore[no-untyped-def]
+    return _noise2(F[0], F[1], rig)
 
 
-def _wrap_angles(x, new, D):  # type: ignore[no-untyped-def]
-    """Pose x's angles = those of ``new`` (its last three entries), wrapped. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _meas3f(x, m, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _meas3(x, m, zm, Qm, F[0], rig, A)
 
 
-@overload(_wrap_angles, inline="always")
-def _wrap_angles_impl(x, new, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
+@jit(fastmath=_FM, inline="always")
+def _meas2f(x, m, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _meas2(x, m, zm, Qm, F[0], F[1], rig, A)
 
-        def spatial(x, new, D):  # type: ignore[no-untyped-def]
-            x[3] = _wrap(new[0])
-            x[4] = _wrap(new[1])
-            x[5] = _wrap(new[2])
 
-        return spatial
+@jit(fastmath=_FM, inline="always")
+def _init3f(x, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _init3(x, zm, Qm, F[0], rig, A)
 
-    def planar(x, new, D):  # type: ignore[no-untyped-def]
-        x[2] = _wrap(new[2])
 
-    return planar
+@jit(fastmath=_FM, inline="always")
+def _init2f(x, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _init2(x, zm, Qm, F[0], F[1], rig, A)
 
 
-def _noise(F, rig, D):  # type: ignore[no-untyped-def]
-    """The pose-only part A of the pixel model's Q_w in frame F (``_noise3``, ``_noise2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _pose_part3f(Sg, d, F, T):  # type: ignore[no-untyped-def]
+    return _pose_part3t(Sg, d, F[0], F[1], F[2], T)
 
 
-@overload(_noise, inline="always", jit_options={"fastmath": _FM})
-def _noise_impl(F, rig, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda F, rig, D: _noise3(F[0], rig)
-    return lambda F, rig, D: _noise2(F[0], F[1], rig)
+@jit(fastmath=_FM, inline="always")
+def _pose_part2f(Sg, d, F, T):  # type: ignore[no-untyped-def]
+    return _pose_part2t(Sg, d, T)
 
 
-def _meas(x, m, zm, Qm, F, rig, A, D):  # type: ignore[no-untyped-def]
-    """One observation at pose x in the world frame: (d, ν_w, Q_w, g) (``_meas3``, ``_meas2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _sym2(C):  # type: ignore[no-untyped-def]
+    """Upper triangle of a 2×2 array as a 3-tuple."""
+    return (C[0, 0], C[0, 1], C[1, 1])
 
 
-@overload(_meas, inline="always", jit_options={"fastmath": _FM})
-def _meas_impl(x, m, zm, Qm, F, rig, A, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda x, m, zm, Qm, F, rig, A, D: _meas3(x, m, zm, Qm, F[0], rig, A)
-    return lambda x, m, zm, Qm, F, rig, A, D: _meas2(x, m, zm, Qm, F[0], F[1], rig, A)
+@jit(fastmath=_FM, inline="always")
+def _logpdf3t(nu, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    return _logpdf3(nu[0], nu[1], nu[2], Si, det)
 
 
-def _init(x, zm, Qm, F, rig, A, D):  # type: ignore[no-untyped-def]
-    """A new landmark at pose x: (μ, Σ without the floor) (``_init3``, ``_init2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _logpdf2t(nu, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    return _logpdf2(nu[0], nu[1], Si, det)
 
 
-@overload(_init, inline="always", jit_options={"fastmath": _FM})
-def _init_impl(x, zm, Qm, F, rig, A, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda x, zm, Qm, F, rig, A, D: _init3(x, zm, Qm, F[0], rig, A)
-    return lambda x, zm, Qm, F, rig, A, D: _init2(x, zm, Qm, F[0], F[1], rig, A)
+@jit(fastmath=_FM, inline="always")
+def _row3(A, i: int):  # type: ignore[no-untyped-def]
+    """Row i of A's first three columns."""
+    return (A[i, 0], A[i, 1], A[i, 2])
 
 
-def _pose_part(Sg, d, F, T, D):  # type: ignore[no-untyped-def]
-    """T = Σ Ĥᵀ (into T) and Ĥ Σ Ĥᵀ (returned) (``_pose_part3t``, ``_pose_part2t``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _row2(A, i: int):  # type: ignore[no-untyped-def]
+    """Row i of A's first two columns."""
+    return (A[i, 0], A[i, 1])
 
 
-@overload(_pose_part, inline="always", jit_options={"fastmath": _FM})
-def _pose_part_impl(Sg, d, F, T, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda Sg, d, F, T, D: _pose_part3t(Sg, d, F[0], F[1], F[2], T)
-    return lambda Sg, d, F, T, D: _pose_part2t(Sg, d, T)
+@jit(fastmath=_FM, inline="always")
+def _set_row3(A, i: int, v) -> None:  # type: ignore[no-untyped-def]
+    A[i, 0], A[i, 1], A[i, 2] = v
 
 
-def _sym(C, D):  # type: ignore[no-untyped-def]
-    """Upper triangle of a dm × dm array as a tuple. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _set_row2(A, i: int, v) -> None:  # type: ignore[no-untyped-def]
+    A[i, 0], A[i, 1] = v
 
 
-@overload(_sym, inline="always", jit_options={"fastmath": _FM})
-def _sym_impl(C, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda C, D: _sym3(C)
-    return lambda C, D: (C[0, 0], C[0, 1], C[1, 1])
+@jit(fastmath=_FM, inline="always")
+def _dot3(a, b) -> float:  # type: ignore[no-untyped-def]
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _row(A, i, D):  # type: ignore[no-untyped-def]
-    """Row i of A's first dm columns as a tuple. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _dot2(a, b) -> float:  # type: ignore[no-untyped-def]
+    return a[0] * b[0] + a[1] * b[1]
 
 
-@overload(_row, inline="always")
-def _row_impl(A, i, D):  # type: ignore[no-untyped-def]
-    if _is_3d(D):
-        return lambda A, i, D: (A[i, 0], A[i, 1], A[i, 2])
-    return lambda A, i, D: (A[i, 0], A[i, 1])
+@jit(fastmath=_FM, inline="always")
+def _times_sym3(t, P):  # type: ignore[no-untyped-def]
+    """The row t (3-tuple) times the symmetric P (6-tuple)."""
+    return (
+        t[0] * P[0] + t[1] * P[1] + t[2] * P[2],
+        t[0] * P[1] + t[1] * P[3] + t[2] * P[4],
+        t[0] * P[2] + t[1] * P[4] + t[2] * P[5],
+    )
 
 
-def _set_row(A, i, v):  # type: ignore[no-untyped-def]
-    """A[i, :n] = v for an n-tuple v. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+@jit(fastmath=_FM, inline="always")
+def _times_sym2(t, P):  # type: ignore[no-untyped-def]
+    """The row t (2-tuple) times the symmetric P (3-tuple)."""
+    return (t[0] * P[0] + t[1] * P[1], t[0] * P[1] + t[1] * P[2])
 
 
-@overload(_set_row, inline="always")
-def _set_row_impl(A, i, v):  # type: ignore[no-untyped-def]
-    if len(v) == 3:
+@jit(fastmath=_FM, inline="always")
+def _put_new3(m, Cm, mn, Qn, floor: float) -> None:  # type: ignore[no-untyped-def]
+    """m = μ, Cm = Σ + floor·I for a new landmark (Σ a 6-tuple)."""
+    m[0], m[1], m[2] = mn
+    q00, q01, q02, q11, q12, q22 = Qn
+    Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
+    Cm[0, 1] = Cm[1, 0] = q01
+    Cm[0, 2] = Cm[2, 0] = q02
+    Cm[1, 2] = Cm[2, 1] = q12
 
-        def three(A, i, v):  # type: ignore[no-untyped-def]
-            A[i, 0], A[i, 1], A[i, 2] = v
 
-        return three
-
-    def two(A, i, v):  # type: ignore[no-untyped-def]
-        A[i, 0], A[i, 1] = v
-
-    return two
-
-
-def _dot(a, b):  # type: ignore[no-untyped-def]
-    """a · b for two n-tuples (n = 2, 3), summed left to right. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_dot, inline="always", jit_options={"fastmath": _FM})
-def _dot_impl(a, b):  # type: ignore[no-untyped-def]
-    if len(a) == 3:
-        return lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-    return lambda a, b: a[0] * b[0] + a[1] * b[1]
-
-
-def _times_sym(t, P):  # type: ignore[no-untyped-def]
-    """The row t (n-tuple) times the symmetric P (its triangle), an n-tuple. numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_times_sym, inline="always", jit_options={"fastmath": _FM})
-def _times_sym_impl(t, P):  # type: ignore[no-untyped-def]
-    if len(t) == 3:
-        return lambda t, P: (
-            t[0] * P[0] + t[1] * P[1] + t[2] * P[2],
-            t[0] * P[1] + t[1] * P[3] + t[2] * P[4],
-            t[0] * P[2] + t[1] * P[4] + t[2] * P[5],
-        )
-    return lambda t, P: (t[0] * P[0] + t[1] * P[1], t[0] * P[1] + t[1] * P[2])
-
-
-def _add(A, B):  # type: ignore[no-untyped-def]
-    """Sum of two symmetric tuples (``_add3``, ``_add2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_add, inline="always", jit_options={"fastmath": _FM})
-def _add_impl(A, B):  # type: ignore[no-untyped-def]
-    if len(A) == 6:
-        return lambda A, B: _add3(A, B)
-    return lambda A, B: _add2(A, B)
-
-
-def _inv_sym(A):  # type: ignore[no-untyped-def]
-    """(inverse, determinant) of a symmetric tuple (``_inv_sym3``, ``_inv_sym2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_inv_sym, inline="always", jit_options={"fastmath": _FM})
-def _inv_sym_impl(A):  # type: ignore[no-untyped-def]
-    if len(A) == 6:
-        return lambda A: _inv_sym3(A)
-    return lambda A: _inv_sym2(A)
-
-
-def _logpdf(nu, Si, det):  # type: ignore[no-untyped-def]
-    """log N(ν; 0, S) from S⁻¹ (a symmetric tuple) and det S (``_logpdf3``, ``_logpdf2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_logpdf, inline="always", jit_options={"fastmath": _FM})
-def _logpdf_impl(nu, Si, det):  # type: ignore[no-untyped-def]
-    if len(nu) == 3:
-        return lambda nu, Si, det: _logpdf3(nu[0], nu[1], nu[2], Si, det)
-    return lambda nu, Si, det: _logpdf2(nu[0], nu[1], Si, det)
-
-
-def _joseph(m, Cm, C, Qw, Pinv, nu):  # type: ignore[no-untyped-def]
-    """The landmark's EKF update in place (``_joseph3``, ``_joseph2``). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_joseph, inline="always", jit_options={"fastmath": _FM})
-def _joseph_impl(m, Cm, C, Qw, Pinv, nu):  # type: ignore[no-untyped-def]
-    if len(C) == 6:
-        return lambda m, Cm, C, Qw, Pinv, nu: _joseph3(m, Cm, C, Qw, Pinv, nu)
-    return lambda m, Cm, C, Qw, Pinv, nu: _joseph2(m, Cm, C, Qw, Pinv, nu)
-
-
-def _put_new(m, Cm, mn, Qn, floor):  # type: ignore[no-untyped-def]
-    """m = μ, Cm = Σ + floor·I for a new landmark (Σ a symmetric tuple). numba only."""
-    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
-
-
-@overload(_put_new, inline="always", jit_options={"fastmath": _FM})
-def _put_new_impl(m, Cm, mn, Qn, floor):  # type: ignore[no-untyped-def]
-    if len(Qn) == 6:
-
-        def spatial(m, Cm, mn, Qn, floor):  # type: ignore[no-untyped-def]
-            m[0], m[1], m[2] = mn
-            q00, q01, q02, q11, q12, q22 = Qn
-            Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
-            Cm[0, 1] = Cm[1, 0] = q01
-            Cm[0, 2] = Cm[2, 0] = q02
-            Cm[1, 2] = Cm[2, 1] = q12
-
-        return spatial
-
-    def planar(m, Cm, mn, Qn, floor):  # type: ignore[no-untyped-def]
-        m[0], m[1] = mn
-        q00, q01, q11 = Qn
-        Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
-        Cm[0, 1] = Cm[1, 0] = q01
-
-    return planar
+@jit(fastmath=_FM, inline="always")
+def _put_new2(m, Cm, mn, Qn, floor: float) -> None:  # type: ignore[no-untyped-def]
+    """m = μ, Cm = Σ + floor·I for a new landmark (Σ a 3-tuple)."""
+    m[0], m[1] = mn
+    q00, q01, q11 = Qn
+    Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
+    Cm[0, 1] = Cm[1, 0] = q01
 
 
 # ---------------------------------------------------------------------------------------------
 # The step
 
 
-@jit(fastmath=_FM)
 def _particle(  # type: ignore[no-untyped-def]
     k,
     version,
@@ -1055,111 +961,258 @@ def _particle(  # type: ignore[no-untyped-def]
 ) -> None:
     """The whole FastSLAM step of particle k (§9, §10) in the world frame (see above).
 
-    x, mu (dx,), T (dx, dm), Sx, Lc (dx, dx) are scratch arrays reused across particles.
+    x, mu (dx,), T (dx, dm), Sx, Lc (dx, dx) are scratch arrays reused across particles. numba
+    only: the overload below compiles the one algorithm with the algebra of D's dimension.
     """
-    dm, dx = _dims(D)
-    n_old = slots_old.shape[0]
-    Sk = S[k]
-    for i in range(dx):
-        x[i] = pose[k, i]
-    w = 0.0
-    xacc = (1.0, 0.0, 0)  # Jacobian terms of the pixel and range–bearing weights (_depth_acc)
-    if version == 2:
-        # One pass over the identified landmarks: the importance weight at the prior x̂ with S and
-        # the landmarks before the update (§10 "Importance weight"), and the Kalman-form proposal
-        # that moves μ_x, Σ_x one observation after another (§10 "Proposal").
-        # cosines and sines of μ_x's angles (its last three entries; 2D: only ψ's, cy and sy, are
-        # read), advanced by _turn as μ_x moves (no trig per observation); plain statements on
-        # purpose (see above the helpers)
-        cr, sr = math.cos(x[dx - 3]), math.sin(x[dx - 3])
-        cp, sp = math.cos(x[dx - 2]), math.sin(x[dx - 2])
-        cy, sy = math.cos(x[dx - 1]), math.sin(x[dx - 1])
-        F0 = _frame(cr, sr, cp, sp, cy, sy, D)
-        A0 = _noise(F0, rig, D)
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+
+
+@overload(_particle, jit_options={"fastmath": _FM})
+def _particle_impl(  # type: ignore[no-untyped-def]
+    k,
+    version,
+    pose,
+    S,
+    pool_mean,
+    pool_cov,
+    table,
+    bs,
+    slots_old,
+    z_old,
+    Q_old,
+    slots_new,
+    z_new,
+    Q_new,
+    eps,
+    floor,
+    out_pose,
+    dlogw,
+    seq,
+    out_mu,
+    out_Sx,
+    rig,
+    D,
+    x,
+    mu,
+    T,
+    Sx,
+    Lc,
+):
+    # the algebra of D's dimension; the names below are constants of the compiled step
+    if _is_3d(D):
+        dm, dx = 3, 6
+        frame, frame_at, advance, wrap_angles = _frame3, _frame_at3, _advance3, _wrap_angles3
+        meas, init, noise, pose_part = _meas3f, _init3f, _noise3f, _pose_part3f
+        sym, add, inv_sym, logpdf, joseph, put_new = _sym3, _add3, _inv_sym3, _logpdf3t, _joseph3, _put_new3
+        row, set_row, dot, times_sym = _row3, _set_row3, _dot3, _times_sym3
+    else:
+        dm, dx = 2, 3
+        frame, frame_at, advance, wrap_angles = _frame2, _frame_at2, _advance2, _wrap_angles2
+        meas, init, noise, pose_part = _meas2f, _init2f, _noise2f, _pose_part2f
+        sym, add, inv_sym, logpdf, joseph, put_new = _sym2, _add2, _inv_sym2, _logpdf2t, _joseph2, _put_new2
+        row, set_row, dot, times_sym = _row2, _set_row2, _dot2, _times_sym2
+
+    def particle(  # type: ignore[no-untyped-def]
+        k,
+        version,
+        pose,
+        S,
+        pool_mean,
+        pool_cov,
+        table,
+        bs,
+        slots_old,
+        z_old,
+        Q_old,
+        slots_new,
+        z_new,
+        Q_new,
+        eps,
+        floor,
+        out_pose,
+        dlogw,
+        seq,
+        out_mu,
+        out_Sx,
+        rig,
+        D,
+        x,
+        mu,
+        T,
+        Sx,
+        Lc,
+    ):
+        n_old = slots_old.shape[0]
+        Sk = S[k]
         for i in range(dx):
-            mu[i] = x[i]
-            for t in range(dx):
-                Sx[i, t] = Sk[i, t]
+            x[i] = pose[k, i]
+        w = 0.0
+        xacc = (1.0, 0.0, 0)  # Jacobian terms of the pixel and range–bearing weights (_depth_acc)
+        if version == 2:
+            # One pass over the identified landmarks: the importance weight at the prior x̂ with S
+            # and the landmarks before the update (§10 "Importance weight"), and the Kalman-form
+            # proposal that moves μ_x, Σ_x one observation after another (§10 "Proposal").
+            # Cosines and sines of μ_x's angles (its last three entries; 2D: only ψ's, cy and sy,
+            # are read), advanced by _turn as μ_x moves (no trig per observation). Six scalars
+            # written out here, not a tuple or a helper's result: see the module docstring.
+            cr, sr = math.cos(x[dx - 3]), math.sin(x[dx - 3])
+            cp, sp = math.cos(x[dx - 2]), math.sin(x[dx - 2])
+            cy, sy = math.cos(x[dx - 1]), math.sin(x[dx - 1])
+            F0 = frame(cr, sr, cp, sp, cy, sy)
+            A0 = noise(F0, rig)
+            for i in range(dx):
+                mu[i] = x[i]
+                for t in range(dx):
+                    Sx[i, t] = Sk[i, t]
+            for j in range(n_old):
+                s = slots_old[j]
+                blk = table[k, s // bs]
+                m = pool_mean[blk, s % bs]
+                C = sym(pool_cov[blk, s % bs])
+                if j == 0 or not seq:
+                    # weight term: L_w = Ĥ S Ĥ^T + C + Q_w at x̂ (Cartesian Q_w = R̂ Q R̂^T)
+                    d, nu, Qw, g = meas(x, m, z_old[j], Q_old[j], F0, rig, A0)
+                    HSH = pose_part(Sk, d, F0, T)
+                    Pinv, det = inv_sym(add(add(HSH, C), Qw))
+                    w += logpdf(nu, Pinv, det)
+                    xacc = _depth_acc(xacc, g)
+                if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
+                    F = frame(cr, sr, cp, sp, cy, sy)
+                    d, nu, Qw, g = meas(mu, m, z_old[j], Q_old[j], F, rig, noise(F, rig))
+                    HSH = pose_part(Sx, d, F, T)
+                    Pinv, det = inv_sym(add(add(HSH, C), Qw))
+                    if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
+                        w += logpdf(nu, Pinv, det)
+                        xacc = _depth_acc(xacc, g)
+                old = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
+                # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first dm columns); μ_x += K ν_w
+                for i in range(dx):
+                    kr = times_sym(row(T, i), Pinv)
+                    set_row(Lc, i, kr)
+                    mu[i] += dot(kr, nu)
+                new = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
+                cr, sr, cp, sp, cy, sy = advance(cr, sr, cp, sp, cy, sy, new, old)
+                wrap_angles(mu, new)
+                # Σ_x ← Σ_x - K T^T (symmetric: one triangle, mirrored)
+                for i in range(dx):
+                    kr = row(Lc, i)
+                    for t in range(i, dx):
+                        v = Sx[i, t] - dot(kr, row(T, t))
+                        Sx[i, t] = v
+                        Sx[t, i] = v
+            for i in range(dx):
+                out_mu[k, i] = mu[i]
+                for t in range(dx):
+                    out_Sx[k, i, t] = Sx[i, t]
+            if not _cholesky_into(Sx, Lc, dx):
+                ev, V = np.linalg.eigh(Sx)
+                for i in range(dx):
+                    for t in range(dx):
+                        Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
+            for i in range(dx):
+                acc = 0.0
+                for t in range(dx):
+                    acc += Lc[i, t] * eps[k, t]
+                x[i] = mu[i] + acc
+            for i in range(dm, dx):
+                x[i] = _wrap(x[i])
+        # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
+        F = frame_at(x)
+        A = noise(F, rig)
         for j in range(n_old):
             s = slots_old[j]
             blk = table[k, s // bs]
             m = pool_mean[blk, s % bs]
-            C = _sym(pool_cov[blk, s % bs], D)
-            if j == 0 or not seq:
-                # weight term: L_w = Ĥ S Ĥ^T + C + Q_w at x̂ (Cartesian Q_w = R̂ Q R̂^T)
-                d, nu, Qw, g = _meas(x, m, z_old[j], Q_old[j], F0, rig, A0, D)
-                HSH = _pose_part(Sk, d, F0, T, D)
-                Pinv, det = _inv_sym(_add(_add(HSH, C), Qw))
-                w += _logpdf(nu, Pinv, det)
+            Cm = pool_cov[blk, s % bs]
+            C = sym(Cm)
+            _, nu, Qw, g = meas(x, m, z_old[j], Q_old[j], F, rig, A)
+            Pinv, det = inv_sym(add(C, Qw))
+            joseph(m, Cm, C, Qw, Pinv, nu)
+            if version == 1:
+                w += logpdf(nu, Pinv, det)
                 xacc = _depth_acc(xacc, g)
-            if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
-                F = _frame(cr, sr, cp, sp, cy, sy, D)
-                d, nu, Qw, g = _meas(mu, m, z_old[j], Q_old[j], F, rig, _noise(F, rig, D), D)
-                HSH = _pose_part(Sx, d, F, T, D)
-                Pinv, det = _inv_sym(_add(_add(HSH, C), Qw))
-                if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
-                    w += _logpdf(nu, Pinv, det)
-                    xacc = _depth_acc(xacc, g)
-            # the last three entries of μ_x hold its angles (2D: its one angle)
-            old = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
-            # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first dm columns); μ_x += K ν_w
-            for i in range(dx):
-                kr = _times_sym(_row(T, i, D), Pinv)
-                _set_row(Lc, i, kr)
-                mu[i] += _dot(kr, nu)
-            new = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
-            cr, sr, cp, sp, cy, sy = _advance(cr, sr, cp, sp, cy, sy, new, old, D)
-            _wrap_angles(mu, new, D)
-            # Σ_x ← Σ_x - K T^T (symmetric: one triangle, mirrored)
-            for i in range(dx):
-                kr = _row(Lc, i, D)
-                for t in range(i, dx):
-                    v = Sx[i, t] - _dot(kr, _row(T, t, D))
-                    Sx[i, t] = v
-                    Sx[t, i] = v
+        # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I; pixel: z triangulated
+        # first; range–bearing: μ = p + r (cos(ψ + β), sin(ψ + β)) (_init3, _init2)
+        for j in range(slots_new.shape[0]):
+            s = slots_new[j]
+            blk = table[k, s // bs]
+            m = pool_mean[blk, s % bs]
+            Cm = pool_cov[blk, s % bs]
+            mn, Qn = init(x, z_new[j], Q_new[j], F, rig, A)
+            put_new(m, Cm, mn, Qn, floor)
         for i in range(dx):
-            out_mu[k, i] = mu[i]
-            for t in range(dx):
-                out_Sx[k, i, t] = Sx[i, t]
-        if not _cholesky_into(Sx, Lc, dx):
-            ev, V = np.linalg.eigh(Sx)
-            for i in range(dx):
-                for t in range(dx):
-                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
-        for i in range(dx):
-            acc = 0.0
-            for t in range(dx):
-                acc += Lc[i, t] * eps[k, t]
-            x[i] = mu[i] + acc
-        for i in range(dm, dx):
-            x[i] = _wrap(x[i])
-    # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
-    F = _frame_at(x, D)
-    A = _noise(F, rig, D)
-    for j in range(n_old):
-        s = slots_old[j]
-        blk = table[k, s // bs]
-        m = pool_mean[blk, s % bs]
-        Cm = pool_cov[blk, s % bs]
-        C = _sym(Cm, D)
-        _, nu, Qw, g = _meas(x, m, z_old[j], Q_old[j], F, rig, A, D)
-        Pinv, det = _inv_sym(_add(C, Qw))
-        _joseph(m, Cm, C, Qw, Pinv, nu)
-        if version == 1:
-            w += _logpdf(nu, Pinv, det)
-            xacc = _depth_acc(xacc, g)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I; pixel: z triangulated first,
-    # range–bearing: μ = p + r (cos(ψ + β), sin(ψ + β)) (_init3, _init2)
-    for j in range(slots_new.shape[0]):
-        s = slots_new[j]
-        blk = table[k, s // bs]
-        m = pool_mean[blk, s % bs]
-        Cm = pool_cov[blk, s % bs]
-        mn, Qn = _init(x, z_new[j], Q_new[j], F, rig, A, D)
-        _put_new(m, Cm, mn, Qn, floor)
-    for i in range(dx):
-        out_pose[k, i] = x[i]
-    dlogw[k] = w + _depth_logw(xacc, rig, dm)
+            out_pose[k, i] = x[i]
+        dlogw[k] = w + _depth_logw(xacc, rig, dm)
+
+    return particle
+
+
+@jit(fastmath=_FM)
+def _chunk(  # type: ignore[no-untyped-def]
+    k0,
+    k1,
+    version,
+    pose,
+    S,
+    pool_mean,
+    pool_cov,
+    table,
+    bs,
+    slots_old,
+    z_old,
+    Q_old,
+    slots_new,
+    z_new,
+    Q_new,
+    eps,
+    floor,
+    out_pose,
+    dlogw,
+    seq,
+    out_mu,
+    out_Sx,
+    rig,
+    D,
+) -> None:
+    """Particles k0 … k1-1, one after another, with one set of scratch arrays."""
+    dx = pose.shape[1]
+    dm = 3 if dx == 6 else 2
+    x = np.empty(dx)
+    mu = np.empty(dx)
+    T = np.empty((dx, dm))
+    Sx = np.empty((dx, dx))
+    Lc = np.empty((dx, dx))
+    for k in range(k0, k1):
+        _particle(
+            k,
+            version,
+            pose,
+            S,
+            pool_mean,
+            pool_cov,
+            table,
+            bs,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z_new,
+            Q_new,
+            eps,
+            floor,
+            out_pose,
+            dlogw,
+            seq,
+            out_mu,
+            out_Sx,
+            rig,
+            D,
+            x,
+            mu,
+            T,
+            Sx,
+            Lc,
+        )
 
 
 @jit(fastmath=_FM, parallel=True)
@@ -1188,46 +1241,36 @@ def _step(  # type: ignore[no-untyped-def]
     D,
     n_chunks,
 ):
-    # one contiguous range of particles per thread, with its scratch arrays allocated once
+    # one contiguous range of particles per thread (_chunk: a function of its own, so that numba
+    # compiles _particle's overload once, not once more for the parallel loop's body)
     P = pose.shape[0]
-    dm, dx = _dims(D)
     for c in nb.prange(n_chunks):
-        x = np.empty(dx)
-        mu = np.empty(dx)
-        T = np.empty((dx, dm))
-        Sx = np.empty((dx, dx))
-        Lc = np.empty((dx, dx))
-        for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-            _particle(
-                k,
-                version,
-                pose,
-                S,
-                pool_mean,
-                pool_cov,
-                table,
-                bs,
-                slots_old,
-                z_old,
-                Q_old,
-                slots_new,
-                z_new,
-                Q_new,
-                eps,
-                floor,
-                out_pose,
-                dlogw,
-                seq,
-                out_mu,
-                out_Sx,
-                rig,
-                D,
-                x,
-                mu,
-                T,
-                Sx,
-                Lc,
-            )
+        _chunk(
+            c * P // n_chunks,
+            (c + 1) * P // n_chunks,
+            version,
+            pose,
+            S,
+            pool_mean,
+            pool_cov,
+            table,
+            bs,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z_new,
+            Q_new,
+            eps,
+            floor,
+            out_pose,
+            dlogw,
+            seq,
+            out_mu,
+            out_Sx,
+            rig,
+            D,
+        )
 
 
 @jit(fastmath=_FM)
