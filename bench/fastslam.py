@@ -13,8 +13,9 @@ consecutive ids (landmarks seen together were mostly created together, which is 
 copy-on-write landmark blocks exploit); one extra row draws them from the whole map instead.
 Landmark pruning is off except in the ``pruning on`` rows (the daemon's default: one visibility
 pass over the best particle's whole map per frame; pruned ids are no longer observed there).
-numba rows use ``numba_threads`` threads (the target figure is one thread); the numba kernels are
-compiled (or loaded from cache) before timing. With ``--measurement pixel`` the observations carry
+FastSLAM rows run the numba kernel with ``numba_threads`` threads (the target figure is one thread;
+robotd has no other FastSLAM step since issue 28); the kernels are compiled (or loaded from cache)
+before timing. With ``--measurement pixel`` the observations carry
 the landmarks' pixels in a rectified pair (OAK-D-like rig, 0.5 px noise) and the filters use the
 stereo pixel model (slam.measurement = "pixel").
 """
@@ -121,7 +122,6 @@ def time_filter(
     M: int,
     N: int,
     budget_s: float,
-    use_numba: bool,
     threads: int,
     seed: int = 0,
     spread: bool = False,
@@ -135,7 +135,6 @@ def time_filter(
         filter=filt,
         dim=3,
         n_particles=max(P, 1),
-        use_numba=use_numba,
         numba_threads=threads,
         prune_enabled=prune,
         landmark_block_size=block,
@@ -180,7 +179,7 @@ def time_filter(
         "p99_ms": round(float(np.percentile(a, 99)), 3),
         # on a shared machine the fastest step approximates the uncontended cost
         "min_ms": round(float(np.min(a)), 3),
-        "path": f"numba{_threads_used(threads)}" if (use_numba and isinstance(est, FastSlam)) else "numpy",
+        "path": f"numba{_threads_used(threads)}" if isinstance(est, FastSlam) else "numpy",
         "steps": len(times),
         "resampled_frac": round(n_res / len(times), 3),
         "block": block,
@@ -279,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     # the bar counts cells (one time_filter or time_resample_copy call each) and moves between
     # them, never inside a timed step
     n_grid = 2 * len(Ps) * len(Ms) * len(Ns)
-    total = 2 + n_grid + 3 + len(Ms[1:]) + len(ekf_M) + len(Ps) * len(Ms) + max(0, args.target_repeats)
+    total = 2 + n_grid + 2 + len(Ms[1:]) + len(ekf_M) + len(Ps) * len(Ms) + max(0, args.target_repeats)
     bar = _bar(total, "cell", "fastslam")
 
     def note(r: dict[str, Any]) -> None:
@@ -289,9 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     with bar:
         # compile / load the numba kernels once before any timing
         bar.set_postfix_str("numba warm-up")
-        tf("fastslam2", 4, 10, 5, 0.0, True, 1)
+        tf("fastslam2", 4, 10, 5, 0.0, 1)
         bar.update(1)
-        tf("fastslam1", 4, 10, 5, 0.0, True, 1)
+        tf("fastslam1", 4, 10, 5, 0.0, 1)
         bar.update(1)
 
         results: list[dict[str, Any]] = []
@@ -300,23 +299,22 @@ def main(argv: list[str] | None = None) -> int:
                 for M in Ms:
                     for N in Ns:
                         bar.set_postfix_str(f"{filt} P={P} M={M} N={N}")
-                        results.append(tf(filt, P, M, N, budget, True, 1))
+                        results.append(tf(filt, P, M, N, budget, 1))
                         note(results[-1])
-        # the target cell with 2 threads, with the numpy path, and with observations spread over the map
+        # the target cell with 2 threads, and with observations spread over the map
         bar.set_postfix_str("target cell variants")
-        for kw in ({"use_numba": True, "threads": 2}, {"use_numba": False, "threads": 0}):
-            results.append(tf("fastslam2", 100, 1000, 100, budget, **kw))  # type: ignore[arg-type]
-            note(results[-1])
-        results.append(tf("fastslam2", 100, 1000, 100, budget, True, 1, spread=True))
+        results.append(tf("fastslam2", 100, 1000, 100, budget, 2))
+        note(results[-1])
+        results.append(tf("fastslam2", 100, 1000, 100, budget, 1, spread=True))
         note(results[-1])
         # the daemon's default: landmark pruning on (one O(M) visibility pass over the best particle's map)
         for M in Ms[1:]:
             bar.set_postfix_str(f"pruning M={M}")
-            results.append(tf("fastslam2", 100, M, 100, budget, True, 1, prune=True))
+            results.append(tf("fastslam2", 100, M, 100, budget, 1, prune=True))
             note(results[-1])
         for M in ekf_M:
             bar.set_postfix_str(f"ekf M={M}")
-            results.append(tf("ekf", 0, M, 20, budget, False, 0))
+            results.append(tf("ekf", 0, M, 20, budget, 0))
             note(results[-1])
         copies = []
         for P in Ps:
@@ -340,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         repeats = []
         for i in range(max(0, args.target_repeats)):
             bar.set_postfix_str(f"target repeat {i + 1}")
-            repeats.append(tf("fastslam2", 100, 1000, 100, budget, True, 1, seed=1 + i)["median_ms"])
+            repeats.append(tf("fastslam2", 100, 1000, 100, budget, 1, seed=1 + i)["median_ms"])
             bar.update(1)
     medians = [target["median_ms"], *repeats]
     conditions = {

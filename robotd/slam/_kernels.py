@@ -1,18 +1,38 @@
-"""numba kernels for the FastSLAM hot path (Cartesian and stereo pixel measurements, 2D and 3D).
+"""The FastSLAM step in numba: one per-particle algorithm for 2D and 3D and every measurement model.
 
-``fastslam_step_numba`` has the signature and the effects of
-:func:`robotd.slam.fastslam.fastslam_step` for the Cartesian models (docs/math.md §7.1, §7.2)
-and the stereo pixel models (``intrinsics``; docs/slam.md "Measurement models", with their
-constant noise), and agrees with it and with its readable twin ``fastslam_step_reference``
-(tests/support/reference_fastslam.py) to 1e-9 given the same ``eps``. Each
-particle is one iteration of a ``prange`` loop (one contiguous range of particles per thread,
-sharing its scratch arrays), so there are no per-call numpy dispatch costs.
+:func:`fastslam_step` (dense landmark arrays) and :func:`fastslam_step_store` (the copy-on-write
+:class:`~robotd.slam._store.LandmarkStore` the filter keeps) run FastSLAM 1.0 or 2.0's measurement
+step (docs/math.md §9, §10) for the Cartesian models (§7.1, §7.2), the 2D range–bearing model (§7.2)
+and the stereo pixel models (docs/slam.md "Measurement models", with their constant noise). They
+have the signature and the effects of the readable per-particle twin ``fastslam_step_reference``
+(tests/support/reference_fastslam.py) and agree with it to 1e-9 given the same ``eps``; robotd has no
+other implementation of the step. Each particle is one iteration of a ``prange`` loop (one
+contiguous range of particles per thread, sharing its scratch arrays), so there are no per-call
+numpy dispatch costs.
 
-Both dimensions (``_particle3``, ``_particle2``) evaluate the §9/§10 formulas rewritten in the world
-frame (derivation above ``_rot3_cs``), which needs about a third fewer operations than the
-robot-frame form of the reference, on tuples that LLVM keeps in registers; the importance weight
-and the proposal share one pass over the observations, and the proposal advances the cosines and
-sines of the pose angles instead of calling trig functions per observation.
+One algorithm, written once (``_particle``): the importance weight and the proposal in one pass
+over the identified landmarks, the pose drawn, the landmark EKFs at it, the new landmarks. It
+evaluates the §9/§10 formulas rewritten in the world frame (derivation above ``_rot3_cs``), which
+needs about a third fewer operations than the robot-frame form of the reference, on tuples that
+LLVM keeps in registers, and the proposal advances the cosines and sines of the pose angles
+instead of calling trig functions per observation. What differs between the dimensions and the
+models is small algebra that numba resolves while compiling (``numba.extending.overload``): the
+dimension by the marker ``D`` (:class:`Dim2`, :class:`Dim3`: ``_particle``'s overload binds the
+3D or the 2D functions of "the per-dimension algebra" below), the model by ``rig`` (None:
+Cartesian; the pixel model's constants; :class:`RangeBearing`: ``_meas3``, ``_init3`` and their
+kin dispatch on its type). numba compiles one specialised step per (dimension, model) in use, with
+no run-time branch in the loop (measured: a run-time model branch cost the Cartesian 2D and
+FastSLAM 1.0 steps 10–40 %). Adding a measurement model: a ``rig`` type and its branches of
+``_meas*``, ``_init*``, ``_noise*`` and ``_depth_logw``; the algorithm does not change.
+
+The kernel gives bit for bit the results of the separate 3D and 2D kernels it replaced (robotd
+581c06c; 50 random problems, every model and version, cold and warm numba caches), so recorded
+trajectories stay the same. Under fast-math that is fragile: LLVM reassociates sums in an order
+that depends on the shape of the code, and variants that computed the same values differently
+(the proposal's trig state as a tuple or through a helper; the dimension dispatched by overloads
+inlined at every call) moved the 3D results in their last bits. Check an edit of ``_particle`` or
+its algebra the same way (old against new, cold against cold and warm against warm: numba's own
+compiled and cached code differ in the last bits in 3D).
 
 Compiled by :func:`robotd.jit.jit` (first call compiles for ~10–20 s, later processes load the disk
 cache; ``NUMBA_CACHE_DIR`` must be writable by the service, else every process compiles anew).
@@ -21,6 +41,7 @@ cache; ``NUMBA_CACHE_DIR`` must be writable by the service, else every process c
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -30,6 +51,13 @@ from numba.extending import overload
 from robotd.errors import InputError
 from robotd.jit import jit
 from robotd.slam._store import LandmarkStore
+from robotd.slam.models import (
+    CARTESIAN_2D,
+    CARTESIAN_3D,
+    RANGE_BEARING_2D,
+    MeasurementModel,
+    stereo_pixel_model,
+)
 from robotd.slam.models import PIXEL_MIN_DEPTH_M as _PIXEL_MIN_DEPTH
 
 _TWO_PI = 2.0 * math.pi
@@ -38,6 +66,34 @@ _LOG_2PI = math.log(2.0 * math.pi)
 # vectorise the small fixed-size products (~10-15 % faster); results still agree with the
 # reference to ~1e-14.
 _FM = {"contract", "reassoc", "arcp", "nsz"}
+
+
+# The kernel's compile-time choices. The dimension is a marker type (an empty named tuple), the
+# measurement model is ``rig``: None (Cartesian), the pixel model's constants (a 10-tuple, see
+# ``_pixel_rig``) or the RangeBearing marker. numba types each as its own type, so the overloads
+# below resolve them while compiling (``_step`` is specialised per (dimension, model)).
+
+
+class Dim2(NamedTuple):
+    """Marker: the 2D filter (pose (x, y, ψ), landmarks (x, y))."""
+
+
+class Dim3(NamedTuple):
+    """Marker: the 3D filter (pose (x, y, z, roll, pitch, yaw), landmarks (x, y, z))."""
+
+
+class RangeBearing(NamedTuple):
+    """Marker ``rig`` of the 2D range–bearing model (§7.2; its noise is each observation's Q)."""
+
+
+def _is_3d(D: types.Type) -> bool:
+    """Typing-time test of the dimension marker's type."""
+    return getattr(D, "instance_class", None) is Dim3
+
+
+def _is_range_bearing(rig: types.Type) -> bool:
+    """Typing-time test of ``rig``'s type."""
+    return getattr(rig, "instance_class", None) is RangeBearing
 
 
 @jit(fastmath=_FM)
@@ -379,196 +435,56 @@ def _init3_impl(x, zm, Qm, R, rig, A):  # type: ignore[no-untyped-def]
     return pixel
 
 
-@jit(fastmath=_FM)
-def _particle3(  # type: ignore[no-untyped-def]
-    k,
-    version,
-    pose,
-    S,
-    pool_mean,
-    pool_cov,
-    table,
-    bs,
-    slots_old,
-    z_old,
-    Q_old,
-    slots_new,
-    z_new,
-    Q_new,
-    eps,
-    floor,
-    out_pose,
-    dlogw,
-    seq,
-    out_mu,
-    out_Sx,
-    rig,
-    x,
-    mu,
-    T,
-    Sx,
-    Lc,
-) -> None:
-    """The whole 3D FastSLAM step of particle k (§9, §10) in the world frame (see above).
-
-    x, mu (6,), T (6, 3), Sx, Lc (6, 6) are scratch arrays reused across particles.
-    """
-    n_old = slots_old.shape[0]
-    Sk = S[k]
-    for i in range(6):
-        x[i] = pose[k, i]
-    w = 0.0
-    xacc = (1.0, 0.0, 0)  # depth terms of the pixel weights (_depth_acc)
-    if version == 2:
-        # One pass over the identified landmarks: the importance weight at the prior x̂ with S and
-        # the landmarks before the update (§10 "Importance weight"), and the Kalman-form proposal
-        # that moves μ_x, Σ_x one observation after another (§10 "Proposal").
-        # cosines and sines of μ_x's angles, advanced by _turn as μ_x moves (no trig per observation)
-        cr, sr = math.cos(x[3]), math.sin(x[3])
-        cp, sp = math.cos(x[4]), math.sin(x[4])
-        cy, sy = math.cos(x[5]), math.sin(x[5])
-        R0 = _rot3_cs(cr, sr, cp, sp, cy, sy)
-        A0 = _noise3(R0, rig)
-        sy0, cy0 = sy, cy
-        for i in range(6):
-            mu[i] = x[i]
-            for t in range(6):
-                Sx[i, t] = Sk[i, t]
-        for j in range(n_old):
-            s = slots_old[j]
-            blk = table[k, s // bs]
-            m = pool_mean[blk, s % bs]
-            C = _sym3(pool_cov[blk, s % bs])
-            if j == 0 or not seq:
-                # weight term: L_w = Ĥ S Ĥ^T + C + Q_w at x̂ (Cartesian Q_w = R̂ Q R̂^T)
-                d, nu, Qw, g = _meas3(x, m, z_old[j], Q_old[j], R0, rig, A0)
-                HSH = _pose_part3t(Sk, d, R0, sy0, cy0, T)
-                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), Qw))
-                w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
-                xacc = _depth_acc(xacc, g)
-            if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
-                R = _rot3_cs(cr, sr, cp, sp, cy, sy)
-                d, nu, Qw, g = _meas3(mu, m, z_old[j], Q_old[j], R, rig, _noise3(R, rig))
-                HSH = _pose_part3t(Sx, d, R, sy, cy, T)
-                Pinv, det = _inv_sym3(_add3(_add3(HSH, C), Qw))
-                if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
-                    w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
-                    xacc = _depth_acc(xacc, g)
-            p00, p01, p02, p11, p12, p22 = Pinv
-            a3, a4, a5 = mu[3], mu[4], mu[5]
-            # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first three columns); μ_x += K ν_w
-            for i in range(6):
-                t0, t1, t2 = T[i, 0], T[i, 1], T[i, 2]
-                k0 = t0 * p00 + t1 * p01 + t2 * p02
-                k1 = t0 * p01 + t1 * p11 + t2 * p12
-                k2 = t0 * p02 + t1 * p12 + t2 * p22
-                Lc[i, 0], Lc[i, 1], Lc[i, 2] = k0, k1, k2
-                mu[i] += k0 * nu[0] + k1 * nu[1] + k2 * nu[2]
-            cr, sr = _turn(cr, sr, mu[3] - a3)
-            cp, sp = _turn(cp, sp, mu[4] - a4)
-            cy, sy = _turn(cy, sy, mu[5] - a5)
-            for i in range(3, 6):
-                mu[i] = _wrap(mu[i])
-            # Σ_x ← Σ_x - K T^T (symmetric: one triangle, mirrored)
-            for i in range(6):
-                k0, k1, k2 = Lc[i, 0], Lc[i, 1], Lc[i, 2]
-                for t in range(i, 6):
-                    v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1] + k2 * T[t, 2])
-                    Sx[i, t] = v
-                    Sx[t, i] = v
-        for i in range(6):
-            out_mu[k, i] = mu[i]
-            for t in range(6):
-                out_Sx[k, i, t] = Sx[i, t]
-        if not _cholesky_into(Sx, Lc, 6):
-            ev, V = np.linalg.eigh(Sx)
-            for i in range(6):
-                for t in range(6):
-                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
-        for i in range(6):
-            acc = 0.0
-            for t in range(6):
-                acc += Lc[i, t] * eps[k, t]
-            x[i] = mu[i] + acc
-        for i in range(3, 6):
-            x[i] = _wrap(x[i])
-    # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
-    R, _, _ = _rot3t(x[3], x[4], x[5])
-    A = _noise3(R, rig)
-    for j in range(n_old):
-        s = slots_old[j]
-        blk = table[k, s // bs]
-        m = pool_mean[blk, s % bs]
-        Cm = pool_cov[blk, s % bs]
-        C = _sym3(Cm)
-        c00, c01, c02, c11, c12, c22 = C
-        _, nu, Qw, g = _meas3(x, m, z_old[j], Q_old[j], R, rig, A)
-        Pinv, det = _inv_sym3(_add3(C, Qw))
-        p00, p01, p02, p11, p12, p22 = Pinv
-        # K_w = C Ψ_w^{-1} (general 3×3)
-        k00 = c00 * p00 + c01 * p01 + c02 * p02
-        k01 = c00 * p01 + c01 * p11 + c02 * p12
-        k02 = c00 * p02 + c01 * p12 + c02 * p22
-        k10 = c01 * p00 + c11 * p01 + c12 * p02
-        k11 = c01 * p01 + c11 * p11 + c12 * p12
-        k12 = c01 * p02 + c11 * p12 + c12 * p22
-        k20 = c02 * p00 + c12 * p01 + c22 * p02
-        k21 = c02 * p01 + c12 * p11 + c22 * p12
-        k22 = c02 * p02 + c12 * p12 + c22 * p22
-        m[0] += k00 * nu[0] + k01 * nu[1] + k02 * nu[2]
-        m[1] += k10 * nu[0] + k11 * nu[1] + k12 * nu[2]
-        m[2] += k20 * nu[0] + k21 * nu[1] + k22 * nu[2]
-        # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T: B = (I - K_w) C row by row, then the triangle
-        b00 = (1.0 - k00) * c00 - k01 * c01 - k02 * c02
-        b01 = (1.0 - k00) * c01 - k01 * c11 - k02 * c12
-        b02 = (1.0 - k00) * c02 - k01 * c12 - k02 * c22
-        b10 = -k10 * c00 + (1.0 - k11) * c01 - k12 * c02
-        b11 = -k10 * c01 + (1.0 - k11) * c11 - k12 * c12
-        b12 = -k10 * c02 + (1.0 - k11) * c12 - k12 * c22
-        b20 = -k20 * c00 - k21 * c01 + (1.0 - k22) * c02
-        b21 = -k20 * c01 - k21 * c11 + (1.0 - k22) * c12
-        b22 = -k20 * c02 - k21 * c12 + (1.0 - k22) * c22
-        q00, q01, q02, q11, q12, q22 = Qw
-        # rows of K_w Q_w
-        e00 = k00 * q00 + k01 * q01 + k02 * q02
-        e01 = k00 * q01 + k01 * q11 + k02 * q12
-        e02 = k00 * q02 + k01 * q12 + k02 * q22
-        e10 = k10 * q00 + k11 * q01 + k12 * q02
-        e11 = k10 * q01 + k11 * q11 + k12 * q12
-        e12 = k10 * q02 + k11 * q12 + k12 * q22
-        e20 = k20 * q00 + k21 * q01 + k22 * q02
-        e21 = k20 * q01 + k21 * q11 + k22 * q12
-        e22 = k20 * q02 + k21 * q12 + k22 * q22
-        n00 = b00 * (1.0 - k00) - b01 * k01 - b02 * k02 + e00 * k00 + e01 * k01 + e02 * k02
-        n01 = -b00 * k10 + b01 * (1.0 - k11) - b02 * k12 + e00 * k10 + e01 * k11 + e02 * k12
-        n02 = -b00 * k20 - b01 * k21 + b02 * (1.0 - k22) + e00 * k20 + e01 * k21 + e02 * k22
-        n11 = -b10 * k10 + b11 * (1.0 - k11) - b12 * k12 + e10 * k10 + e11 * k11 + e12 * k12
-        n12 = -b10 * k20 - b11 * k21 + b12 * (1.0 - k22) + e10 * k20 + e11 * k21 + e12 * k22
-        n22 = -b20 * k20 - b21 * k21 + b22 * (1.0 - k22) + e20 * k20 + e21 * k21 + e22 * k22
-        Cm[0, 0], Cm[1, 1], Cm[2, 2] = n00, n11, n22
-        Cm[0, 1] = Cm[1, 0] = n01
-        Cm[0, 2] = Cm[2, 0] = n02
-        Cm[1, 2] = Cm[2, 1] = n12
-        if version == 1:
-            w += _logpdf3(nu[0], nu[1], nu[2], Pinv, det)
-            xacc = _depth_acc(xacc, g)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I (R(x) is still in R); pixel:
-    # z triangulated first (_init3)
-    for j in range(slots_new.shape[0]):
-        s = slots_new[j]
-        blk = table[k, s // bs]
-        m = pool_mean[blk, s % bs]
-        Cm = pool_cov[blk, s % bs]
-        mn, Qn = _init3(x, z_new[j], Q_new[j], R, rig, A)
-        m[0], m[1], m[2] = mn
-        q00, q01, q02, q11, q12, q22 = Qn
-        Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
-        Cm[0, 1] = Cm[1, 0] = q01
-        Cm[0, 2] = Cm[2, 0] = q02
-        Cm[1, 2] = Cm[2, 1] = q12
-    for i in range(6):
-        out_pose[k, i] = x[i]
-    dlogw[k] = w + _depth_logw(xacc, rig, 3)
+@jit(fastmath=_FM, inline="always")
+def _joseph3(m, Cm, C, Qw, Pinv, nu) -> None:  # type: ignore[no-untyped-def]
+    """A landmark's EKF update in the world frame, in place: m += K_w ν_w and
+    Cm = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T with K_w = C Ψ_w^{-1} (C, Q_w, Ψ_w^{-1} 6-tuples)."""
+    c00, c01, c02, c11, c12, c22 = C
+    p00, p01, p02, p11, p12, p22 = Pinv
+    # K_w = C Ψ_w^{-1} (general 3×3)
+    k00 = c00 * p00 + c01 * p01 + c02 * p02
+    k01 = c00 * p01 + c01 * p11 + c02 * p12
+    k02 = c00 * p02 + c01 * p12 + c02 * p22
+    k10 = c01 * p00 + c11 * p01 + c12 * p02
+    k11 = c01 * p01 + c11 * p11 + c12 * p12
+    k12 = c01 * p02 + c11 * p12 + c12 * p22
+    k20 = c02 * p00 + c12 * p01 + c22 * p02
+    k21 = c02 * p01 + c12 * p11 + c22 * p12
+    k22 = c02 * p02 + c12 * p12 + c22 * p22
+    m[0] += k00 * nu[0] + k01 * nu[1] + k02 * nu[2]
+    m[1] += k10 * nu[0] + k11 * nu[1] + k12 * nu[2]
+    m[2] += k20 * nu[0] + k21 * nu[1] + k22 * nu[2]
+    # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T: B = (I - K_w) C row by row, then the triangle
+    b00 = (1.0 - k00) * c00 - k01 * c01 - k02 * c02
+    b01 = (1.0 - k00) * c01 - k01 * c11 - k02 * c12
+    b02 = (1.0 - k00) * c02 - k01 * c12 - k02 * c22
+    b10 = -k10 * c00 + (1.0 - k11) * c01 - k12 * c02
+    b11 = -k10 * c01 + (1.0 - k11) * c11 - k12 * c12
+    b12 = -k10 * c02 + (1.0 - k11) * c12 - k12 * c22
+    b20 = -k20 * c00 - k21 * c01 + (1.0 - k22) * c02
+    b21 = -k20 * c01 - k21 * c11 + (1.0 - k22) * c12
+    b22 = -k20 * c02 - k21 * c12 + (1.0 - k22) * c22
+    q00, q01, q02, q11, q12, q22 = Qw
+    # rows of K_w Q_w
+    e00 = k00 * q00 + k01 * q01 + k02 * q02
+    e01 = k00 * q01 + k01 * q11 + k02 * q12
+    e02 = k00 * q02 + k01 * q12 + k02 * q22
+    e10 = k10 * q00 + k11 * q01 + k12 * q02
+    e11 = k10 * q01 + k11 * q11 + k12 * q12
+    e12 = k10 * q02 + k11 * q12 + k12 * q22
+    e20 = k20 * q00 + k21 * q01 + k22 * q02
+    e21 = k20 * q01 + k21 * q11 + k22 * q12
+    e22 = k20 * q02 + k21 * q12 + k22 * q22
+    n00 = b00 * (1.0 - k00) - b01 * k01 - b02 * k02 + e00 * k00 + e01 * k01 + e02 * k02
+    n01 = -b00 * k10 + b01 * (1.0 - k11) - b02 * k12 + e00 * k10 + e01 * k11 + e02 * k12
+    n02 = -b00 * k20 - b01 * k21 + b02 * (1.0 - k22) + e00 * k20 + e01 * k21 + e02 * k22
+    n11 = -b10 * k10 + b11 * (1.0 - k11) - b12 * k12 + e10 * k10 + e11 * k11 + e12 * k12
+    n12 = -b10 * k20 - b11 * k21 + b12 * (1.0 - k22) + e10 * k20 + e11 * k21 + e12 * k22
+    n22 = -b20 * k20 - b21 * k21 + b22 * (1.0 - k22) + e20 * k20 + e21 * k21 + e22 * k22
+    Cm[0, 0], Cm[1, 1], Cm[2, 2] = n00, n11, n22
+    Cm[0, 1] = Cm[1, 0] = n01
+    Cm[0, 2] = Cm[2, 0] = n02
+    Cm[1, 2] = Cm[2, 1] = n12
 
 
 # ---------------------------------------------------------------------------------------------
@@ -609,13 +525,15 @@ def _logpdf2(n0: float, n1: float, Si, det: float) -> float:  # type: ignore[no-
 
 
 def _depth_acc(acc, g):  # type: ignore[no-untyped-def]
-    """The pixel weights' depth terms: ``acc`` = (Π X̃ since the last fold, Σ log of the folded
-    products, count) gains the depth ``g``; Cartesian (``g`` None): unchanged. numba only.
+    """The weights' Jacobian terms: ``acc`` = (Π g since the last fold, Σ log of the folded
+    products, count) gains ``g`` (pixel: the depth X̃; range–bearing: the range r); Cartesian
+    (``g`` None): unchanged. numba only.
 
-    log det Ψ_px = log det Ψ_w + log det(G)², det(G)² = (f³ b)²/X̃⁸ (2D (f² b)²/X̃⁶): the depth part
-    of every weight term is collected here and added once per particle (``_depth_logw``), so the
-    weight terms need no division or logarithm of their own. The product is folded into the
-    log sum before it can overflow or underflow (X̃ ∈ [0.05 m, ~1e4 m]).
+    log det Ψ = log det Ψ_w + log det(G)²; pixel: det(G)² = (f³ b)²/X̃⁸ (2D (f² b)²/X̃⁶),
+    range–bearing: det(G)² = 1/r². That part of every weight term is collected here and added once
+    per particle (``_depth_logw``), so the weight terms need no division or logarithm of their own.
+    The product is folded into the log sum before it can overflow or underflow (X̃ ∈ [0.05 m,
+    ~1e4 m]).
     """
     raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
@@ -643,6 +561,9 @@ def _depth_logw(xacc, rig, dz: int):  # type: ignore[no-untyped-def]
 def _depth_logw_impl(acc, rig, dz):  # type: ignore[no-untyped-def]
     if isinstance(rig, types.NoneType):
         return lambda acc, rig, dz: 0.0
+    if _is_range_bearing(rig):
+        # −½ log det(G)² = log r per term
+        return lambda acc, rig, dz: acc[1] + math.log(acc[0])
 
     def pixel(acc, rig, dz):  # type: ignore[no-untyped-def]
         # 3D: −½ (log (f³ b)² − 8 log X̃) per term; 2D: −½ (log (f² b)² − 6 log X̃)
@@ -669,14 +590,31 @@ def _pose_part2t(Sg, d, T):  # type: ignore[no-untyped-def]
     return (-T[0, 0] + a0 * T[2, 0], -T[0, 1] + a0 * T[2, 1], -T[1, 1] + a1 * T[2, 1])
 
 
+# Range–bearing (§7.2) in the same world frame: z = (r, β) = (|d|, bearing of Rᵀ d), whose
+# H_m = G = [[d_x/r, d_y/r], [−d_y/r², d_x/r²]] gives H_x = G Ĥ with the Cartesian Ĥ = [−I | (d_y, −d_x)]
+# (G (d_y, −d_x) = (0, −1)). So, as for the pixel model, its formulas are a Cartesian model's with
+#   ν_w = G⁻¹ ν,  Q_w = G⁻¹ Q G⁻ᵀ,  det Ψ = det(G)² det Ψ_w = det Ψ_w / r²,
+# G⁻¹ = [[d_x/r, −d_y], [d_y/r, d_x]]; the new landmark's J_z = ∂m/∂(r, β) is G⁻¹ at it. Q is each
+# observation's (a general covariance).
+
+
+@jit(fastmath=_FM, inline="always")
+def _gqg(g00: float, g01: float, g10: float, g11: float, Qm):  # type: ignore[no-untyped-def]
+    """G Q Gᵀ (3-tuple) for G = [[g00, g01], [g10, g11]] and Q's upper triangle."""
+    q00, q01, q11 = Qm[0, 0], Qm[0, 1], Qm[1, 1]
+    a0, a1 = g00 * q00 + g01 * q01, g00 * q01 + g01 * q11  # row 0 of G Q
+    b0, b1 = g10 * q00 + g11 * q01, g10 * q01 + g11 * q11  # row 1 of G Q
+    return (a0 * g00 + a1 * g01, a0 * g10 + a1 * g11, b0 * g10 + b1 * g11)
+
+
 def _noise2(c: float, s: float, rig):  # type: ignore[no-untyped-def]
-    """Pixel model: A = (σx² b²/2) r1 r1ᵀ (3-tuple), r1 = (−sin ψ, cos ψ); Cartesian: 0.0. numba only."""
+    """Pixel model: A = (σx² b²/2) r1 r1ᵀ (3-tuple), r1 = (−sin ψ, cos ψ); other models: 0.0. numba only."""
     raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
 @overload(_noise2, inline="always", jit_options={"fastmath": _FM})
 def _noise2_impl(c, s, rig):  # type: ignore[no-untyped-def]
-    if isinstance(rig, types.NoneType):
+    if isinstance(rig, types.NoneType) or _is_range_bearing(rig):
         return lambda c, s, rig: 0.0
 
     def pixel(c, s, rig):  # type: ignore[no-untyped-def]
@@ -695,8 +633,9 @@ def _pixel_cov2(D0: float, D1: float, sc: float, A, vx: float):  # type: ignore[
 
 
 def _meas2(x, m, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
-    """One 2D observation in the world frame: (d, ν_w, Q_w (3-tuple), X̃), as ``_meas3`` with
-    R = R2(ψ) = [[c, −s], [s, c]]; pixel: z = (x_L, x_R), g = det(J_π)² = (f² b / X̃³)²; numba only."""
+    """One 2D observation in the world frame: (d, ν_w, Q_w (3-tuple), g), as ``_meas3`` with
+    R = R2(ψ) = [[c, −s], [s, c]]; pixel: z = (x_L, x_R), g = X̃ (det(J_π)² = (f² b / X̃³)²);
+    range–bearing: see ``_gqg``, g = r; numba only."""
     raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
@@ -709,6 +648,18 @@ def _meas2_impl(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
             return d, nu, _sandwich2(c, s, (Qm[0, 0], Qm[0, 1], Qm[1, 1])), None
 
         return cartesian
+    if _is_range_bearing(rig):
+
+        def range_bearing(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+            d0, d1 = m[0] - x[0], m[1] - x[1]
+            r = math.sqrt(d0 * d0 + d1 * d1)
+            # ν = z − (r, β̂) with β̂ the bearing of Rᵀ d, wrapped; ν_w = G⁻¹ ν
+            nr = zm[0] - r
+            nb = _wrap(zm[1] - math.atan2(-s * d0 + c * d1, c * d0 + s * d1))
+            a, b = d0 / r, d1 / r
+            return (d0, d1), (a * nr - d1 * nb, b * nr + d0 * nb), _gqg(a, -d1, b, d0, Qm), r
+
+        return range_bearing
 
     def pixel(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
         px, vx, i_fb, i_f = rig[1], rig[4], rig[6], rig[7]
@@ -727,7 +678,8 @@ def _meas2_impl(x, m, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
 
 
 def _init2(x, zm, Qm, c: float, s: float, rig, A):  # type: ignore[no-untyped-def]
-    """A new 2D landmark at pose x: (μ (2-tuple), Σ without the floor (3-tuple)), as ``_init3``."""
+    """A new 2D landmark at pose x: (μ (2-tuple), Σ without the floor (3-tuple)), as ``_init3``;
+    range–bearing: μ = p + r (cos(ψ + β), sin(ψ + β)), Σ = J_z Q J_zᵀ (J_z = G⁻¹ there). numba only."""
     raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
 
 
@@ -741,6 +693,15 @@ def _init2_impl(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
             return mu, _sandwich2(c, s, (Qm[0, 0], Qm[0, 1], Qm[1, 1]))
 
         return cartesian
+    if _is_range_bearing(rig):
+
+        def range_bearing(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
+            r, cb, sb = zm[0], math.cos(zm[1]), math.sin(zm[1])
+            ct, st = c * cb - s * sb, s * cb + c * sb  # cos, sin of ψ + β
+            D0, D1 = r * ct, r * st
+            return (x[0] + D0, x[1] + D1), _gqg(ct, -D1, st, D0, Qm)
+
+        return range_bearing
 
     def pixel(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
         f, px, b = rig[0], rig[1], rig[3]
@@ -752,8 +713,223 @@ def _init2_impl(x, zm, Qm, c, s, rig, A):  # type: ignore[no-untyped-def]
     return pixel
 
 
-@jit(fastmath=_FM)
-def _particle2(  # type: ignore[no-untyped-def]
+@jit(fastmath=_FM, inline="always")
+def _joseph2(m, Cm, C, Qw, Pinv, nu) -> None:  # type: ignore[no-untyped-def]
+    """``_joseph3`` in 2D (C, Q_w, Ψ_w^{-1} 3-tuples)."""
+    c00, c01, c11 = C
+    q00, q01, q11 = Qw
+    p00, p01, p11 = Pinv
+    # K_w = C Ψ_w^{-1}
+    k00, k01 = c00 * p00 + c01 * p01, c00 * p01 + c01 * p11
+    k10, k11 = c01 * p00 + c11 * p01, c01 * p01 + c11 * p11
+    m[0] += k00 * nu[0] + k01 * nu[1]
+    m[1] += k10 * nu[0] + k11 * nu[1]
+    # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T
+    b00, b01 = (1.0 - k00) * c00 - k01 * c01, (1.0 - k00) * c01 - k01 * c11
+    b10, b11 = -k10 * c00 + (1.0 - k11) * c01, -k10 * c01 + (1.0 - k11) * c11
+    e00, e01 = k00 * q00 + k01 * q01, k00 * q01 + k01 * q11
+    e10, e11 = k10 * q00 + k11 * q01, k10 * q01 + k11 * q11
+    n00 = b00 * (1.0 - k00) - b01 * k01 + e00 * k00 + e01 * k01
+    n01 = -b00 * k10 + b01 * (1.0 - k11) + e00 * k10 + e01 * k11
+    n11 = -b10 * k10 + b11 * (1.0 - k11) + e10 * k10 + e11 * k11
+    Cm[0, 0], Cm[1, 1] = n00, n11
+    Cm[0, 1] = Cm[1, 0] = n01
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-dimension algebra the step is written in. _particle's overload (below) picks the 3D or
+# the 2D set while compiling; each is a plain function that numba inlines into the step (no
+# dispatch at run time). A pose's angles are its last three entries (3D: roll, pitch, yaw; 2D:
+# x, y, ψ, of which only ψ is an angle and read); a frame ``F`` is what the measurement formulas
+# take (3D (R, sin yaw, cos yaw), 2D (cos ψ, sin ψ)). Symmetric matrices are their upper
+# triangles as tuples (6 entries 3×3, 3 entries 2×2), rows of the dx × dm arrays T and Lc are
+# dm-tuples; the measurement's dimension is the landmark's in the world frame (Ψ_w is dm × dm for
+# every model).
+
+
+@jit(fastmath=_FM, inline="always")
+def _frame3(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float):  # type: ignore[no-untyped-def]
+    """The 3D frame of a trig state (cosines and sines of roll, pitch, yaw): (R, sin yaw, cos yaw)."""
+    return _rot3_cs(cr, sr, cp, sp, cy, sy), sy, cy
+
+
+@jit(fastmath=_FM, inline="always")
+def _frame2(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float):  # type: ignore[no-untyped-def]
+    """The 2D frame (cos ψ, sin ψ) = (cy, sy) of a trig state (the other pairs are not angles)."""
+    return cy, sy
+
+
+@jit(fastmath=_FM, inline="always")
+def _frame_at3(x):  # type: ignore[no-untyped-def]
+    """The frame of 3D pose x."""
+    return _rot3t(x[3], x[4], x[5])
+
+
+@jit(fastmath=_FM, inline="always")
+def _frame_at2(x):  # type: ignore[no-untyped-def]
+    """The frame of 2D pose x."""
+    return math.cos(x[2]), math.sin(x[2])
+
+
+@jit(fastmath=_FM, inline="always")
+def _advance3(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float, new, old):  # type: ignore[no-untyped-def]
+    """The trig state after roll, pitch, yaw moved from ``old`` to ``new`` (``_turn``)."""
+    cr, sr = _turn(cr, sr, new[0] - old[0])
+    cp, sp = _turn(cp, sp, new[1] - old[1])
+    cy, sy = _turn(cy, sy, new[2] - old[2])
+    return cr, sr, cp, sp, cy, sy
+
+
+@jit(fastmath=_FM, inline="always")
+def _advance2(cr: float, sr: float, cp: float, sp: float, cy: float, sy: float, new, old):  # type: ignore[no-untyped-def]
+    """The trig state after ψ (the last entry) moved from ``old`` to ``new``."""
+    cy, sy = _turn(cy, sy, new[2] - old[2])
+    return cr, sr, cp, sp, cy, sy
+
+
+@jit(fastmath=_FM, inline="always")
+def _wrap_angles3(x, new) -> None:  # type: ignore[no-untyped-def]
+    """x's roll, pitch, yaw = ``new``'s wrapped."""
+    x[3] = _wrap(new[0])
+    x[4] = _wrap(new[1])
+    x[5] = _wrap(new[2])
+
+
+@jit(fastmath=_FM, inline="always")
+def _wrap_angles2(x, new) -> None:  # type: ignore[no-untyped-def]
+    """x's ψ = ``new``'s last entry wrapped."""
+    x[2] = _wrap(new[2])
+
+
+@jit(fastmath=_FM, inline="always")
+def _noise3f(F, rig):  # type: ignore[no-untyped-def]
+    return _noise3(F[0], rig)
+
+
+@jit(fastmath=_FM, inline="always")
+def _noise2f(F, rig):  # type: ignore[no-untyped-def]
+    return _noise2(F[0], F[1], rig)
+
+
+@jit(fastmath=_FM, inline="always")
+def _meas3f(x, m, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _meas3(x, m, zm, Qm, F[0], rig, A)
+
+
+@jit(fastmath=_FM, inline="always")
+def _meas2f(x, m, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _meas2(x, m, zm, Qm, F[0], F[1], rig, A)
+
+
+@jit(fastmath=_FM, inline="always")
+def _init3f(x, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _init3(x, zm, Qm, F[0], rig, A)
+
+
+@jit(fastmath=_FM, inline="always")
+def _init2f(x, zm, Qm, F, rig, A):  # type: ignore[no-untyped-def]
+    return _init2(x, zm, Qm, F[0], F[1], rig, A)
+
+
+@jit(fastmath=_FM, inline="always")
+def _pose_part3f(Sg, d, F, T):  # type: ignore[no-untyped-def]
+    return _pose_part3t(Sg, d, F[0], F[1], F[2], T)
+
+
+@jit(fastmath=_FM, inline="always")
+def _pose_part2f(Sg, d, F, T):  # type: ignore[no-untyped-def]
+    return _pose_part2t(Sg, d, T)
+
+
+@jit(fastmath=_FM, inline="always")
+def _sym2(C):  # type: ignore[no-untyped-def]
+    """Upper triangle of a 2×2 array as a 3-tuple."""
+    return (C[0, 0], C[0, 1], C[1, 1])
+
+
+@jit(fastmath=_FM, inline="always")
+def _logpdf3t(nu, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    return _logpdf3(nu[0], nu[1], nu[2], Si, det)
+
+
+@jit(fastmath=_FM, inline="always")
+def _logpdf2t(nu, Si, det: float) -> float:  # type: ignore[no-untyped-def]
+    return _logpdf2(nu[0], nu[1], Si, det)
+
+
+@jit(fastmath=_FM, inline="always")
+def _row3(A, i: int):  # type: ignore[no-untyped-def]
+    """Row i of A's first three columns."""
+    return (A[i, 0], A[i, 1], A[i, 2])
+
+
+@jit(fastmath=_FM, inline="always")
+def _row2(A, i: int):  # type: ignore[no-untyped-def]
+    """Row i of A's first two columns."""
+    return (A[i, 0], A[i, 1])
+
+
+@jit(fastmath=_FM, inline="always")
+def _set_row3(A, i: int, v) -> None:  # type: ignore[no-untyped-def]
+    A[i, 0], A[i, 1], A[i, 2] = v
+
+
+@jit(fastmath=_FM, inline="always")
+def _set_row2(A, i: int, v) -> None:  # type: ignore[no-untyped-def]
+    A[i, 0], A[i, 1] = v
+
+
+@jit(fastmath=_FM, inline="always")
+def _dot3(a, b) -> float:  # type: ignore[no-untyped-def]
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@jit(fastmath=_FM, inline="always")
+def _dot2(a, b) -> float:  # type: ignore[no-untyped-def]
+    return a[0] * b[0] + a[1] * b[1]
+
+
+@jit(fastmath=_FM, inline="always")
+def _times_sym3(t, P):  # type: ignore[no-untyped-def]
+    """The row t (3-tuple) times the symmetric P (6-tuple)."""
+    return (
+        t[0] * P[0] + t[1] * P[1] + t[2] * P[2],
+        t[0] * P[1] + t[1] * P[3] + t[2] * P[4],
+        t[0] * P[2] + t[1] * P[4] + t[2] * P[5],
+    )
+
+
+@jit(fastmath=_FM, inline="always")
+def _times_sym2(t, P):  # type: ignore[no-untyped-def]
+    """The row t (2-tuple) times the symmetric P (3-tuple)."""
+    return (t[0] * P[0] + t[1] * P[1], t[0] * P[1] + t[1] * P[2])
+
+
+@jit(fastmath=_FM, inline="always")
+def _put_new3(m, Cm, mn, Qn, floor: float) -> None:  # type: ignore[no-untyped-def]
+    """m = μ, Cm = Σ + floor·I for a new landmark (Σ a 6-tuple)."""
+    m[0], m[1], m[2] = mn
+    q00, q01, q02, q11, q12, q22 = Qn
+    Cm[0, 0], Cm[1, 1], Cm[2, 2] = q00 + floor, q11 + floor, q22 + floor
+    Cm[0, 1] = Cm[1, 0] = q01
+    Cm[0, 2] = Cm[2, 0] = q02
+    Cm[1, 2] = Cm[2, 1] = q12
+
+
+@jit(fastmath=_FM, inline="always")
+def _put_new2(m, Cm, mn, Qn, floor: float) -> None:  # type: ignore[no-untyped-def]
+    """m = μ, Cm = Σ + floor·I for a new landmark (Σ a 3-tuple)."""
+    m[0], m[1] = mn
+    q00, q01, q11 = Qn
+    Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
+    Cm[0, 1] = Cm[1, 0] = q01
+
+
+# ---------------------------------------------------------------------------------------------
+# The step
+
+
+def _particle(  # type: ignore[no-untyped-def]
     k,
     version,
     pose,
@@ -776,125 +952,267 @@ def _particle2(  # type: ignore[no-untyped-def]
     out_mu,
     out_Sx,
     rig,
+    D,
     x,
     mu,
     T,
     Sx,
     Lc,
 ) -> None:
-    """The whole 2D FastSLAM step of particle k (§9, §10) in the world frame (as ``_particle3``).
+    """The whole FastSLAM step of particle k (§9, §10) in the world frame (see above).
 
-    x, mu (3,), T (3, 2), Sx, Lc (3, 3) are scratch arrays reused across particles.
+    x, mu (dx,), T (dx, dm), Sx, Lc (dx, dx) are scratch arrays reused across particles. numba
+    only: the overload below compiles the one algorithm with the algebra of D's dimension.
     """
-    n_old = slots_old.shape[0]
-    Sk = S[k]
-    for i in range(3):
-        x[i] = pose[k, i]
-    w = 0.0
-    xacc = (1.0, 0.0, 0)  # depth terms of the pixel weights (_depth_acc)
-    if version == 2:
-        c0, s0 = math.cos(x[2]), math.sin(x[2])
-        A0 = _noise2(c0, s0, rig)
-        c, s = c0, s0
-        for i in range(3):
-            mu[i] = x[i]
-            for t in range(3):
-                Sx[i, t] = Sk[i, t]
-        for j in range(n_old):
-            sl = slots_old[j]
-            blk = table[k, sl // bs]
-            m = pool_mean[blk, sl % bs]
-            Cm = pool_cov[blk, sl % bs]
-            C = (Cm[0, 0], Cm[0, 1], Cm[1, 1])
-            if j == 0 or not seq:
-                # weight term at x̂ (§10 "Importance weight")
-                d, nu, Qw, g = _meas2(x, m, z_old[j], Q_old[j], c0, s0, rig, A0)
-                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sk, d, T), C), Qw))
-                w += _logpdf2(nu[0], nu[1], Pinv, det)
-                xacc = _depth_acc(xacc, g)
-            if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
-                d, nu, Qw, g = _meas2(mu, m, z_old[j], Q_old[j], c, s, rig, _noise2(c, s, rig))
-                Pinv, det = _inv_sym2(_add2(_add2(_pose_part2t(Sx, d, T), C), Qw))
-                if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
-                    w += _logpdf2(nu[0], nu[1], Pinv, det)
+    raise NotImplementedError("numba only: an @overload stub, compiled into the jitted kernels")
+
+
+@overload(_particle, jit_options={"fastmath": _FM})
+def _particle_impl(  # type: ignore[no-untyped-def]
+    k,
+    version,
+    pose,
+    S,
+    pool_mean,
+    pool_cov,
+    table,
+    bs,
+    slots_old,
+    z_old,
+    Q_old,
+    slots_new,
+    z_new,
+    Q_new,
+    eps,
+    floor,
+    out_pose,
+    dlogw,
+    seq,
+    out_mu,
+    out_Sx,
+    rig,
+    D,
+    x,
+    mu,
+    T,
+    Sx,
+    Lc,
+):
+    # the algebra of D's dimension; the names below are constants of the compiled step
+    if _is_3d(D):
+        dm, dx = 3, 6
+        frame, frame_at, advance, wrap_angles = _frame3, _frame_at3, _advance3, _wrap_angles3
+        meas, init, noise, pose_part = _meas3f, _init3f, _noise3f, _pose_part3f
+        sym, add, inv_sym, logpdf, joseph, put_new = _sym3, _add3, _inv_sym3, _logpdf3t, _joseph3, _put_new3
+        row, set_row, dot, times_sym = _row3, _set_row3, _dot3, _times_sym3
+    else:
+        dm, dx = 2, 3
+        frame, frame_at, advance, wrap_angles = _frame2, _frame_at2, _advance2, _wrap_angles2
+        meas, init, noise, pose_part = _meas2f, _init2f, _noise2f, _pose_part2f
+        sym, add, inv_sym, logpdf, joseph, put_new = _sym2, _add2, _inv_sym2, _logpdf2t, _joseph2, _put_new2
+        row, set_row, dot, times_sym = _row2, _set_row2, _dot2, _times_sym2
+
+    def particle(  # type: ignore[no-untyped-def]
+        k,
+        version,
+        pose,
+        S,
+        pool_mean,
+        pool_cov,
+        table,
+        bs,
+        slots_old,
+        z_old,
+        Q_old,
+        slots_new,
+        z_new,
+        Q_new,
+        eps,
+        floor,
+        out_pose,
+        dlogw,
+        seq,
+        out_mu,
+        out_Sx,
+        rig,
+        D,
+        x,
+        mu,
+        T,
+        Sx,
+        Lc,
+    ):
+        n_old = slots_old.shape[0]
+        Sk = S[k]
+        for i in range(dx):
+            x[i] = pose[k, i]
+        w = 0.0
+        xacc = (1.0, 0.0, 0)  # Jacobian terms of the pixel and range–bearing weights (_depth_acc)
+        if version == 2:
+            # One pass over the identified landmarks: the importance weight at the prior x̂ with S
+            # and the landmarks before the update (§10 "Importance weight"), and the Kalman-form
+            # proposal that moves μ_x, Σ_x one observation after another (§10 "Proposal").
+            # Cosines and sines of μ_x's angles (its last three entries; 2D: only ψ's, cy and sy,
+            # are read), advanced by _turn as μ_x moves (no trig per observation). Six scalars
+            # written out here, not a tuple or a helper's result: see the module docstring.
+            cr, sr = math.cos(x[dx - 3]), math.sin(x[dx - 3])
+            cp, sp = math.cos(x[dx - 2]), math.sin(x[dx - 2])
+            cy, sy = math.cos(x[dx - 1]), math.sin(x[dx - 1])
+            F0 = frame(cr, sr, cp, sp, cy, sy)
+            A0 = noise(F0, rig)
+            for i in range(dx):
+                mu[i] = x[i]
+                for t in range(dx):
+                    Sx[i, t] = Sk[i, t]
+            for j in range(n_old):
+                s = slots_old[j]
+                blk = table[k, s // bs]
+                m = pool_mean[blk, s % bs]
+                C = sym(pool_cov[blk, s % bs])
+                if j == 0 or not seq:
+                    # weight term: L_w = Ĥ S Ĥ^T + C + Q_w at x̂ (Cartesian Q_w = R̂ Q R̂^T)
+                    d, nu, Qw, g = meas(x, m, z_old[j], Q_old[j], F0, rig, A0)
+                    HSH = pose_part(Sk, d, F0, T)
+                    Pinv, det = inv_sym(add(add(HSH, C), Qw))
+                    w += logpdf(nu, Pinv, det)
                     xacc = _depth_acc(xacc, g)
-            p00, p01, p11 = Pinv
-            a2 = mu[2]
-            for i in range(3):
-                t0, t1 = T[i, 0], T[i, 1]
-                k0 = t0 * p00 + t1 * p01
-                k1 = t0 * p01 + t1 * p11
-                Lc[i, 0], Lc[i, 1] = k0, k1
-                mu[i] += k0 * nu[0] + k1 * nu[1]
-            c, s = _turn(c, s, mu[2] - a2)
-            mu[2] = _wrap(mu[2])
-            for i in range(3):
-                k0, k1 = Lc[i, 0], Lc[i, 1]
-                for t in range(i, 3):
-                    v = Sx[i, t] - (k0 * T[t, 0] + k1 * T[t, 1])
-                    Sx[i, t] = v
-                    Sx[t, i] = v
-        for i in range(3):
-            out_mu[k, i] = mu[i]
-            for t in range(3):
-                out_Sx[k, i, t] = Sx[i, t]
-        if not _cholesky_into(Sx, Lc, 3):
-            ev, V = np.linalg.eigh(Sx)
-            for i in range(3):
-                for t in range(3):
-                    Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
-        for i in range(3):
-            acc = 0.0
-            for t in range(3):
-                acc += Lc[i, t] * eps[k, t]
-            x[i] = mu[i] + acc
-        x[2] = _wrap(x[2])
-    # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
-    c, s = math.cos(x[2]), math.sin(x[2])
-    A = _noise2(c, s, rig)
-    for j in range(n_old):
-        sl = slots_old[j]
-        blk = table[k, sl // bs]
-        m = pool_mean[blk, sl % bs]
-        Cm = pool_cov[blk, sl % bs]
-        c00, c01, c11 = Cm[0, 0], Cm[0, 1], Cm[1, 1]
-        _, nu, Qw, g = _meas2(x, m, z_old[j], Q_old[j], c, s, rig, A)
-        q00, q01, q11 = Qw
-        Pinv, det = _inv_sym2((c00 + q00, c01 + q01, c11 + q11))
-        p00, p01, p11 = Pinv
-        # K_w = C Ψ_w^{-1}
-        k00, k01 = c00 * p00 + c01 * p01, c00 * p01 + c01 * p11
-        k10, k11 = c01 * p00 + c11 * p01, c01 * p01 + c11 * p11
-        m[0] += k00 * nu[0] + k01 * nu[1]
-        m[1] += k10 * nu[0] + k11 * nu[1]
-        # C' = (I - K_w) C (I - K_w)^T + K_w Q_w K_w^T
-        b00, b01 = (1.0 - k00) * c00 - k01 * c01, (1.0 - k00) * c01 - k01 * c11
-        b10, b11 = -k10 * c00 + (1.0 - k11) * c01, -k10 * c01 + (1.0 - k11) * c11
-        e00, e01 = k00 * q00 + k01 * q01, k00 * q01 + k01 * q11
-        e10, e11 = k10 * q00 + k11 * q01, k10 * q01 + k11 * q11
-        n00 = b00 * (1.0 - k00) - b01 * k01 + e00 * k00 + e01 * k01
-        n01 = -b00 * k10 + b01 * (1.0 - k11) + e00 * k10 + e01 * k11
-        n11 = -b10 * k10 + b11 * (1.0 - k11) + e10 * k10 + e11 * k11
-        Cm[0, 0], Cm[1, 1] = n00, n11
-        Cm[0, 1] = Cm[1, 0] = n01
-        if version == 1:
-            w += _logpdf2(nu[0], nu[1], Pinv, det)
-            xacc = _depth_acc(xacc, g)
-    # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I; pixel: z = (x_L, x_R)
-    # triangulated to q, Σ = (R J_tri) Q (R J_tri)^T
-    for j in range(slots_new.shape[0]):
-        sl = slots_new[j]
-        blk = table[k, sl // bs]
-        m = pool_mean[blk, sl % bs]
-        Cm = pool_cov[blk, sl % bs]
-        mn, Qn = _init2(x, z_new[j], Q_new[j], c, s, rig, A)
-        m[0], m[1] = mn
-        q00, q01, q11 = Qn
-        Cm[0, 0], Cm[1, 1] = q00 + floor, q11 + floor
-        Cm[0, 1] = Cm[1, 0] = q01
-    for i in range(3):
-        out_pose[k, i] = x[i]
-    dlogw[k] = w + _depth_logw(xacc, rig, 2)
+                if j > 0:  # proposal step at the current μ_x, Σ_x (for j = 0 it is the weight term)
+                    F = frame(cr, sr, cp, sp, cy, sy)
+                    d, nu, Qw, g = meas(mu, m, z_old[j], Q_old[j], F, rig, noise(F, rig))
+                    HSH = pose_part(Sx, d, F, T)
+                    Pinv, det = inv_sym(add(add(HSH, C), Qw))
+                    if seq:  # sequential weight: the chain rule p(z_j | z_<j) with the proposal's Ψ_j
+                        w += logpdf(nu, Pinv, det)
+                        xacc = _depth_acc(xacc, g)
+                old = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
+                # world-frame pose gain K = T Ψ_w^{-1} (into Lc's first dm columns); μ_x += K ν_w
+                for i in range(dx):
+                    kr = times_sym(row(T, i), Pinv)
+                    set_row(Lc, i, kr)
+                    mu[i] += dot(kr, nu)
+                new = (mu[dx - 3], mu[dx - 2], mu[dx - 1])
+                cr, sr, cp, sp, cy, sy = advance(cr, sr, cp, sp, cy, sy, new, old)
+                wrap_angles(mu, new)
+                # Σ_x ← Σ_x - K T^T (symmetric: one triangle, mirrored)
+                for i in range(dx):
+                    kr = row(Lc, i)
+                    for t in range(i, dx):
+                        v = Sx[i, t] - dot(kr, row(T, t))
+                        Sx[i, t] = v
+                        Sx[t, i] = v
+            for i in range(dx):
+                out_mu[k, i] = mu[i]
+                for t in range(dx):
+                    out_Sx[k, i, t] = Sx[i, t]
+            if not _cholesky_into(Sx, Lc, dx):
+                ev, V = np.linalg.eigh(Sx)
+                for i in range(dx):
+                    for t in range(dx):
+                        Lc[i, t] = V[i, t] * math.sqrt(max(ev[t], 0.0))
+            for i in range(dx):
+                acc = 0.0
+                for t in range(dx):
+                    acc += Lc[i, t] * eps[k, t]
+                x[i] = mu[i] + acc
+            for i in range(dm, dx):
+                x[i] = _wrap(x[i])
+        # landmark EKFs at the sampled pose (§9 step 2), Joseph form in the world frame
+        F = frame_at(x)
+        A = noise(F, rig)
+        for j in range(n_old):
+            s = slots_old[j]
+            blk = table[k, s // bs]
+            m = pool_mean[blk, s % bs]
+            Cm = pool_cov[blk, s % bs]
+            C = sym(Cm)
+            _, nu, Qw, g = meas(x, m, z_old[j], Q_old[j], F, rig, A)
+            Pinv, det = inv_sym(add(C, Qw))
+            joseph(m, Cm, C, Qw, Pinv, nu)
+            if version == 1:
+                w += logpdf(nu, Pinv, det)
+                xacc = _depth_acc(xacc, g)
+        # new landmarks (§9 step 3): μ = p + R z, Σ = R Q R^T + floor·I; pixel: z triangulated
+        # first; range–bearing: μ = p + r (cos(ψ + β), sin(ψ + β)) (_init3, _init2)
+        for j in range(slots_new.shape[0]):
+            s = slots_new[j]
+            blk = table[k, s // bs]
+            m = pool_mean[blk, s % bs]
+            Cm = pool_cov[blk, s % bs]
+            mn, Qn = init(x, z_new[j], Q_new[j], F, rig, A)
+            put_new(m, Cm, mn, Qn, floor)
+        for i in range(dx):
+            out_pose[k, i] = x[i]
+        dlogw[k] = w + _depth_logw(xacc, rig, dm)
+
+    return particle
+
+
+@jit(fastmath=_FM)
+def _chunk(  # type: ignore[no-untyped-def]
+    k0,
+    k1,
+    version,
+    pose,
+    S,
+    pool_mean,
+    pool_cov,
+    table,
+    bs,
+    slots_old,
+    z_old,
+    Q_old,
+    slots_new,
+    z_new,
+    Q_new,
+    eps,
+    floor,
+    out_pose,
+    dlogw,
+    seq,
+    out_mu,
+    out_Sx,
+    rig,
+    D,
+) -> None:
+    """Particles k0 … k1-1, one after another, with one set of scratch arrays."""
+    dx = pose.shape[1]
+    dm = 3 if dx == 6 else 2
+    x = np.empty(dx)
+    mu = np.empty(dx)
+    T = np.empty((dx, dm))
+    Sx = np.empty((dx, dx))
+    Lc = np.empty((dx, dx))
+    for k in range(k0, k1):
+        _particle(
+            k,
+            version,
+            pose,
+            S,
+            pool_mean,
+            pool_cov,
+            table,
+            bs,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z_new,
+            Q_new,
+            eps,
+            floor,
+            out_pose,
+            dlogw,
+            seq,
+            out_mu,
+            out_Sx,
+            rig,
+            D,
+            x,
+            mu,
+            T,
+            Sx,
+            Lc,
+        )
 
 
 @jit(fastmath=_FM, parallel=True)
@@ -920,79 +1238,39 @@ def _step(  # type: ignore[no-untyped-def]
     out_mu,
     out_Sx,
     rig,
+    D,
     n_chunks,
 ):
-    # one contiguous range of particles per thread, with its scratch arrays allocated once;
-    # the pose dimension (6: 3D, 3: 2D) picks the specialised per-particle step
-    P, dx = pose.shape
-    dm = 3 if dx == 6 else 2
+    # one contiguous range of particles per thread (_chunk: a function of its own, so that numba
+    # compiles _particle's overload once, not once more for the parallel loop's body)
+    P = pose.shape[0]
     for c in nb.prange(n_chunks):
-        x = np.empty(dx)
-        mu = np.empty(dx)
-        T = np.empty((dx, dm))
-        Sx = np.empty((dx, dx))
-        Lc = np.empty((dx, dx))
-        for k in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-            if dx == 6:
-                _particle3(
-                    k,
-                    version,
-                    pose,
-                    S,
-                    pool_mean,
-                    pool_cov,
-                    table,
-                    bs,
-                    slots_old,
-                    z_old,
-                    Q_old,
-                    slots_new,
-                    z_new,
-                    Q_new,
-                    eps,
-                    floor,
-                    out_pose,
-                    dlogw,
-                    seq,
-                    out_mu,
-                    out_Sx,
-                    rig,
-                    x,
-                    mu,
-                    T,
-                    Sx,
-                    Lc,
-                )
-            else:
-                _particle2(
-                    k,
-                    version,
-                    pose,
-                    S,
-                    pool_mean,
-                    pool_cov,
-                    table,
-                    bs,
-                    slots_old,
-                    z_old,
-                    Q_old,
-                    slots_new,
-                    z_new,
-                    Q_new,
-                    eps,
-                    floor,
-                    out_pose,
-                    dlogw,
-                    seq,
-                    out_mu,
-                    out_Sx,
-                    rig,
-                    x,
-                    mu,
-                    T,
-                    Sx,
-                    Lc,
-                )
+        _chunk(
+            c * P // n_chunks,
+            (c + 1) * P // n_chunks,
+            version,
+            pose,
+            S,
+            pool_mean,
+            pool_cov,
+            table,
+            bs,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z_new,
+            Q_new,
+            eps,
+            floor,
+            out_pose,
+            dlogw,
+            seq,
+            out_mu,
+            out_Sx,
+            rig,
+            D,
+        )
 
 
 @jit(fastmath=_FM)
@@ -1142,6 +1420,24 @@ def _pixel_rig(
     return (f, px, py, b, vx, vy, 1.0 / (f * b), 1.0 / f, 2.0 * math.log(f**3 * b), 2.0 * math.log(f * f * b))
 
 
+_DIMS: dict[int, Dim2 | Dim3] = {2: Dim2(), 3: Dim3()}
+_RANGE_BEARING = RangeBearing()
+
+
+def _kernel_model(
+    model: MeasurementModel, Q_old: np.ndarray, Q_new: np.ndarray
+) -> tuple[tuple[float, ...] | RangeBearing | None, Dim2 | Dim3]:
+    """(``rig``, dimension marker) of ``model`` for the kernels; InputError for a model they lack."""
+    D = _DIMS[model.dm]
+    if model.intrinsics is not None:
+        return _pixel_rig(model.intrinsics, Q_old, Q_new), D
+    if model.name == RANGE_BEARING_2D.name:
+        return _RANGE_BEARING, D
+    if model.name in (CARTESIAN_2D.name, CARTESIAN_3D.name):
+        return None, D
+    raise InputError(f"FastSLAM kernel: no formulas for the measurement model {model.name!r}")
+
+
 def _run(
     version: int,
     pose: np.ndarray,
@@ -1157,13 +1453,16 @@ def _run(
     z_new: np.ndarray,
     Q_new: np.ndarray,
     eps: np.ndarray | None,
+    model: MeasurementModel,
     floor: float,
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
-    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     P, dx = pose.shape
+    if dx != model.dx:
+        raise InputError(f"FastSLAM kernel: expected poses (P, {model.dx}) for {model.name}, got {pose.shape}")
+    rig, D = _kernel_model(model, Q_old, Q_new)
     out_pose = np.empty_like(pose)
     dlogw = np.zeros(P)
     # FastSLAM 2.0's proposal means and covariances (the Rao-Blackwellised pose estimate uses them)
@@ -1171,7 +1470,7 @@ def _run(
     Sx_ = out_Sx if out_Sx is not None else np.empty((P, dx, dx))
     S_ = S if S is not None else np.zeros((P, dx, dx))
     eps_ = eps if eps is not None else np.zeros((P, dx))
-    args = (
+    _step(
         int(version),
         np.ascontiguousarray(pose, dtype=np.float64),
         np.ascontiguousarray(S_, dtype=np.float64),
@@ -1192,13 +1491,14 @@ def _run(
         bool(seq_weights),
         mu_,
         Sx_,
-        _pixel_rig(intrinsics, Q_old, Q_new),
+        rig,
+        D,
+        max(1, min(P, nb.get_num_threads())),
     )
-    _step(*args, max(1, min(P, nb.get_num_threads())))
     return out_pose, dlogw
 
 
-def fastslam_step_numba(
+def fastslam_step(
     version: int,
     pose: np.ndarray,
     S: np.ndarray | None,
@@ -1211,18 +1511,30 @@ def fastslam_step_numba(
     z_new: np.ndarray,
     Q_new: np.ndarray,
     eps: np.ndarray | None,
+    model: MeasurementModel,
     floor: float,
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
-    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """numba ``fastslam_step`` on dense arrays lm_mean (P, cap, dm), lm_cov (P, cap, dm, dm), in place.
+    """One FastSLAM measurement step for all particles; the landmark arrays are updated in place.
 
-    Dense storage is block storage with one block of ``cap`` slots per particle. ``seq_weights``,
-    ``out_mu`` (P, dx) and ``out_Sx`` (P, dx, dx) as in :func:`robotd.slam.fastslam.fastslam_step`.
-    ``intrinsics`` (f, p_x, p_y, b): the stereo pixel model of that rig (``MeasurementModel.intrinsics``:
-    z are pixels, and every Q must be the model's diag(σx², σx², σy²)); None: the Cartesian model.
+    Version 1 (§9): ``pose`` (P, dx) are the sampled poses; the landmark updates give the weights.
+    Version 2 (§10): ``pose`` are the priors x̂ with covariances ``S`` (P, dx, dx); the proposal is
+    built from the identified landmarks, a pose drawn with ``eps`` (P, dx) standard normals, then
+    the landmarks are updated at it. New landmarks are initialised from the final pose (their
+    covariance plus ``floor``·I). ``seq_weights`` takes 2.0's importance weight from the proposal's
+    sequential innovations (the chain rule; docs/math.md §10) instead of §10's
+    product at the prior; ``out_mu`` (P, dx) and ``out_Sx`` (P, dx, dx), when given, receive the
+    proposal means and covariances (version 2).
+
+    Landmarks: lm_mean (P, cap, dm), lm_cov (P, cap, dm, dm) dense (block storage with one block of
+    ``cap`` slots per particle); slots_old (N,) distinct with z_old (N, dz), Q_old (N, dz, dz);
+    slots_new, z_new, Q_new likewise. ``model``: Cartesian 2D/3D, range–bearing 2D, or a stereo
+    pixel model (z are pixels, and every Q must be the model's diag(σx², σx², σy²)).
+
+    Returns:
+        (pose (P, dx) after the step, log-weight increment (P,)).
     """
     P, cap = lm_mean.shape[:2]
     table = np.arange(P, dtype=np.int64)[:, None]
@@ -1241,15 +1553,15 @@ def fastslam_step_numba(
         z_new,
         Q_new,
         eps,
+        model,
         floor,
         seq_weights,
         out_mu,
         out_Sx,
-        intrinsics,
     )
 
 
-def fastslam_step_numba_store(
+def fastslam_step_store(
     version: int,
     pose: np.ndarray,
     S: np.ndarray | None,
@@ -1261,17 +1573,22 @@ def fastslam_step_numba_store(
     z_new: np.ndarray,
     Q_new: np.ndarray,
     eps: np.ndarray | None,
+    model: MeasurementModel,
     floor: float,
     seq_weights: bool = False,
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
-    intrinsics: tuple[float, float, float, float] | None = None,
+    threads: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The same step directly in a copy-on-write :class:`LandmarkStore` (no gather/scatter copies).
+    """:func:`fastslam_step` directly in a copy-on-write :class:`LandmarkStore` (no gather/scatter copies).
 
     The blocks written this step are made private first, then the kernel reads and writes the pool
-    through the particles' block tables.
+    through the particles' block tables. ``threads``: the kernel's threads from this call on (capped
+    by ``NUMBA_NUM_THREADS``; 0 leaves numba's setting, by default one per core); results do not
+    depend on it.
     """
+    if threads:
+        nb.set_num_threads(min(int(threads), int(getattr(nb.config, "NUMBA_NUM_THREADS", 1))))
     store.make_writable(np.concatenate([slots_old, slots_new]), copy_blocks)
     return _run(
         version,
@@ -1288,25 +1605,27 @@ def fastslam_step_numba_store(
         z_new,
         Q_new,
         eps,
+        model,
         floor,
         seq_weights,
         out_mu,
         out_Sx,
-        intrinsics,
     )
 
 
-def warmup(models: tuple[str, ...] = ("cartesian", "pixel")) -> None:
+def warmup(models: tuple[str, ...] = ("cartesian", "pixel"), dims: tuple[int, ...] = (2, 3)) -> None:
     """Compile (first run) or load from the cache (later runs) every kernel on tiny inputs.
-    ``models``: the measurement models to prepare the FastSLAM step for. Each is a compilation
-    of its own (~11 s on a 2-core machine the first time); a model left out compiles on first use."""
+    ``models``, ``dims``: the measurement models and dimensions to prepare the FastSLAM step for.
+    Each (model, dimension) is a compilation of its own; one left out compiles on first use (the
+    range–bearing model, used by ``update_range_bearing`` only, is not prepared)."""
     st = LandmarkStore(2, 3, 2)
     st.ensure_capacity(2)
     st.select(np.array([0, 0]))
     st.make_writable(np.array([0]), copy_blocks)
     for want_S in (False, True):
         predict3_numba(np.zeros((2, 6)), np.zeros(6), np.eye(6), np.zeros(6), want_S, 1e-3)
-    for dx, dm in ((6, 3), (3, 2)):
+    for dm in dims:
+        dx = 6 if dm == 3 else 3
         P, n = 2, 2
         pose = np.zeros((P, dx))
         S = np.tile(np.eye(dx) * 1e-4, (P, 1, 1))
@@ -1315,22 +1634,11 @@ def warmup(models: tuple[str, ...] = ("cartesian", "pixel")) -> None:
         z = np.ones((1, dm))
         z[0, 0] = 2.0  # a positive disparity for the pixel model
         Q = np.eye(dm)[None]
-        for version in (1, 2):
-            rigs = {"cartesian": None, "pixel": (1.0, 0.0, 0.0, 1.0)}  # one compilation each
-            for rig in (rigs[m] for m in models):
-                fastslam_step_numba(
-                    version,
-                    pose,
-                    S,
-                    mean,
-                    cov,
-                    np.array([0]),
-                    z,
-                    Q,
-                    np.array([1]),
-                    z,
-                    Q,
-                    np.zeros((P, dx)),
-                    0.0,
-                    intrinsics=rig,
+        for name in models:
+            # one compilation each; the step's version is a run-time argument
+            cart = CARTESIAN_3D if dm == 3 else CARTESIAN_2D
+            model = stereo_pixel_model(dm, 1.0, 0.0, 0.0, 1.0) if name == "pixel" else cart
+            for version in (1, 2):
+                fastslam_step(
+                    version, pose, S, mean, cov, np.array([0]), z, Q, np.array([1]), z, Q, np.zeros((P, dx)), model, 0.0
                 )

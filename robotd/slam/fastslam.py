@@ -3,42 +3,41 @@
 One particle store, a struct of arrays:
 
 - ``pose``    (P, dx)          particle poses, world frame (dx = 3 | 6)
-- ``lm_mean`` (P, cap, dm)     landmark means per particle, world frame (dm = 2 | 3)
-- ``lm_cov``  (P, cap, dm, dm) landmark covariances
+- ``store``   the landmark Gaussians (dm = 2 | 3) of every particle, copy-on-write blocks
+  (:class:`~robotd.slam._store.LandmarkStore`)
 - ``log_w``   (P,)             normalised log weights
 
 Landmark slots ``0 … n_slots-1`` are shared by all particles through the global
 :class:`~robotd.slam._book.LandmarkBook` (ids -> slots); freed slots are reused.
 
-The hot path is split into pure kernels, vectorised over particles × observations, which take
-every random number as an argument (``eps``), so that ``tests/support/reference_fastslam.py`` (plain
-per-particle loops) can be compared with them exactly. FastSLAM 2.0's proposal incorporates the
-observations one after another (loop over observations, vectorised over particles).
+The measurement step (every model, both dimensions, both versions) is the numba kernel
+:func:`robotd.slam._kernels.fastslam_step_store`, which takes every random number as an argument
+(``eps``) so that the tests hold it to its readable per-particle twin
+(tests/support/reference_fastslam.py). This module keeps the filter's state and everything around
+the step: motion, gating, resampling, pruning, outputs; persistence is in ``_fastslam_state.py``
+and the fusion of gravity in ``_fastslam_gravity.py``.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from typing import Any
 
 import numpy as np
 
-from robotd.choices import MAX_PARTICLES
-from robotd.errors import InputError, PersistenceError, SingularityError
+from robotd.errors import InputError, SingularityError
 from robotd.geometry import euler_to_R, rot2
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook
-from robotd.slam._linalg import gauss_logpdf, inv_det_small, sym
+from robotd.slam._fastslam_gravity import gravity_update
+from robotd.slam._fastslam_state import check_state, saved_state
+from robotd.slam._linalg import sym
 from robotd.slam._store import LandmarkStore
 from robotd.slam.common import (
-    FILTER_CODE,
     NO_IDS,
     UpdateEntryPoints,
     check_finite,
-    check_header,
     check_reset_pose,
-    check_saved_poses,
     control_from_increment,
     gravity_inputs,
     lm_to_3d,
@@ -50,10 +49,8 @@ from robotd.slam.common import (
 from robotd.slam.models import (
     COS_PITCH_MIN,
     MeasurementModel,
-    gravity3d_tilt,
     motion3d,
     odometry2d,
-    stereo_basis,
     velocity2d,
     velocity2d_noise,
     wrap_pose,
@@ -65,178 +62,8 @@ from robotd.slam.resampling import (
     normalize_log_weights,
     weighted_pose_mean,
 )
-from robotd.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
-from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
-
-
-# ============================================================================================
-# Pure kernels (numpy, vectorised). Shapes: P particles, N observations.
-
-
-def _decorrelated(
-    model: MeasurementModel, nu: np.ndarray, Hx: np.ndarray | None, Hm: np.ndarray, Q: np.ndarray
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-    """Pixel models: the innovations ν (..., dz), their Jacobians (..., dz, ·) and Q (..., dz, dz) in
-    the coordinates T z = (mean column, disparity[, row]); other models: unchanged.
-
-    The two columns of a landmark are almost equally uncertain and almost perfectly correlated (they
-    differ by the disparity), so in (x_L, x_R) the closed-form 2×2/3×3 inverses cancel
-    catastrophically (condition numbers ~1e6 cost ~1e-8 of the log-likelihoods). In T z the same
-    covariances are nearly diagonal. |det T| = 1 and T is invertible, so every Gaussian density,
-    gain and covariance update is the same.
-    """
-    if model.intrinsics is None:
-        return nu, Hx, Hm, Q
-    T = stereo_basis(model.dz)
-    return nu @ T.T, None if Hx is None else T @ Hx, T @ Hm, T @ Q @ T.T
-
-
-def landmark_updates(
-    pose: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> np.ndarray:
-    """EKF update of each observed landmark in every particle, at the particle's pose (§9 step 2).
-
-    Updates ``lm_mean[:, slots]`` and ``lm_cov[:, slots]`` in place (Joseph form, symmetrised).
-
-    Args:
-        pose: (P, dx); lm_mean: (P, cap, dm); lm_cov: (P, cap, dm, dm); slots: (N,) distinct;
-        z: (N, dz) measurements (robot frame); Q: (N, dz, dz).
-
-    Returns:
-        (P,) Σ_j log N(z_j; ẑ_j, Ψ_j) with Ψ = H_m Σ_j H_m^T + Q_j (the FastSLAM 1.0 weight).
-    """
-    P, N = pose.shape[0], slots.size
-    if N == 0:
-        return np.zeros(P)
-    dx, dm, dz = model.dx, model.dm, model.dz
-    mu = lm_mean[:, slots]  # (P, N, dm)
-    C = lm_cov[:, slots]  # (P, N, dm, dm)
-    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    zhat, _, Hm = model.h(x, mu.reshape(P * N, dm))
-    zhat = zhat.reshape(P, N, dz)
-    Hm = Hm.reshape(P, N, dz, dm)
-    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
-    nu, _, Hm, Q = _decorrelated(model, nu, None, Hm, Q)
-    HC = Hm @ C  # (P, N, dz, dm)
-    Psi = HC @ np.swapaxes(Hm, -1, -2) + Q
-    Pinv, det = inv_det_small(Psi)
-    K = np.swapaxes(HC, -1, -2) @ Pinv  # Σ H^T Ψ^{-1}, (P, N, dm, dz)
-    mu = mu + np.einsum("pnij,pnj->pni", K, nu)
-    IKH = np.eye(dm) - K @ Hm
-    C = IKH @ C @ np.swapaxes(IKH, -1, -2) + K @ Q @ np.swapaxes(K, -1, -2)
-    lm_mean[:, slots] = mu
-    lm_cov[:, slots] = sym(C)
-    return gauss_logpdf(nu, Pinv, det).sum(1)
-
-
-def init_landmarks(
-    pose: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-    floor: float,
-) -> None:
-    """New landmarks from each particle's pose (§9 step 3): μ = inverse(x, z), Σ = J_z Q J_z^T + floor·I."""
-    P, N = pose.shape[0], slots.size
-    if N == 0:
-        return
-    dx, dm, dz = model.dx, model.dm, model.dz
-    x = np.broadcast_to(pose[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    m, _, Jz = model.inverse(x, np.broadcast_to(z, (P, N, dz)).reshape(P * N, dz))
-    Jz = Jz.reshape(P, N, dm, dz)
-    lm_mean[:, slots] = m.reshape(P, N, dm)
-    lm_cov[:, slots] = sym(Jz @ Q @ np.swapaxes(Jz, -1, -2)) + floor * np.eye(dm)
-
-
-def fs2_weights(
-    pose_hat: np.ndarray,
-    S: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> np.ndarray:
-    """FastSLAM 2.0 log-weight increment (§10 "Importance weight"), (P,).
-
-    Σ_j log N(z_j; h(x̂, μ_j), L_j), L_j = H_x S H_x^T + H_m Σ_j H_m^T + Q_j, all at the prior x̂ and
-    the landmark estimates before the update.
-    """
-    P, N = pose_hat.shape[0], slots.size
-    if N == 0:
-        return np.zeros(P)
-    dx, dm, dz = model.dx, model.dm, model.dz
-    mu = lm_mean[:, slots]
-    C = lm_cov[:, slots]
-    x = np.broadcast_to(pose_hat[:, None, :], (P, N, dx)).reshape(P * N, dx)
-    zhat, Hx, Hm = model.h(x, mu.reshape(P * N, dm))
-    zhat = zhat.reshape(P, N, dz)
-    Hx = Hx.reshape(P, N, dz, dx)
-    Hm = Hm.reshape(P, N, dz, dm)
-    nu = model.innovation(np.broadcast_to(z, (P, N, dz)).copy(), zhat)
-    nu, Hx_, Hm, Q = _decorrelated(model, nu, Hx, Hm, Q)
-    assert Hx_ is not None
-    L = Hx_ @ S[:, None] @ np.swapaxes(Hx_, -1, -2) + Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
-    Linv, det = inv_det_small(L)
-    return gauss_logpdf(nu, Linv, det).sum(1)
-
-
-def fs2_proposal(
-    pose_hat: np.ndarray,
-    S: np.ndarray,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots: np.ndarray,
-    z: np.ndarray,
-    Q: np.ndarray,
-    model: MeasurementModel,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """FastSLAM 2.0 pose proposal (§10 "Proposal"), Kalman form, observations in turn.
-
-    Args:
-        pose_hat: (P, dx) prior means x̂ = g(x, u); S: (P, dx, dx) prior covariances S_t.
-
-    Returns:
-        μ_x (P, dx) with wrapped angles, Σ_x (P, dx, dx) symmetrised, and the sequential log-weight
-        (P,) Σ_j log N(z_j; ĥ_j, Ψ_j) with each Ψ_j = H_x Σ_x H_x^T + Q̃_j at the proposal so far:
-        the chain rule p(z_1..N) = Π_j p(z_j | z_<j), to first order, instead of the product of
-        marginals at the prior that counts S once per observation.
-    """
-    dim = 2 if model.dx == 3 else 3
-    mu_x = pose_hat.copy()
-    Sx = S.copy()
-    eye = np.eye(model.dx)
-    logw = np.zeros(pose_hat.shape[0])
-    for j in range(slots.size):
-        s = slots[j]
-        zhat, Hx, Hm = model.h(mu_x, lm_mean[:, s])
-        nu = model.innovation(np.broadcast_to(z[j], zhat.shape).copy(), zhat)
-        nu, Hx_, Hm, Qj = _decorrelated(model, nu, Hx, Hm, Q[j])
-        assert Hx_ is not None
-        Hx = Hx_
-        HmT = np.swapaxes(Hm, -1, -2)
-        HxT = np.swapaxes(Hx, -1, -2)
-        SHt = Sx @ HxT  # (P, dx, dz)
-        Psi = Hx @ SHt + Hm @ lm_cov[:, s] @ HmT + Qj  # H_x Σ_x H_x^T + Q̃_j
-        Pinv, det = inv_det_small(Psi)
-        logw += gauss_logpdf(nu, Pinv, det)
-        K = SHt @ Pinv  # (P, dx, dz)
-        mu_x = mu_x + np.einsum("pij,pj->pi", K, nu)
-        wrap_pose(mu_x, dim)
-        Sx = sym((eye - K @ Hx) @ Sx)
-    return mu_x, Sx, logw
 
 
 def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -> np.ndarray:
@@ -250,65 +77,68 @@ def sample_poses(mu: np.ndarray, Sigma: np.ndarray, eps: np.ndarray, dim: int) -
     return wrap_pose(mu + np.einsum("pij,pj->pi", L, eps), dim)
 
 
-def fastslam_step(
-    version: int,
-    pose: np.ndarray,
-    S: np.ndarray | None,
-    lm_mean: np.ndarray,
-    lm_cov: np.ndarray,
-    slots_old: np.ndarray,
-    z_old: np.ndarray,
-    Q_old: np.ndarray,
-    slots_new: np.ndarray,
-    z_new: np.ndarray,
-    Q_new: np.ndarray,
-    eps: np.ndarray | None,
-    model: MeasurementModel,
-    floor: float,
-    seq_weights: bool = False,
-    out_mu: np.ndarray | None = None,
-    out_Sx: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One FastSLAM measurement step for all particles; the landmark arrays are updated in place.
-
-    Version 1 (§9): ``pose`` are the sampled poses; landmark updates give the weights.
-    Version 2 (§10): ``pose`` are the priors x̂ with covariances ``S`` (P, dx, dx); the proposal
-    is built from the identified landmarks, a pose drawn with ``eps`` (P, dx) standard normals,
-    then the landmarks are updated at it. New landmarks are initialised from the final pose.
-    ``seq_weights`` takes the importance weight from the proposal's sequential innovations (see
-    :func:`fs2_proposal`) instead of §10's product at the prior; ``out_mu`` (P, dx) and ``out_Sx``
-    (P, dx, dx), when given, receive the proposal means and covariances (version 2).
-
-    Returns:
-        (pose (P, dx) after the step, log-weight increment (P,)).
-    """
-    dim = 2 if model.dx == 3 else 3
-    if version == 2:
-        assert S is not None and eps is not None
-        mu_x, Sx, seq_logw = fs2_proposal(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-        if seq_weights:
-            dlogw = seq_logw
-        else:
-            dlogw = fs2_weights(pose, S, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-        if out_mu is not None:
-            out_mu[:] = mu_x
-        if out_Sx is not None:
-            out_Sx[:] = Sx
-        pose = sample_poses(mu_x, Sx, eps, dim)
-        landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-    else:
-        dlogw = landmark_updates(pose, lm_mean, lm_cov, slots_old, z_old, Q_old, model)
-    init_landmarks(pose, lm_mean, lm_cov, slots_new, z_new, Q_new, model, floor)
-    return pose, dlogw
-
-
 def psd_sqrt(M: np.ndarray) -> np.ndarray:
     """A square root L with L L^T = M for a PSD matrix M (n, n) (zero rows allowed)."""
     w, V = np.linalg.eigh(0.5 * (M + M.T))
     return V * np.sqrt(np.maximum(w, 0.0))
 
 
-# ============================================================================================
+def move_particles(
+    pose: np.ndarray, u: np.ndarray, M: np.ndarray, extra: np.ndarray, dt: float | None, dim: int, want_S: bool
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Every particle through the motion model with the control ``u`` ((nu,) or one per particle
+    (P, nu)), M (nu, nu) its covariance: (poses (P, dx), and with ``want_S`` the prior covariances
+    S = V M V^T + diag(``extra``) (P, dx, dx)).
+
+    ``dt`` None: the odometry-increment model (§6.2 / §6.3), else the 2D velocity model (§6.1). 3D:
+    one compiled pass (``predict3_numba``, without the motion Jacobian G that FastSLAM does not use;
+    the same formulas as ``motion3d``), SingularityError at the pitch singularity as ``motion3d``.
+    """
+    if dim == 3 and dt is None:
+        from robotd.slam._kernels import predict3_numba
+
+        x, S, bad = predict3_numba(pose, u, M, extra, want_S, COS_PITCH_MIN)
+        if bad >= 0:
+            deg = float(np.rad2deg(pose[bad, 4]))
+            raise SingularityError(
+                f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate"
+            )
+        return x, S
+    u = np.broadcast_to(u, (pose.shape[0], u.shape[-1]))
+    x, _, V = velocity2d(pose, u, dt) if dt is not None else (odometry2d(pose, u) if dim == 2 else motion3d(pose, u))
+    return x, (sym(V @ M @ np.swapaxes(V, -1, -2)) + np.diag(extra) if want_S else None)
+
+
+def chi2_gate(
+    x: np.ndarray,
+    S: np.ndarray | None,
+    m: np.ndarray,
+    C: np.ndarray,
+    z: np.ndarray,
+    Q: np.ndarray,
+    model: MeasurementModel,
+    params: SlamParams,
+) -> np.ndarray:
+    """(N,) bool: re-observations z (N, dz), Q of landmarks m (N, dm), C seen from pose x (dx,)
+    consistent with it at the χ² gate (§8's test).
+
+    The innovation covariance is H_x S H_x^T + H_m C H_m^T + Q (the FastSLAM 2.0 marginal of §10,
+    with S the pending motion covariance where there is one, else None). FastSLAM's
+    correspondences are shared by all particles, so the test is made once per frame, in the best
+    particle; when it would reject more than half of them the pose is more likely wrong than the
+    data, and nothing is gated.
+    """
+    n = m.shape[0]
+    zhat, Hx, Hm = model.h(np.repeat(x[None], n, 0), m)
+    L = Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
+    if S is not None:
+        L = L + Hx @ S @ np.swapaxes(Hx, -1, -2)
+    nu = model.innovation(z, zhat)
+    d2 = np.einsum("ni,ni->n", nu, np.linalg.solve(L, nu[..., None])[..., 0])
+    keep = d2 <= (params.gate_chi2_2d if model.dz == 2 else params.gate_chi2_3d)
+    if np.count_nonzero(~keep) * 2 > n:
+        return np.ones(n, bool)
+    return keep
 
 
 class FastSlam(UpdateEntryPoints):
@@ -337,8 +167,10 @@ class FastSlam(UpdateEntryPoints):
         self.t_ns = 0
         self.best = 0  # index of the highest-weight particle
         self.neff = float(P)
-        self._numba_step = _load_numba(params) if params.use_numba else None
-        self._predict3 = _load_predict3() if (params.use_numba and self.dim == 3) else None
+        # the numba kernel (robotd.slam._kernels), loaded here: importing this module loads no numba
+        from robotd.slam import _kernels
+
+        self._step = _kernels.fastslam_step_store
         # Rao-Blackwellised pose estimate of the last update (weights before resampling, means,
         # covariances or None): see estimate(); None after a predict or a particle-set change
         self._post: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
@@ -365,51 +197,21 @@ class FastSlam(UpdateEntryPoints):
         if t_ns is not None:
             self.t_ns = int(t_ns)
 
-    def _motion(self, x: np.ndarray, u: np.ndarray, dt: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if dt is not None:
-            return velocity2d(x, u, dt)
-        return odometry2d(x, u) if self.dim == 2 else motion3d(x, u)
-
     def _propagate(self, u: np.ndarray, M: np.ndarray, dt: float | None, var_yaw: float) -> None:
         """Sample (1.0) or propagate the prior (2.0). ``var_yaw``: extra final-rotation variance (§6.1)."""
         self._post = None
         P, dx, nu = self.n_particles, self.dx, u.size
-        floor = self.params.process_cov_floor
-        extra = np.full(dx, floor)
+        extra = np.full(dx, self.params.process_cov_floor)
         extra[2 if self.dim == 2 else 5] += var_yaw
-        # 3D odometry model: one compiled pass without the unused motion Jacobian G (same formulas)
-        fast3 = self._predict3 is not None and dt is None
         if self.version == 1:
             eps = self.rng.standard_normal((P, nu + dx))
-            uk = u + eps[:, :nu] @ psd_sqrt(M).T
-            if fast3:
-                x = self._predict3_checked(uk, M, extra, False)[0]
-            else:
-                x, _, _ = self._motion(self.pose, uk, dt)
+            x, _ = move_particles(self.pose, u + eps[:, :nu] @ psd_sqrt(M).T, M, extra, dt, self.dim, False)
             self.pose = wrap_pose(x + np.sqrt(extra) * eps[:, nu:], self.dim)
             return
         if self.pending_S is not None:
             # two predicts without an update: draw the pending prior before composing the next step
             self.pose = sample_poses(self.pose, self.pending_S, self.rng.standard_normal((P, dx)), self.dim)
-        if fast3:
-            self.pose, self.pending_S = self._predict3_checked(u, M, extra, True)
-            return
-        x, _, V = self._motion(self.pose, np.broadcast_to(u, (P, nu)), dt)
-        self.pose = x
-        self.pending_S = sym(V @ M @ np.swapaxes(V, -1, -2)) + np.diag(extra)
-
-    def _predict3_checked(
-        self, u: np.ndarray, M: np.ndarray, extra: np.ndarray, want_S: bool
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """numba §6.3 motion of all particles; SingularityError at the pitch singularity as ``motion3d``."""
-        assert self._predict3 is not None
-        x, S, bad = self._predict3(self.pose, u, M, extra, want_S, COS_PITCH_MIN)
-        if bad >= 0:
-            deg = float(np.rad2deg(self.pose[bad, 4]))
-            raise SingularityError(
-                f"motion3d: pitch {deg:.3f} deg is at the ZYX singularity (±90 deg); cannot propagate"
-            )
-        return x, (S if S is not None else np.empty((0, 6, 6)))
+        self.pose, self.pending_S = move_particles(self.pose, u, M, extra, dt, self.dim, True)
 
     def update_gravity(
         self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, reopen: bool = False
@@ -429,54 +231,15 @@ class FastSlam(UpdateEntryPoints):
         without the gate. Returns (fused, the NIS before any reopening).
         """
         g_R, g_W = gravity_inputs(self.dim, g_R, g_W, sigma_rad)
-        w = normalize_log_weights(self.log_w)[1]
-        y, PHt, Psi, nis = self._gravity_terms(g_R, g_W, sigma_rad, w)
-        gated = not np.isfinite(nis) or (self.params.gate_enabled and nis > self.params.gate_chi2_2d)
-        if gated and not reopen:
-            return False, nis
-        if reopen:
-            a2 = float(np.sum((w @ y) ** 2))  # ≈ the tilt error², rad²
-            if self.version == 2 and self.pending_S is not None:
-                S = self.pending_S.copy()
-                S[:, 3, 3] += a2
-                S[:, 4, 4] += a2
-                self.pending_S = S
-            else:
-                self.pose[:, 3:5] += math.sqrt(a2) * self.rng.standard_normal((self.n_particles, 2))
-            y, PHt, Psi, _ = self._gravity_terms(g_R, g_W, sigma_rad, w)
-        Psi_inv, Psi_det = inv_det_small(Psi)
-        if PHt is not None and self.pending_S is not None:
-            K = PHt @ Psi_inv  # (P, 6, 3)
-            self.pose = wrap_pose(self.pose + np.einsum("pij,pj->pi", K, y), 3)
-            self.pending_S = sym(self.pending_S - K @ np.swapaxes(PHt, 1, 2))
-        self.log_w = normalize_log_weights(self.log_w + gauss_logpdf(y, Psi_inv, Psi_det))[0]
-        self._post = None
-        return True, nis
-
-    def _gravity_terms(
-        self, g_R: np.ndarray, g_W: np.ndarray, sigma_rad: float, w: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
-        """Innovations y (P, 3), S H^T (P, 6, 3) or None (no pending prior), their covariances
-        (P, 3, 3) and the mixture's NIS (see :meth:`update_gravity`)."""
-        yaw = float(np.arctan2(w @ np.sin(self.pose[:, 5]), w @ np.cos(self.pose[:, 5])))
-        h, H = gravity3d_tilt(self.pose, g_W, yaw)
-        y = g_R[None, :] - h
-        Rm = sigma_rad**2 * np.eye(3)
+        gate = self.params.gate_chi2_2d if self.params.gate_enabled else None
         S = self.pending_S if self.version == 2 else None
-        PHt = None
-        if S is not None:
-            PHt = S @ np.swapaxes(H, 1, 2)
-            Psi = sym(H @ PHt + Rm)
-        else:
-            Psi = np.broadcast_to(Rm, (self.n_particles, 3, 3))
-        y_bar = w @ y
-        dy = y - y_bar
-        C = np.einsum("p,pi,pj->ij", w, dy, dy) + np.einsum("p,pij->ij", w, Psi)
-        try:
-            nis = float(y_bar @ np.linalg.solve(C, y_bar))
-        except np.linalg.LinAlgError:
-            nis = float("nan")
-        return y, PHt, Psi, nis
+        fused, nis, self.pose, S, self.log_w = gravity_update(
+            self.pose, S, self.log_w, self.rng, g_R, g_W, sigma_rad, gate, reopen
+        )
+        if fused:
+            self.pending_S = S if self.version == 2 else self.pending_S
+            self._post = None
+        return fused, nis
 
     # ------------------------------------------------------------------------------------ update
 
@@ -489,7 +252,10 @@ class FastSlam(UpdateEntryPoints):
         n_gated = 0
         slots_old = slots_seen
         if self.params.gate_enabled and self.params.fastslam_gate and slots_seen.size:
-            keep = self._gate(slots_seen, z_old, Q_old, model)
+            k = self.best
+            m, C = self.store.gather_particle(k, slots_seen)
+            S_k = self.pending_S[k] if self.pending_S is not None else None
+            keep = chi2_gate(self.pose[k], S_k, m, C, z_old, Q_old, model, self.params)
             n_gated = int(np.count_nonzero(~keep))
             if n_gated:
                 slots_old, z_old, Q_old = slots_seen[keep], z_old[keep], Q_old[keep]
@@ -505,56 +271,28 @@ class FastSlam(UpdateEntryPoints):
                 S = np.tile(self.params.process_cov_floor * np.eye(dx), (P, 1, 1))
         slots_new = self.book.allocate(ids[is_new])
         self.store.ensure_capacity(self.book.n_slots)
-        n_old, n_new = slots_old.size, slots_new.size
-        seq = self.params.fs2_weights == "sequential"
-        mu_x = np.empty((P, dx)) if self.version == 2 else None
-        S_x = np.empty((P, dx, dx)) if self.version == 2 else None
-        if self._numba_step is not None and model is self.model:
-            # numba works in the copy-on-write store directly
-            self.pose, dlogw = self._numba_step(
-                self.version,
-                self.pose,
-                S,
-                self.store,
-                slots_old,
-                z_old,
-                Q_old,
-                slots_new,
-                z[is_new],
-                Q[is_new],
-                eps,
-                self.params.landmark_cov_floor,
-                seq,
-                mu_x,
-                S_x,
-                model.intrinsics,
-            )
-        else:
-            # the numpy kernels work on dense copies of the touched landmarks (P, N_old + N_new); the
-            # store writes them back with copy on write
-            mean = np.empty((P, n_old + n_new, self.dm))
-            cov = np.empty((P, n_old + n_new, self.dm, self.dm))
-            mean[:, :n_old], cov[:, :n_old] = self.store.gather(slots_old)
-            self.pose, dlogw = fastslam_step(
-                self.version,
-                self.pose,
-                S,
-                mean,
-                cov,
-                np.arange(n_old),
-                z_old,
-                Q_old,
-                np.arange(n_old, n_old + n_new),
-                z[is_new],
-                Q[is_new],
-                eps,
-                model,
-                self.params.landmark_cov_floor,
-                seq,
-                mu_x,
-                S_x,
-            )
-            self.store.scatter(np.concatenate([slots_old, slots_new]), mean, cov)
+        # FastSLAM 2.0's proposal means and covariances (the Rao-Blackwellised pose estimate)
+        mu_x, S_x = (np.empty((P, dx)), np.empty((P, dx, dx))) if self.version == 2 else (None, None)
+        # the kernel works in the copy-on-write store directly
+        self.pose, dlogw = self._step(
+            self.version,
+            self.pose,
+            S,
+            self.store,
+            slots_old,
+            z_old,
+            Q_old,
+            slots_new,
+            z[is_new],
+            Q[is_new],
+            eps,
+            model,
+            self.params.landmark_cov_floor,
+            self.params.fs2_weights == "sequential",
+            mu_x,
+            S_x,
+            int(self.params.numba_threads),
+        )
         self.pending_S = None
 
         ln, w = normalize_log_weights(self.log_w + dlogw)
@@ -582,30 +320,6 @@ class FastSlam(UpdateEntryPoints):
             neff=self.neff,
             resampled=resampled,
         )
-
-    def _gate(self, slots: np.ndarray, z: np.ndarray, Q: np.ndarray, model: MeasurementModel) -> np.ndarray:
-        """(N,) bool: re-observations consistent with the best particle at the χ² gate (§8's test).
-
-        The innovation covariance is H_x S H_x^T + H_m Σ_j H_m^T + Q (the FastSLAM 2.0 marginal
-        of §10, with S the pending motion covariance where there is one). Correspondences are
-        shared by all particles, so the test is made once per frame; when it would reject more
-        than half of them the pose is more likely wrong than the data, and nothing is gated.
-        """
-        k = self.best
-        n = slots.size
-        x = np.repeat(self.pose[k][None], n, 0)
-        m, C = self.store.gather_particle(k, slots)
-        zhat, Hx, Hm = model.h(x, m)
-        L = Hm @ C @ np.swapaxes(Hm, -1, -2) + Q
-        if self.pending_S is not None:
-            L = L + Hx @ self.pending_S[k] @ np.swapaxes(Hx, -1, -2)
-        nu = model.innovation(z, zhat)
-        d2 = np.einsum("ni,ni->n", nu, np.linalg.solve(L, nu[..., None])[..., 0])
-        thr = self.params.gate_chi2_2d if model.dz == 2 else self.params.gate_chi2_3d
-        keep = d2 <= thr
-        if np.count_nonzero(~keep) * 2 > n:
-            return np.ones(n, bool)
-        return keep
 
     def _select(self, idx: np.ndarray) -> None:
         """Replace the particle set by ``particles[idx]`` (any count) with uniform weights.
@@ -724,63 +438,14 @@ class FastSlam(UpdateEntryPoints):
     # ------------------------------------------------------------------------------ persistence
 
     def state_dict(self) -> dict[str, np.ndarray | float | int]:
-        n = self.book.n_slots
-        dense = self.store.dense(n)
-        d: dict[str, np.ndarray | float | int] = {
-            "filter_code": FILTER_CODE[self.name],
-            "dim": self.dim,
-            "t_ns": self.t_ns,
-            "pose": self.pose.copy(),
-            "lm_mean": dense[0],
-            "lm_cov": dense[1],
-            "log_w": self.log_w.copy(),
-            "pending_S": self.pending_S.copy() if self.pending_S is not None else np.zeros((0, self.dx, self.dx)),
-            "best": self.best,
-            "neff": self.neff,
-        }
-        d.update(self.book.state_dict())
-        return d
+        return saved_state(self)
 
     def check_state_dict(self, state: Any) -> dict[str, Any]:
         """Every key, type, shape and range of a saved state (:meth:`state_dict`), without
         touching the filter: PersistenceError naming the key (MapMismatchError for another filter
         or dimension). Returns the checked values for :meth:`load_state_dict`, ``ids`` (M,) the
         landmark ids it holds."""
-        st = StateTable(state, f"{self.name} state")
-        t_ns = check_header(st, self.name, self.dim)
-        book = LandmarkBook.from_state(st, compact=False)
-        n, dx, dm = book.n_slots, self.dx, self.dm
-        pose = st.array("pose", "<f8", (None, dx))
-        P = pose.shape[0]
-        if not 1 <= P <= MAX_PARTICLES:
-            raise PersistenceError(f"{st.name('pose')}: expected 1 to {MAX_PARTICLES} particles, got {P}")
-        mean = st.array("lm_mean", "<f8", (P, n, dm))
-        cov = st.array("lm_cov", "<f8", (P, n, dm, dm))
-        log_w = st.array("log_w", "<f8", (P,))
-        pend = st.array("pending_S", "<f8", (None, dx, dx))
-        if pend.shape[0] not in (0, P):
-            raise PersistenceError(f"{st.name('pending_S')}: expected 0 or {P} matrices, got {pend.shape[0]}")
-        best = st.integer("best", 0, P - 1)
-        neff = st.number("neff", 0.0, P * (1 + 1e-6))
-        check_saved_poses(st.name("pose"), pose, self.dim)
-        check_saved_finite(st.name("lm_mean"), mean, POSITION_LIMIT_M)
-        check_covariances(st.name("lm_cov"), cov)
-        check_covariances(st.name("pending_S"), pend)
-        if np.any(np.isnan(log_w)) or np.any(log_w == np.inf) or not np.isfinite(log_w.max()):
-            raise PersistenceError(f"{st.name('log_w')}: expected finite log weights (-inf allowed), got NaN or inf")
-        ids = book.slot_id[book.active_slots()].copy()
-        return {
-            "t_ns": t_ns,
-            "book": book,
-            "pose": pose,
-            "mean": mean,
-            "cov": cov,
-            "log_w": log_w,
-            "pending_S": pend,
-            "best": best,
-            "neff": neff,
-            "ids": ids,
-        }
+        return check_state(self.name, self.dim, state)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore from :meth:`state_dict`; the state is checked whole first (:meth:`check_state_dict`)
@@ -794,31 +459,3 @@ class FastSlam(UpdateEntryPoints):
         self.pose, self.log_w, self.book = c["pose"].copy(), c["log_w"].copy(), c["book"]
         self.pending_S = c["pending_S"].copy() if c["pending_S"].shape[0] else None
         self.best, self.neff, self.t_ns = c["best"], c["neff"], c["t_ns"]
-
-
-def _load_predict3() -> Any:
-    """``predict3_numba`` or None when numba cannot be used."""
-    try:
-        from robotd.slam._kernels import predict3_numba
-    except ImportError:
-        return None
-    return predict3_numba
-
-
-def _load_numba(params: SlamParams) -> Any:
-    """``fastslam_step_numba_store`` (threads set per call), or None when numba cannot be used."""
-    try:
-        import numba
-
-        from robotd.slam._kernels import fastslam_step_numba_store
-    except ImportError as e:  # the numpy path is complete; numba only makes it faster
-        logger.warning("numba unavailable (%s); FastSLAM uses the numpy path", e)
-        return None
-    threads = int(params.numba_threads)
-
-    def step(*args: Any) -> tuple[np.ndarray, np.ndarray]:
-        if threads:
-            numba.set_num_threads(min(threads, int(getattr(numba.config, "NUMBA_NUM_THREADS", 1))))
-        return fastslam_step_numba_store(*args)
-
-    return step

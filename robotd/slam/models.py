@@ -479,18 +479,6 @@ def stereo_triangulation(z: np.ndarray, f: float, px: float, py: float, b: float
     return q, J
 
 
-def stereo_basis(dz: int) -> np.ndarray:
-    """T (dz, dz) with T (x_L, x_R[, y]) = (mean column, disparity[, y]); |det T| = 1.
-
-    Pixel covariances are nearly diagonal in these coordinates (the columns of a landmark are
-    almost perfectly correlated); the numpy filters work in them (robotd.slam.fastslam).
-    """
-    T = np.eye(dz)
-    T[0, :2] = (0.5, 0.5)
-    T[1, :2] = (1.0, -1.0)
-    return T
-
-
 def _pixel_h(cart: MeasFn, rig: tuple[float, float, float, float], x: np.ndarray, m: np.ndarray) -> MeasResult:
     q, Hx, Hm = cart(x, m)
     z, J = stereo_projection(q, *rig)

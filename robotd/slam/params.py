@@ -87,7 +87,6 @@ class SlamParams:
     stereo_intrinsics: tuple[float, ...] = ()
     # pixel model noise: σ of each column (x_L, x_R) and of the row y [px] (independent)
     pixel_sigma_px: tuple[float, float] = (0.5, 0.5 / math.sqrt(2.0))
-    use_numba: bool = True  # numba kernels for the FastSLAM hot path, both models (numpy when False/unavailable)
     numba_threads: int = 0  # threads of the numba kernel; 0 = numba's default (all cores)
 
     def __post_init__(self) -> None:

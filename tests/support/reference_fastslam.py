@@ -1,22 +1,25 @@
-"""Plain per-particle FastSLAM (docs/math.md §9, §10): the readable reference for the fast paths.
+"""Plain per-particle FastSLAM (docs/math.md §9, §10): the readable reference twin of the numba kernel.
 
-One particle and one observation at a time, general ``np.linalg`` solves, no closed-form inverses.
-``fastslam_step_reference`` has the signature of :func:`robotd.slam.fastslam.fastslam_step` and is
-the readable twin of both fast paths: that vectorised numpy step and the numba kernel
-``robotd.slam._kernels.fastslam_step_numba``. It is far too slow for the daemon (~0.7 s per 2D
-step at 100 particles × 100 observations), so it lives with the tests (moved here unchanged from
-robotd/slam/_reference.py).
+One particle and one observation at a time, general ``np.linalg`` solves, no closed-form inverses,
+the robot-frame formulas of §9/§10 through the measurement model's own ``h``, ``inverse`` and
+``innovation``. ``fastslam_step_reference`` has the signature and the effects of the kernel
+:func:`robotd.slam._kernels.fastslam_step`, and ``fastslam_step_store_reference`` those of
+:func:`robotd.slam._kernels.fastslam_step_store` (the filter's call: a FastSlam whose ``_step`` is
+this one runs the whole filter on the reference). robotd has no other implementation of the step
+(the vectorised numpy one it had was removed with issue 28); this one is far too slow for the
+daemon (~0.7 s per 2D step at 100 particles × 100 observations), so it lives with the tests.
 
 Agreement: given the same random draws ``eps``, poses, log-weight increments, landmark means and
 covariances (and the 2.0 proposal outputs) agree to 1e-9 absolute (``KERNEL_TWIN_ATOL`` in
 tests/support/tolerances.py, used by tests/robotd/slam/test_fastslam.py and test_fastslam_numba.py),
-in 2D and 3D, FastSLAM 1.0 and 2.0, also at large roll/pitch and any yaw.
+in 2D and 3D, FastSLAM 1.0 and 2.0, every measurement model, also at large roll/pitch and any yaw.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from robotd.slam._store import LandmarkStore
 from robotd.slam.models import MeasurementModel, wrap_pose
 
 
@@ -49,8 +52,8 @@ def fastslam_step_reference(
     out_mu: np.ndarray | None = None,
     out_Sx: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-particle loop version of ``fastslam_step`` (same arguments, same in-place effects); the
-    tests hold ``fastslam_step`` and ``fastslam_step_numba`` to it to 1e-9 (module docstring)."""
+    """Per-particle loop version of the kernel's ``fastslam_step`` (same arguments, same in-place
+    effects); the tests hold the kernel to it to 1e-9 (module docstring)."""
     dim = 2 if model.dx == 3 else 3
     P = pose.shape[0]
     out_pose = pose.copy()
@@ -106,3 +109,52 @@ def fastslam_step_reference(
             lm_cov[k, s] = 0.5 * (C + C.T) + floor * np.eye(model.dm)
         out_pose[k] = x
     return out_pose, dlogw
+
+
+def fastslam_step_store_reference(
+    version: int,
+    pose: np.ndarray,
+    S: np.ndarray | None,
+    store: LandmarkStore,
+    slots_old: np.ndarray,
+    z_old: np.ndarray,
+    Q_old: np.ndarray,
+    slots_new: np.ndarray,
+    z_new: np.ndarray,
+    Q_new: np.ndarray,
+    eps: np.ndarray | None,
+    model: MeasurementModel,
+    floor: float,
+    seq_weights: bool = False,
+    out_mu: np.ndarray | None = None,
+    out_Sx: np.ndarray | None = None,
+    threads: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``fastslam_step_reference`` on a copy-on-write store, as the kernel's ``fastslam_step_store``:
+    dense copies of the touched landmarks, the reference step on them, written back (copy on write)."""
+    n_old, n_new = slots_old.size, slots_new.size
+    P, dm = pose.shape[0], store.dm
+    mean = np.empty((P, n_old + n_new, dm))
+    cov = np.empty((P, n_old + n_new, dm, dm))
+    mean[:, :n_old], cov[:, :n_old] = store.gather(slots_old)
+    out = fastslam_step_reference(
+        version,
+        pose,
+        S,
+        mean,
+        cov,
+        np.arange(n_old),
+        z_old,
+        Q_old,
+        np.arange(n_old, n_old + n_new),
+        z_new,
+        Q_new,
+        eps,
+        model,
+        floor,
+        seq_weights,
+        out_mu,
+        out_Sx,
+    )
+    store.scatter(np.concatenate([slots_old, slots_new]), mean, cov)
+    return out

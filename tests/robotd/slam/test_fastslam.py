@@ -1,4 +1,4 @@
-"""FastSLAM 1.0/2.0: vectorised kernels vs the per-particle reference, resampling, outputs, scenarios."""
+"""FastSLAM 1.0/2.0: the kernel vs the per-particle reference, resampling, outputs, scenarios."""
 
 from __future__ import annotations
 
@@ -10,11 +10,12 @@ import pytest
 from robotd.errors import InputError, PersistenceError
 from robotd.msgs import MotionIncrement, Observations
 from robotd.slam import models as md
+from robotd.slam._kernels import fastslam_step
 from robotd.slam.factory import make_estimator
-from robotd.slam.fastslam import FastSlam, fastslam_step
+from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
 from robotd.slam.resampling import effective_sample_size, low_variance_indices, weighted_pose_mean
-from tests.support.reference_fastslam import fastslam_step_reference
+from tests.support.reference_fastslam import fastslam_step_reference, fastslam_step_store_reference
 from tests.support.slam_world import KITTI_RIG, World
 from tests.support.tolerances import CONDITIONED_ATOL, KERNEL_TWIN_ATOL, ROUNDOFF_ATOL, ULP_ATOL
 
@@ -66,10 +67,12 @@ PIXEL = [md.stereo_pixel_model(2, *KITTI_RIG), md.stereo_pixel_model(3, *KITTI_R
 MODELS = [md.CARTESIAN_2D, md.CARTESIAN_3D, md.RANGE_BEARING_2D, *PIXEL]
 
 
+@pytest.mark.parametrize("seed", [11, 12])
 @pytest.mark.parametrize("version", [1, 2])
 @pytest.mark.parametrize("model", MODELS, ids=[m.name for m in MODELS])
-def test_vectorised_matches_reference(version: int, model: md.MeasurementModel) -> None:
-    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 7, 9, 4, seed=11)
+def test_kernel_matches_reference(version: int, model: md.MeasurementModel, seed: int) -> None:
+    """The numba kernel, every measurement model, against its readable per-particle twin."""
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 7, 9, 4, seed=seed)
     a_mean, a_cov = lm_mean.copy(), lm_cov.copy()
     b_mean, b_cov = lm_mean.copy(), lm_cov.copy()
     pa, wa = fastslam_step(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
@@ -302,36 +305,60 @@ def test_range_bearing_and_velocity_entry_points(filt: str) -> None:
         est.update_range_bearing(np.arange(1), np.array([-1.0]), np.array([0.0]), R_rb)
 
 
-CART = [md.CARTESIAN_2D, md.CARTESIAN_3D]
-NUMBA = [*CART, *PIXEL]  # the models the numba kernel implements
+def _on_reference(est: object) -> object:
+    """The filter with its measurement step on the per-particle reference instead of the kernel."""
+    assert isinstance(est, FastSlam)
+    est._step = fastslam_step_store_reference
+    return est
 
 
-@pytest.mark.parametrize("version", [1, 2])
-@pytest.mark.parametrize("model", NUMBA, ids=[m.name for m in NUMBA])
-def test_numba_kernel_matches_reference(version: int, model: md.MeasurementModel) -> None:
-    from robotd.slam._kernels import fastslam_step_numba
-
-    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 6, 8, 3, seed=12)
-    a_mean, a_cov = lm_mean.copy(), lm_cov.copy()
-    b_mean, b_cov = lm_mean.copy(), lm_cov.copy()
-    pa, wa = fastslam_step_numba(
-        version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, intrinsics=model.intrinsics
-    )
-    pb, wb = fastslam_step_reference(version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
-    for a, b in ((pa, pb), (wa, wb), (a_mean, b_mean), (a_cov, b_cov)):
-        np.testing.assert_allclose(a, b, atol=KERNEL_TWIN_ATOL, rtol=0)
+def _run_both(filt: str, dim: int, steps: int, world_args: dict, **kw) -> list[dict]:
+    """The same run (world, seeds) through the filter on the kernel and on the reference."""
+    out = []
+    for reference in (False, True):
+        world = World(dim, np.random.default_rng(9), **world_args)
+        est = make_estimator(SlamParams(filter=filt, dim=dim, n_particles=20, **kw), np.random.default_rng(7))
+        if reference:
+            _on_reference(est)
+        est.update(world.observe())
+        for _ in range(steps):
+            est.predict(world.step())
+            est.update(world.observe())
+        out.append(est.state_dict())
+    return out
 
 
 @pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
-def test_numba_and_numpy_filters_agree(filt: str) -> None:
-    out = []
-    for use_numba in (False, True):
-        world = World(3, np.random.default_rng(9), sigma_z=0.02, sigma_odo=0.01)
-        est, _ = _run(filt, 3, 10, world, n_particles=20, use_numba=use_numba)
-        out.append(est.state_dict())
-    for k in out[0]:
+def test_filter_on_the_kernel_and_on_the_reference_agree(filt: str) -> None:
+    """Whole runs: the kernel in the copy-on-write store (block tables, copies on write, new slots)
+    against the reference on dense copies of the touched landmarks."""
+    a, b = _run_both(filt, 3, 10, {"sigma_z": 0.02, "sigma_odo": 0.01})
+    for k in a:
+        np.testing.assert_allclose(np.asarray(b[k]), np.asarray(a[k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k)
+
+
+@pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
+def test_range_bearing_filter_on_the_kernel_and_on_the_reference_agree(filt: str) -> None:
+    """``update_range_bearing`` (2D, the kernel's range–bearing model) against the reference."""
+    L = np.array([[4.0, 1.0], [3.0, -2.0], [6.0, 0.5], [5.0, 3.0], [2.0, 2.5]])
+    R_rb = np.diag([0.02**2, 0.01**2])
+    states = []
+    for reference in (False, True):
+        rng = np.random.default_rng(8)
+        est = make_estimator(SlamParams(filter=filt, dim=2, n_particles=20, prune_enabled=False), rng)
+        if reference:
+            _on_reference(est)
+        zrng, x = np.random.default_rng(3), np.zeros(3)
+        for t in range(12):
+            if t:
+                est.predict_velocity(0.5, 0.1, 0.2, t_ns=t)
+                x = md.velocity2d(x[None], np.array([[0.5, 0.1]]), 0.2)[0][0]
+            z = md.range_bearing(np.repeat(x[None], len(L), 0), L)[0] + zrng.normal(0, [0.02, 0.01], (len(L), 2))
+            est.update_range_bearing(np.arange(len(L)), z[:, 0], z[:, 1], R_rb, t_ns=t)
+        states.append(est.state_dict())
+    for k in states[0]:
         np.testing.assert_allclose(
-            np.asarray(out[1][k]), np.asarray(out[0][k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k
+            np.asarray(states[1][k]), np.asarray(states[0][k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k
         )
 
 
@@ -342,27 +369,16 @@ def test_warmup_numba_loads_kernels() -> None:
     assert took is not None and took >= 0.0
 
 
-@pytest.mark.parametrize("model", NUMBA, ids=[m.name for m in NUMBA])
-def test_sequential_weights_and_proposal_outputs_agree_across_paths(model: md.MeasurementModel) -> None:
-    """fs2_weights="sequential" and the proposal outputs: numpy, numba and the reference agree."""
-    from robotd.slam._kernels import fastslam_step_numba
-
+@pytest.mark.parametrize("model", MODELS, ids=[m.name for m in MODELS])
+def test_sequential_weights_and_proposal_outputs_agree_with_the_reference(model: md.MeasurementModel) -> None:
+    """fs2_weights="sequential" and the proposal outputs: the kernel and the reference agree."""
     pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _random_problem(model, 6, 8, 3, seed=13)
     P, dx = pose.shape
     outs = []
-    for fn in ("numpy", "numba", "reference"):
+    for fn in (fastslam_step, fastslam_step_reference):
         mean, cov = lm_mean.copy(), lm_cov.copy()
         mu, Sx = np.empty((P, dx)), np.empty((P, dx, dx))
-        if fn == "numpy":
-            p, w = fastslam_step(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx)
-        elif fn == "numba":
-            p, w = fastslam_step_numba(
-                2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12, True, mu, Sx, model.intrinsics
-            )
-        else:
-            p, w = fastslam_step_reference(
-                2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx
-            )
+        p, w = fn(2, pose, S, mean, cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12, True, mu, Sx)
         outs.append((p, w, mean, cov, mu, Sx))
     for other in outs[1:]:
         for a, b in zip(outs[0], other, strict=True):
@@ -481,19 +497,13 @@ def test_pixel_model_noisy_scenario_bounded_error(filt: str, dim: int) -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
-def test_pixel_model_numba_and_numpy_filters_agree(filt: str, dim: int) -> None:
+def test_pixel_model_filter_on_the_kernel_and_on_the_reference_agree(filt: str, dim: int) -> None:
     # 6 steps, not the Cartesian test's 10: pixel likelihoods are ~10× steeper in the pose than that
     # world's, so the two paths' round-off (pose 1e-14 apart) is amplified ~20× per resampling step
     # after that (measured: N_eff 4e-10 apart after 8 steps, 7e-7 after 10, the poses 2e-11)
-    out = []
-    for use_numba in (False, True):
-        world = World(dim, np.random.default_rng(9), sigma_odo=0.01, rig=KITTI_RIG, sigma_px=0.5)
-        est, _ = _run(filt, dim, 6, world, n_particles=20, use_numba=use_numba, **PIXEL_KW)
-        out.append(est.state_dict())
-    for k in out[0]:
-        np.testing.assert_allclose(
-            np.asarray(out[1][k]), np.asarray(out[0][k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k
-        )
+    a, b = _run_both(filt, dim, 6, {"sigma_odo": 0.01, "rig": KITTI_RIG, "sigma_px": 0.5}, **PIXEL_KW)
+    for k in a:
+        np.testing.assert_allclose(np.asarray(b[k]), np.asarray(a[k]), atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=k)
 
 
 @pytest.mark.parametrize("filt", ["ekf", "fastslam2"])

@@ -1,4 +1,5 @@
-"""numba FastSLAM fast paths: 3D world-frame kernel at large angles, motion update, threads, CoW copies."""
+"""The numba FastSLAM kernel (robotd/slam/_kernels.py): world-frame formulas at large angles, motion update,
+threads, CoW copies, the dimension and model dispatch."""
 
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ def test_world_frame_kernel_matches_reference_at_large_angles(version: int, dim:
     model = md.CARTESIAN_3D if dim == 3 else md.CARTESIAN_2D
     a_mean, a_cov = lm_mean.copy(), lm_cov.copy()
     b_mean, b_cov = lm_mean.copy(), lm_cov.copy()
-    pa, wa = K.fastslam_step_numba(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, 1e-12)
+    pa, wa = K.fastslam_step(version, pose, S, a_mean, a_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
     pb, wb = fastslam_step_reference(version, pose, S, b_mean, b_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
     for name, a, b in (("pose", pa, pb), ("dlogw", wa, wb), ("mean", a_mean, b_mean), ("cov", a_cov, b_cov)):
         np.testing.assert_allclose(a, b, atol=KERNEL_TWIN_ATOL, rtol=0, err_msg=name)
@@ -72,11 +73,12 @@ def test_kernel_result_independent_of_chunking(dim: int, monkeypatch: pytest.Mon
     # forced here, so the property is checked on a one-core machine too (the chunks then run one
     # after the other); with two cores the two-chunk case also runs on two threads.
     pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem(dim, 5, P=23)
+    model = md.CARTESIAN_3D if dim == 3 else md.CARTESIAN_2D
     out = []
     for chunks in (1, 2, 3, 7):
         monkeypatch.setattr(K.nb, "get_num_threads", lambda c=chunks: c)
         m, c = lm_mean.copy(), lm_cov.copy()
-        p, w = K.fastslam_step_numba(2, pose, S, m, c, so, zo, Qo, sn, zn, Qn, eps, 1e-12)
+        p, w = K.fastslam_step(2, pose, S, m, c, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
         out.append((p, w, m, c))
     for other in out[1:]:
         for a, b in zip(out[0], other):
@@ -102,7 +104,7 @@ def test_predict3_matches_motion3d(per_particle: bool) -> None:
 
 def test_fastslam_numba_predict_rejects_pitch_singularity_and_keeps_state() -> None:
     est = make_estimator(SlamParams(filter="fastslam2", dim=3, n_particles=5), np.random.default_rng(0))
-    assert isinstance(est, FastSlam) and est._predict3 is not None
+    assert isinstance(est, FastSlam)
     est.pose[:, 4] = np.pi / 2
     before = est.pose.copy()
     inc = MotionIncrement(0, 1, np.array([0.1, 0.0, 0.0]), np.zeros(3), np.eye(6) * 1e-4)
@@ -147,6 +149,28 @@ def test_pixel_kernel_refuses_a_noise_it_does_not_model() -> None:
     Q = np.tile(np.diag([0.25, 0.25, 0.125]), (so.size, 1, 1))
     Q[2, 0, 1] = Q[2, 1, 0] = 0.01
     with pytest.raises(InputError, match=r"diag\(σx², σx², σy²\)"):
-        K.fastslam_step_numba(
-            2, pose, S, lm_mean, lm_cov, so, zo, Q, sn[:0], zn[:0], Q[:0], eps, 0.0, intrinsics=model.intrinsics
-        )
+        K.fastslam_step(2, pose, S, lm_mean, lm_cov, so, zo, Q, sn[:0], zn[:0], Q[:0], eps, model, 0.0)
+
+
+def test_kernel_refuses_a_model_it_has_no_formulas_for() -> None:
+    pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem(2, 3)
+    other = md.MeasurementModel("bearing_only2d", 3, 2, 2, md.range_bearing, md.range_bearing_inverse, (1,))
+    with pytest.raises(InputError, match="no formulas for the measurement model 'bearing_only2d'"):
+        K.fastslam_step(2, pose, S, lm_mean, lm_cov, so, zo, Qo, sn, zn, Qn, eps, other, 0.0)
+    with pytest.raises(InputError, match=r"expected poses \(P, 6\)"):
+        K.fastslam_step(2, pose, S, lm_mean, lm_cov, so, zo, Qo, sn, zn, Qn, eps, md.CARTESIAN_3D, 0.0)
+
+
+def test_one_algorithm_compiled_per_dimension_and_model() -> None:
+    """One per-particle function, specialised by numba per (measurement model, dimension): the
+    dimension and the model are types (the markers Dim2/Dim3, rig None / pixel tuple /
+    RangeBearing), resolved while compiling, not branches in the loop."""
+    assert not hasattr(K, "_particle2") and not hasattr(K, "_particle3")
+    for model in (md.CARTESIAN_2D, md.CARTESIAN_3D, md.RANGE_BEARING_2D):
+        pose, S, lm_mean, lm_cov, so, sn, zo, Qo, zn, Qn, eps = _problem(model.dm, 4)
+        if model is md.RANGE_BEARING_2D:
+            zo = md.range_bearing(np.repeat(pose[:1], so.size, 0), lm_mean[0, so])[0]
+            zn = md.range_bearing(np.repeat(pose[:1], sn.size, 0), lm_mean[0, sn])[0]
+        K.fastslam_step(2, pose, S, lm_mean, lm_cov, so, zo, Qo, sn, zn, Qn, eps, model, 1e-12)
+    compiled = {(str(sig[-3]), str(sig[-2])) for sig in K._step.signatures}
+    assert {("none", "Dim2()"), ("none", "Dim3()"), ("RangeBearing()", "Dim2()")} <= compiled, compiled
