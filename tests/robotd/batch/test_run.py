@@ -147,7 +147,7 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
         rows = out / "rows.jsonl"
         assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 180.0), "no row finished"
         os.killpg(proc.pid, signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
+        stdout, stderr = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
