@@ -316,7 +316,7 @@ def check_numba_cache(cfg: Config, warm: bool = False, modules: Sequence[Path] |
     if warm:
         from robotd.pipeline import Pipeline
 
-        seconds = Pipeline.warmup((cfg.slam.measurement,))
+        seconds = Pipeline.warmup((cfg.slam.measurement,), (cfg.slam.dim,))
         warmed = f"warmed in {seconds:.1f} s; "
     cold = [m.name for m in mods if not _is_cached(m)]
     where = f"NUMBA_CACHE_DIR={os.environ['NUMBA_CACHE_DIR']}" if os.environ.get("NUMBA_CACHE_DIR") else "__pycache__"

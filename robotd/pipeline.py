@@ -226,12 +226,12 @@ class Pipeline:
 
     # ---------------------------------------------------------------- start-up and persistence
     @staticmethod
-    def warmup(measurements: tuple[str, ...] = MEASUREMENTS) -> float:
+    def warmup(measurements: tuple[str, ...] = MEASUREMENTS, dims: tuple[int, ...] = (2, 3)) -> float:
         """Compile or load every numba kernel a step uses, so the first frame is not delayed
-        (compiling takes ~30 s on a 2-core machine, ~20 s with one measurement model; loading
-        the cache ~1–2 s). ``measurements``: the FastSLAM measurement models to prepare (the
-        daemon passes its own). Returns seconds. Needs no pipeline: the daemon calls it before it
-        opens the devices."""
+        (compiling takes ~25 s on a 2-core machine for every model and dimension, about a third
+        of that for one of each; loading the cache ~1–2 s). ``measurements``, ``dims``: the
+        FastSLAM measurement models and dimensions to prepare (the daemon passes its own).
+        Returns seconds. Needs no pipeline: the daemon calls it before it opens the devices."""
         import time
 
         from robotd import outliers
@@ -239,7 +239,7 @@ class Pipeline:
         from robotd.slam.factory import warmup as warmup_filters
 
         t0 = time.perf_counter()
-        warmup_filters(measurements)
+        warmup_filters(measurements, dims)
         detectors.warmup()
         stereo_match.warmup()
         pnp.warmup()

@@ -416,7 +416,7 @@ def _load_kernels(cfg: Config) -> None:
     finds no cached kernel (robotd.jit.CompileWatch), never on a warm start."""
     logger.info("loading the filter and matcher kernels")
     with CompileWatch(lambda: logger.info(COMPILING_UNCACHED if jit.UNCACHED else COMPILING)) as watch:
-        seconds = Pipeline.warmup((cfg.slam.measurement,))
+        seconds = Pipeline.warmup((cfg.slam.measurement,), (cfg.slam.dim,))
     how = "loaded from the numba cache"
     if watch.compiled:
         how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")

@@ -153,9 +153,10 @@ register(
 )
 
 
-def warmup(models: tuple[str, ...] = MEASUREMENTS) -> float | None:
-    """Compile or load the numba FastSLAM kernels now, for the measurement ``models`` (each one
-    compiles on its own); returns the seconds it took, None without numba.
+def warmup(models: tuple[str, ...] = MEASUREMENTS, dims: tuple[int, ...] = (2, 3)) -> float | None:
+    """Compile or load the numba FastSLAM kernels now, for the measurement ``models`` and the
+    dimensions ``dims`` (each pair compiles on its own); returns the seconds it took, None without
+    numba.
 
     Call it at daemon start-up (after NUMBA_CACHE_DIR is set) so that the first frame is not
     delayed: compiling takes ~11–16 s on a 2-core machine, loading the cache ~1–2 s.
@@ -167,5 +168,5 @@ def warmup(models: tuple[str, ...] = MEASUREMENTS) -> float | None:
     except ImportError:
         return None
     t0 = time.perf_counter()
-    warmup(tuple(models))
+    warmup(tuple(models), tuple(dims))
     return time.perf_counter() - t0

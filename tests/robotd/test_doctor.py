@@ -258,8 +258,8 @@ def test_cli_config_error_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[
 def test_warm_runs_the_pipeline_warmup_and_reports_seconds(monkeypatch: pytest.MonkeyPatch) -> None:
     from robotd.pipeline import Pipeline
 
-    calls: list[tuple[str, ...]] = []
-    monkeypatch.setattr(Pipeline, "warmup", staticmethod(lambda models: calls.append(models) or 1.5))
+    calls: list[tuple[tuple[str, ...], tuple[int, ...]]] = []
+    monkeypatch.setattr(Pipeline, "warmup", staticmethod(lambda models, dims: calls.append((models, dims)) or 1.5))
     r = doctor.check_numba_cache(cfg_with(), warm=True)
-    # the configured measurement model only: each is a compilation of its own
-    assert calls == [("pixel",)] and "warmed in 1.5 s" in r.message
+    # the configured measurement model and dimension only: each pair is a compilation of its own
+    assert calls == [(("pixel",), (3,))] and "warmed in 1.5 s" in r.message

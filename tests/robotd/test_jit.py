@@ -88,8 +88,8 @@ def test_a_cold_start_says_so_before_the_compile(
     path = tmp_path / "kern.py"
     path.write_text(KERNEL)
 
-    def warmup(measurements: tuple[str, ...] = ()) -> float:
-        seconds = real(measurements)
+    def warmup(measurements: tuple[str, ...] = (), dims: tuple[int, ...] = (3,)) -> float:
+        seconds = real(measurements, dims)
         _load(path, "kern_cold_start").plus_one(1)
         return seconds
 
