@@ -135,23 +135,29 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
     endless = "sim://yard?duration=600&realtime=1&width=160&height=100&fps=5&seed=8"
     out = tmp_path / "out"
     argv = ["replay-many", sim_url(2), endless, "--out", str(out), "--workers", "2", "--quiet", "--json"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "robotd", *argv],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group, as a terminal's foreground job
-    )
-    try:
-        rows = out / "rows.jsonl"
-        assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 180.0), "no row finished"
-        os.killpg(proc.pid, signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=180)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
+    # the output goes to files, not pipes: nobody reads a pipe while the test waits, and a full one
+    # (64 KiB of the workers' warnings on a cold numba cache) blocked the command's writes, so no row
+    # finished, or the interrupted command never got to exit
+    out_file, err_file = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
+    with open(out_file, "w") as fo, open(err_file, "w") as fe:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "robotd", *argv],
+            cwd=REPO,
+            stdout=fo,
+            stderr=fe,
+            text=True,
+            start_new_session=True,  # its own process group, as a terminal's foreground job
+        )
+        try:
+            rows = out / "rows.jsonl"
+            assert wait_for(lambda: rows.is_file() and rows.read_text().count("\n") >= 1, 180.0), "no row finished"
+            os.killpg(proc.pid, signal.SIGINT)
+            proc.wait(timeout=180)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    stdout, stderr = out_file.read_text(), err_file.read_text()
     assert proc.returncode == 130, stderr[-3000:]
     doc = json.loads(stdout.strip().splitlines()[-1])
     status = {r["url"]: r["status"] for r in doc["rows"]}
