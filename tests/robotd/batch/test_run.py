@@ -135,9 +135,7 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
     endless = "sim://yard?duration=600&realtime=1&width=160&height=100&fps=5&seed=8"
     out = tmp_path / "out"
     argv = ["replay-many", sim_url(2), endless, "--out", str(out), "--workers", "2", "--quiet", "--json"]
-    # the output goes to files, not pipes: nobody reads a pipe while the test waits, and a full one
-    # (64 KiB of the workers' warnings on a cold numba cache) blocked the command's writes, so no row
-    # finished, or the interrupted command never got to exit
+    # the output goes to files, not pipes nobody reads while the test waits
     out_file, err_file = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
     with open(out_file, "w") as fo, open(err_file, "w") as fe:
         proc = subprocess.Popen(
@@ -147,6 +145,10 @@ def test_ctrl_c_keeps_the_finished_rows_and_tables_them(tmp_path: Path) -> None:
             stderr=fe,
             text=True,
             start_new_session=True,  # its own process group, as a terminal's foreground job
+            # and SIGINT at its default, as a terminal's foreground job has it: a suite started in
+            # the background of a non-interactive shell ignores SIGINT, the command inherited that
+            # and never saw the Ctrl-C
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
         try:
             rows = out / "rows.jsonl"
