@@ -4,6 +4,14 @@ Ids are global (shared by all particles) and may be arbitrary int64 values, so t
 storage slots through a dict. Existence counter (docs/math.md §8, Thrun et al. 2005 §10.3.3):
 +1 when a landmark is observed, −1 when it is predicted inside the field of view and range but not
 observed; a landmark is deleted when its counter falls below 0 after the frame that created it.
+
+"Predicted inside the field of view" alone counts as a miss every frame a landmark is in view from
+where its descriptor cannot be recognised: a point made 4 m ahead and approached again from 10 m, or
+from the side. On a loop that deleted every landmark of the first pass before the rover got near
+enough to match it (docs/slam.md "Which landmarks the map keeps"). So the book also remembers where
+each landmark was seen from, the range of its observed distances and the mean direction it was seen
+from, and a landmark only counts as missed where it can be recognised: its distance within
+``RECOGNISE_SCALE`` of that range and its direction within ``RECOGNISE_ANGLE_DEG`` of the mean.
 """
 
 from __future__ import annotations
@@ -11,7 +19,13 @@ from __future__ import annotations
 import numpy as np
 
 from robotd.errors import InputError, PersistenceError
-from robotd.statecheck import COUNTER_LIMIT, ID_LIMIT, StateTable
+from robotd.statecheck import COUNTER_LIMIT, ID_LIMIT, StateTable, check_finite
+
+# where a landmark counts as recognisable (module docstring): its observed distances widened by this
+# factor either way, and within this angle of the mean direction it was seen from
+RECOGNISE_SCALE = 1.5
+RECOGNISE_ANGLE_DEG = 45.0
+_COS_ANGLE = float(np.cos(np.radians(RECOGNISE_ANGLE_DEG)))
 
 
 class LandmarkBook:
@@ -21,6 +35,11 @@ class LandmarkBook:
         self.id_to_slot: dict[int, int] = {}
         self.slot_id = np.full(capacity, -1, np.int64)  # (cap,) id per slot, -1 = free
         self.counter = np.zeros(capacity, np.int64)  # (cap,) existence counter
+        # where each landmark was seen from: nearest and farthest distance [m], and the sum of the
+        # unit directions (world frame, landmark -> robot) it was observed along; zero = not yet
+        self.near = np.zeros(capacity)
+        self.far = np.zeros(capacity)
+        self.view = np.zeros((capacity, 3))
         self.n_slots = 0  # high-water mark: slots >= n_slots were never used
         self.free: list[int] = []
 
@@ -70,6 +89,8 @@ class LandmarkBook:
             self.id_to_slot[int(i)] = s
             self.slot_id[s] = i
             self.counter[s] = 1
+            self.near[s] = self.far[s] = 0.0
+            self.view[s] = 0.0
             out[k] = s
         return out
 
@@ -77,13 +98,41 @@ class LandmarkBook:
         extra = cap - self.capacity
         self.slot_id = np.concatenate([self.slot_id, np.full(extra, -1, np.int64)])
         self.counter = np.concatenate([self.counter, np.zeros(extra, np.int64)])
+        self.near = np.concatenate([self.near, np.zeros(extra)])
+        self.far = np.concatenate([self.far, np.zeros(extra)])
+        self.view = np.concatenate([self.view, np.zeros((extra, 3))])
 
     def release(self, slots: np.ndarray) -> None:
         for s in slots.tolist():
             del self.id_to_slot[int(self.slot_id[s])]
             self.slot_id[s] = -1
             self.counter[s] = 0
+            self.near[s] = self.far[s] = 0.0
+            self.view[s] = 0.0
             self.free.append(int(s))
+
+    def note_views(self, slots: np.ndarray, dist: np.ndarray, dirs: np.ndarray) -> None:
+        """Slots observed (or created) this frame, at distances ``dist`` (N,) [m] along unit
+        directions ``dirs`` (N, 2|3) (world frame, landmark -> robot): widen their seen range, add
+        to their mean direction."""
+        if slots.size == 0:
+            return
+        seen = self.far[slots] > 0
+        self.near[slots] = np.where(seen, np.minimum(self.near[slots], dist), dist)
+        self.far[slots] = np.maximum(self.far[slots], dist)
+        self.view[slots, : dirs.shape[1]] += dirs
+
+    def recognisable(self, slots: np.ndarray, dist: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(N,) True where ``slots``, at distances ``dist`` along directions ``dirs`` (as
+        :meth:`note_views`), can be recognised: within ``RECOGNISE_SCALE`` of their seen range and
+        ``RECOGNISE_ANGLE_DEG`` of their mean direction. A landmark with no view noted (a map saved
+        before the book kept them) is recognisable wherever it is in view."""
+        v = self.view[slots, : dirs.shape[1]]
+        norm = np.linalg.norm(v, axis=1)
+        known = (self.far[slots] > 0) & (norm > 0)
+        ok = (dist >= self.near[slots] / RECOGNISE_SCALE) & (dist <= self.far[slots] * RECOGNISE_SCALE)
+        ok &= np.sum(v * dirs, axis=1) >= _COS_ANGLE * np.where(known, norm, 1.0)
+        return ~known | ok
 
     def existence_update(self, observed: np.ndarray, expected: np.ndarray, born: np.ndarray) -> np.ndarray:
         """Apply the counter rule; return the slots to delete.
@@ -103,10 +152,14 @@ class LandmarkBook:
         keep = self.active_slots()
         ids = self.slot_id[keep].copy()
         cnt = self.counter[keep].copy()
+        near, far, view = self.near[keep].copy(), self.far[keep].copy(), self.view[keep].copy()
         self.slot_id[:] = -1
         self.counter[:] = 0
+        self.near[:] = self.far[:] = 0.0
+        self.view[:] = 0.0
         self.slot_id[: len(keep)] = ids
         self.counter[: len(keep)] = cnt
+        self.near[: len(keep)], self.far[: len(keep)], self.view[: len(keep)] = near, far, view
         self.n_slots = len(keep)
         self.free = []
         self.id_to_slot = {int(i): k for k, i in enumerate(ids.tolist())}
@@ -116,13 +169,18 @@ class LandmarkBook:
         return {
             "book_slot_id": self.slot_id[: self.n_slots].copy(),
             "book_counter": self.counter[: self.n_slots].copy(),
+            "book_near": self.near[: self.n_slots].copy(),
+            "book_far": self.far[: self.n_slots].copy(),
+            "book_view": self.view[: self.n_slots].copy(),
         }
 
     @classmethod
     def from_state(cls, st: StateTable, compact: bool) -> LandmarkBook:
         """The book of a saved filter state (keys ``book_slot_id``, ``book_counter``), checked:
         int64 arrays of one length, ids in [0, ID_LIMIT) and unique, -1 for a free slot (none in a
-        ``compact`` book: the EKF's), counters of plausible size. PersistenceError otherwise."""
+        ``compact`` book: the EKF's), counters of plausible size; where each landmark was seen from
+        (``book_near``, ``book_far``, ``book_view``: finite, non-negative distances), absent in maps
+        saved before the book kept it (then none is known). PersistenceError otherwise."""
         slot_id = st.array("book_slot_id", "<i8", (None,))
         counter = st.array("book_counter", "<i8", slot_id.shape)
         if slot_id.size and (int(slot_id.min()) < -1 or int(slot_id.max()) >= ID_LIMIT):
@@ -140,7 +198,30 @@ class LandmarkBook:
         book = cls(max(64, slot_id.size))
         book.slot_id[: slot_id.size] = slot_id
         book.counter[: slot_id.size] = counter
+        if st.has("book_view"):
+            near = st.array("book_near", "<f8", slot_id.shape)
+            far = st.array("book_far", "<f8", slot_id.shape)
+            view = st.array("book_view", "<f8", (slot_id.size, 3))
+            for key, a in (("book_near", near), ("book_far", far), ("book_view", view)):
+                check_finite(st.name(key), a, 1e9)
+            if np.any(near < 0) or np.any(far < near):
+                raise PersistenceError(f"{st.name('book_near')}: expected 0 <= near <= far")
+            book.near[: slot_id.size], book.far[: slot_id.size], book.view[: slot_id.size] = near, far, view
         book.n_slots = int(slot_id.size)
         book.id_to_slot = {int(i): k for k, i in enumerate(slot_id.tolist()) if i >= 0}
         book.free = [k for k in range(book.n_slots) if slot_id[k] < 0]
         return book
+
+
+def note_and_recognise(
+    book: LandmarkBook, slots: np.ndarray, p_R: np.ndarray, R_wr: np.ndarray, observed: np.ndarray, born: np.ndarray
+) -> np.ndarray:
+    """The filters' half of the existence rule: ``slots`` (N,) at robot-frame positions ``p_R``
+    (N, dim) from a robot of orientation ``R_wr`` (dim, dim). Notes where the ``observed`` and
+    ``born`` slots were seen from, and returns (N,) True where each can be recognised
+    (:meth:`LandmarkBook.recognisable`)."""
+    dist = np.linalg.norm(p_R, axis=1)
+    dirs = -(p_R @ R_wr.T) / np.maximum(dist, 1e-9)[:, None]  # landmark -> robot, world frame
+    seen = np.isin(slots, np.concatenate([observed, born]))
+    book.note_views(slots[seen], dist[seen], dirs[seen])
+    return book.recognisable(slots, dist, dirs)

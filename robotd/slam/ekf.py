@@ -20,9 +20,9 @@ import scipy.linalg
 import scipy.linalg.blas
 
 from robotd.errors import EstimatorError, InputError
-from robotd.geometry import wrap_angle
+from robotd.geometry import euler_to_R, rot2, wrap_angle
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
-from robotd.slam._book import LandmarkBook
+from robotd.slam._book import LandmarkBook, note_and_recognise
 from robotd.slam._linalg import sym
 from robotd.slam.common import (
     FILTER_CODE,
@@ -241,7 +241,11 @@ class EkfSlam(UpdateEntryPoints):
         M = self.book.n_slots
         m = self.mu[self.dx :].reshape(M, self.dm)
         zc, _, _ = (CARTESIAN_2D if self.dim == 2 else CARTESIAN_3D).h(np.repeat(self.mu[None, : self.dx], M, 0), m)
-        expected = np.flatnonzero(np.asarray(self.visible(zc), bool))
+        x = self.mu[: self.dx]
+        R = euler_to_R(x[3:6]) if self.dim == 3 else rot2(x[2])
+        slots = np.arange(M)
+        in_view = np.asarray(self.visible(zc), bool)
+        expected = slots[in_view & note_and_recognise(self.book, slots, zc, R, observed, born)]
         dead = self.book.existence_update(observed, expected, born)
         if dead.size == 0:
             return NO_IDS

@@ -28,7 +28,7 @@ import numpy as np
 from robotd.errors import InputError, SingularityError
 from robotd.geometry import euler_to_R, rot2
 from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
-from robotd.slam._book import LandmarkBook
+from robotd.slam._book import LandmarkBook, note_and_recognise
 from robotd.slam._fastslam_gravity import gravity_update
 from robotd.slam._fastslam_state import check_state, saved_state
 from robotd.slam._linalg import sym
@@ -343,7 +343,11 @@ class FastSlam(UpdateEntryPoints):
         if not self.params.prune_enabled or self.book.n == 0:
             return NO_IDS
         active = self.book.active_slots()
-        expected = active[np.asarray(self.visible(self._best_view(active)), bool)]
+        x = self.pose[self.best]
+        R = euler_to_R(x[3:6]) if self.dim == 3 else rot2(x[2])
+        p = self._best_view(active)
+        in_view = np.asarray(self.visible(p), bool)
+        expected = active[in_view & note_and_recognise(self.book, active, p, R, observed, born)]
         dead = self.book.existence_update(observed, expected, born)
         if dead.size == 0:
             return NO_IDS
