@@ -196,8 +196,11 @@ class Daemon:
         if self.keep_state:
             state = open_state(cfg, stack, self.pipeline, self.reset_policy)
             self.counter_file, self.maps, self.resumed = state.counter_file, state.maps, state.resumed
-            if self.resumed:
-                self._pending_event = ResetEvent.MAP_LOAD  # a discontinuity for the autopilot
+            if self.resumed and not state.new_segment:
+                # a discontinuity for the autopilot; when the counter already starts above the last
+                # run's, the first pose is a new segment without it, and a second bump one frame on
+                # (the relocalisation's) is what the autopilot should see next
+                self._pending_event = ResetEvent.MAP_LOAD
         else:
             logger.info("state: none (no map, no reset counter file; the state directory is not touched)")
         meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}

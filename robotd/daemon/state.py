@@ -23,6 +23,8 @@ class State:
     counter_file: CounterFile
     maps: MapFileOutput | None  # None: the filter cannot be saved or resumed
     resumed: bool  # the pipeline holds the saved map (a discontinuity for the autopilot)
+    # the counter starts one above the last run's: the first pose is a new segment already
+    new_segment: bool = False
 
 
 def open_state(cfg: Config, stack: contextlib.ExitStack, pipeline: Pipeline, policy: ResetCounterPolicy) -> State:
@@ -39,7 +41,7 @@ def open_state(cfg: Config, stack: contextlib.ExitStack, pipeline: Pipeline, pol
     # the map file is an input too: resume before the first step, then save like any output
     if not isinstance(pipeline.estimator, Persistent):
         logger.warning("map file: none (the %r filter cannot be saved or resumed)", pipeline.estimator.name)
-        return State(counter_file, None, False)
+        return State(counter_file, None, False, last is not None)
     maps = enter_output(stack, MapFileOutput(cfg.persistence, cfg.robot.id))
     resumed = cfg.persistence.resume and maps.resume(pipeline)
-    return State(counter_file, maps, bool(resumed))
+    return State(counter_file, maps, bool(resumed), last is not None)
