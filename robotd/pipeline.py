@@ -135,8 +135,9 @@ class Pipeline:
             if self.covariance.enabled:
                 self.fuse.consistency(obs, landmarks)
             report = self.fuse.update(obs, landmarks)
-        pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising)
-        return self._result(frame, counts, report, pose, tracking, n_identified, relocalising, obs)
+        found = self.relocalising.searching() and self.relocalising.search(meas, landmarks)  # a late find
+        pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising or found)
+        return self._result(frame, counts, report, pose, tracking, n_identified, relocalising or found, obs)
 
     # ---------------------------------------------------------------- the step's two ends
     def _not_relocalised(
@@ -302,7 +303,7 @@ class Pipeline:
             self.frontend.descriptors = descriptors
         self.frontend.reset()
         # the saved pose may be stale (the rover moved while robotd was down): find it in the map
-        self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0)
+        self.relocaliser.arm(None if self.cfg.slam.dim == 3 else 0, checked["ids"])
         self.motion.last_t_ns = None
         self.gap.reset()
         self.motion.forget()
