@@ -1,7 +1,7 @@
 """Accuracy of the default configuration on every real KITTI folder and on the simulated rover (issue 13).
 
 For each KITTI folder in ../shared/data (a folder with ``calib.txt`` and ``image_0/`` or ``image_l/``)
-and each ``sim://`` case, every detector × filter runs ``robotd.replay.replay`` with the default
+and each ``sim://`` case, every detector × filter runs ``robotd.tools.replay.replay`` with the default
 configuration (or ``--config FILE``, loaded as ``robotd replay --config`` does) and only
 ``frontend.detector`` and ``slam.filter`` changed. The plain OpenCV stereo PnP odometry
 (robotd/research/pnp_baseline.py) runs on the same frames in the same invocation, as a row of its
@@ -27,7 +27,7 @@ Sim cases: ``--sim`` takes world names (``yard`` becomes ``sim://?world=yard&dur
 or full ``sim://`` URLs; by default every world in ``drivers.simworld.WORLDS`` at run time plus
 ``SIM_EXTRA``.
 
-The robotd runs go through ``robotd replay-many``'s engine (robotd.batch): one configuration per
+The robotd runs go through ``robotd replay-many``'s engine (robotd.tools.batch): one configuration per
 detector × filter, the KITTI places under every one and the sim places under the default one,
 on ``--jobs N`` local worker processes or on a Ray cluster (``--ray ADDRESS``, ``--ray local``);
 ``--out DIR`` keeps the results folder, so a rerun replays only what changed (robotd's code, the
@@ -52,14 +52,14 @@ from pathlib import Path
 from typing import Any, NamedTuple
 from urllib.parse import parse_qsl, urlsplit
 
-# as the robotd command does (robotd.cli), before numpy loads: one BLAS thread, sleeping OpenMP workers
+# as the robotd command does (robotd.tools.cli), before numpy loads: one BLAS thread, sleeping OpenMP workers
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from robotd.choices import DETECTORS  # noqa: E402
+from robotd.core.choices import DETECTORS  # noqa: E402
 from robotd.research.evaluate import ALIGN_POSITIONS_M  # noqa: E402
 from robotd.slam.factory import ESTIMATORS  # noqa: E402
 
@@ -95,9 +95,9 @@ class Place(NamedTuple):
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
-    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    """The benchmark's progress on stderr (robotd.tools.progress); cleared at the end, so the table or the
     JSON object on stdout is all that stays."""
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 
@@ -167,7 +167,7 @@ def run_task(
             s = run_pnp(place.source, max_frames=max_frames)
         else:
             from robotd.config import load_config
-            from robotd.replay import replay
+            from robotd.tools.replay import replay
 
             cfg = load_config(cfg_path, {"frontend": {"detector": detector}, "slam": {"filter": filt}})
             s = replay(cfg, place.source, max_frames=max_frames, progress=False)
@@ -225,9 +225,9 @@ def robotd_rows(
 ) -> list[dict[str, Any]]:
     """robotd's replays through replay-many's engine: for each (places, [(detector, filter)]) the
     places × those configurations; rows in run_task's form."""
-    from robotd.batch.configs import build_configurations
-    from robotd.batch.run import Options, replay_many
-    from robotd.batch.sources import Source
+    from robotd.tools.batch.configs import build_configurations
+    from robotd.tools.batch.run import Options, replay_many
+    from robotd.tools.batch.sources import Source
 
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="robotd-accuracy-") as tmp:

@@ -4,7 +4,7 @@
 The daemon's latency budget (robotd/daemon/budget.py) steps down a ladder when frames take longer
 than the frame period: fewer features (halving down to ``budget.min_features``), then fewer
 particles (down to ``budget.min_particles``), then one frame in k. This bench runs every rung of
-the default configuration's ladder as a fixed setting through ``robotd.replay.replay`` on the
+the default configuration's ladder as a fixed setting through ``robotd.tools.replay.replay`` on the
 shared KITTI folders and on ``sim://``: the features and particles of the rung, and for a
 skipping rung the source replayed with ``stride=k`` (what processing one frame in k leaves the
 filter). Per rung and source: ATE, drift, lost frames and the step's median time; then the rungs
@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from robotd.config import Config, load_config  # noqa: E402
 from robotd.daemon.budget import LatencyBudget  # noqa: E402
-from robotd.replay import replay  # noqa: E402
+from robotd.tools.replay import replay  # noqa: E402
 
 DEFAULT_DATA = Path(os.environ.get("ROBOTD_SHARED_DATA", REPO.parent / "shared" / "data"))
 SIM_DEFAULT = "sim://?duration=10&realtime=0&odometry=0"

@@ -50,9 +50,9 @@ STUDY_KEYS = ("q_scale", "m_scale", "covariance")  # option keys not passed to S
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
-    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    """The benchmark's progress on stderr (robotd.tools.progress); cleared at the end, so the table or the
     JSON object on stdout is all that stays."""
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 

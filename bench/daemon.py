@@ -23,10 +23,10 @@ import threading
 import time
 from pathlib import Path
 
-# as the robotd command does (robotd.cli), before numpy loads: one BLAS thread (the daemon also
+# as the robotd command does (robotd.tools.cli), before numpy loads: one BLAS thread (the daemon also
 # limits it at startup, but OpenBLAS honours a limit set before loading more reliably)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.cli: OpenMP workers sleep, not spin
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.tools.cli: OpenMP workers sleep, not spin
 
 import numpy as np
 
@@ -46,7 +46,7 @@ def _free_port() -> int:
 def _overrides(pairs: list[str]) -> dict[str, dict[str, object]]:
     """["slam.numba_threads=1", ...] -> {"slam": {"numba_threads": 1}} (robotd.config.parse_overrides)."""
     from robotd.config import parse_overrides
-    from robotd.errors import ConfigError
+    from robotd.core.errors import ConfigError
 
     try:
         return parse_overrides(pairs)

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers import open_camera
 from robotd.config import load_config
-from robotd.config_params import frontend_params_from_config
+from robotd.config.params import frontend_params_from_config
 from robotd.frontend.frontend import Frontend
 
 DEFAULT_URL = "sim://?world=open_terrain&speed=5&fps=5&realtime=0"

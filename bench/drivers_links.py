@@ -30,7 +30,7 @@ from drivers.mavlink_mock import MockAutopilot
 from drivers.mcu_sim import McuSimulator, open_pty
 from drivers.serial_link import SerialVehicle
 from drivers.serial_protocol import WheelOdometry, encode_frame
-from robotd.msgs import PoseEstimate
+from robotd.core.msgs import PoseEstimate
 
 
 def bench_serial(seconds: float) -> dict[str, Any]:

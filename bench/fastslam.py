@@ -35,17 +35,17 @@ from typing import Any
 # spinning against the numba threads on a shared 2-core machine made them ~15× slower. The daemon
 # should do the same (OPENBLAS_NUM_THREADS=1 in the service environment).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.cli: OpenMP workers sleep, not spin
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")  # as robotd.tools.cli: OpenMP workers sleep, not spin
 
 import numpy as np
 
-from robotd.geometry import euler_to_R
-from robotd.msgs import MotionIncrement, Observations
+from robotd.core.geometry import euler_to_R
+from robotd.core.msgs import MotionIncrement, Observations
+from robotd.core.stereo import project, triangulate
 from robotd.slam.ekf import EkfSlam
 from robotd.slam.factory import estimator_kind, make_estimator
 from robotd.slam.fastslam import FastSlam
 from robotd.slam.params import SlamParams
-from robotd.stereo import project, triangulate
 
 SIGMA_Z = 0.03  # measurement noise [m]
 SIGMA_PX = 0.5  # pixel noise of the pixel-model rows [px]
@@ -53,9 +53,9 @@ RIG = (432.0, 320.0, 200.0, 0.075)  # f [px], p_x, p_y [px], baseline [m]: an OA
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
-    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    """The benchmark's progress on stderr (robotd.tools.progress); cleared at the end, so the table or the
     JSON object on stdout is all that stays."""
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 

@@ -60,8 +60,8 @@ from drivers.mcu_sim import McuSimulator, open_pty  # noqa: E402
 from drivers.serial_protocol import WHEEL_VEL_VALID, WheelOdometry  # noqa: E402
 from drivers.simworld import build_world  # noqa: E402
 from robotd.config import parse_overrides  # noqa: E402
-from robotd.errors import ConfigError, PersistenceError  # noqa: E402
-from robotd.persist import MAP_FILENAME, MapStore  # noqa: E402
+from robotd.core.errors import ConfigError, PersistenceError  # noqa: E402
+from robotd.formats.persist import MAP_FILENAME, MapStore  # noqa: E402
 
 FPS = 10  # the simulated camera's rate: the daemon keeps up with it on a loaded 2-core machine
 CAMERA = f"sim://?fps={FPS}"
@@ -71,7 +71,7 @@ READY_TIMEOUT_S = 120.0  # the first start on a machine compiles the numba kerne
 ERR_MARGIN_M = 0.5  # the error against truth may exceed the fault-free run's by this much
 # a fault that leaves the rover unmeasured (a frozen host: no frame and no odometry) may add a
 # third of the distance driven blind: no sensor saw that motion, and no guess knows a 4 s turn
-# (docs/reliability.md, "Across a stall"); the same bound as tests/robotd/test_stall.py
+# (docs/reliability.md, "Across a stall"); the same bound as tests/robotd/pipeline/test_stall.py
 BLIND_FRACTION = 1.0 / 3.0
 SIM_SPEED_MPS = 1.0  # sim://'s default speed (drivers/sim.py SimParams.speed)
 LANDMARK_FACTOR = 3.0  # the saved map may hold this many times the fault-free run's landmarks

@@ -26,18 +26,18 @@ from typing import Any
 import cv2
 import numpy as np
 
+from robotd.core.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
+from robotd.core.stereo import RectifiedStereo
 from robotd.frontend.detectors import DetectorParams, surf_available
 from robotd.frontend.frontend import Frontend, FrontendParams
-from robotd.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
-from robotd.stereo import RectifiedStereo
 
 STAGES = ("detect", "stereo", "identify", "outliers", "motion", "total")
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
-    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    """The benchmark's progress on stderr (robotd.tools.progress); cleared at the end, so the table or the
     JSON object on stdout is all that stays."""
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 

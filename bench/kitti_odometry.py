@@ -3,7 +3,7 @@
 Runs ``robotd replay`` (in process, the same ``replay()``) with the default configuration and
 ``replay.odometry`` = "none" (vision only) and "dataset" (the drive's OXTS GPS/INS records as the
 vehicle's odometry), for each filter, and the OXTS records alone (dead reckoning: the samples
-integrated between frame times by ``robotd.odometry.dead_reckon``). Each row: drift in % of the
+integrated between frame times by ``robotd.pipeline.odometry.dead_reckon``). Each row: drift in % of the
 path, ATE RMSE after a rigid alignment, RPE per frame, lost frames, all against the folder's
 truth in the robot frame (the replay's own ``truth_*`` figures). Nothing is tuned here: the
 configuration is the default, the OXTS noise is ``replay.oxts_sigma_*`` (drivers/kitti_oxts.py says
@@ -30,7 +30,7 @@ KEYS = ("drift_pct", "ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")
 
 
 def run_replay(data: Path, filter_name: str, odometry: str, detector: str) -> dict[str, Any]:
-    from robotd.replay import replay
+    from robotd.tools.replay import replay
 
     cfg = load_config(
         overrides={
@@ -58,7 +58,7 @@ def run_replay(data: Path, filter_name: str, odometry: str, detector: str) -> di
 def run_dead_reckoning(data: Path) -> dict[str, Any]:
     """The OXTS samples alone, integrated between the frame times, against the frames' truth."""
     from drivers.dataset import KittiCamera, open_kitti_vehicle
-    from robotd.odometry import OdometryGate, dead_reckon
+    from robotd.pipeline.odometry import OdometryGate, dead_reckon
 
     cam = KittiCamera(f"kitti://{data}")
     truth = cam.truth()

@@ -2,7 +2,7 @@
 """docs/mavlink.md §8's worked example: one real replayed frame, from the covariance robotd reports
 to the observation noise ArduPilot's EKF3 and PX4's EKF2 fuse it with.
 
-1. Replays SOURCE with the default configuration through ``robotd.replay.replay`` (exactly what
+1. Replays SOURCE with the default configuration through ``robotd.tools.replay.replay`` (exactly what
    ``robotd replay SOURCE --out DIR/T.txt`` runs; it writes ``DIR/T.txt`` and ``DIR/T.cov.txt``)
    and takes one frame (``--frame``, default the last). Its ``T.cov.txt`` row is read back and
    must equal the step's reported covariance.
@@ -44,9 +44,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from robotd.autopilot import DIAG_INDEX, CovarianceFloors, position_sigma_m, upper21_to_cov6  # noqa: E402
 from robotd.config import load_config  # noqa: E402
-from robotd.msgs import PoseEstimate, StepResult  # noqa: E402
+from robotd.core.msgs import PoseEstimate, StepResult  # noqa: E402
+from robotd.formats.autopilot import DIAG_INDEX, CovarianceFloors, position_sigma_m, upper21_to_cov6  # noqa: E402
 from robotd.outputs import pose_quality  # noqa: E402
 from robotd.research.evaluate import cov_path_for, read_pose_cov  # noqa: E402
 
@@ -57,7 +57,7 @@ AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 def replay_frame(source: str, frame: int, out_dir: Path) -> tuple[StepResult, int, dict[str, Any]]:
     """Replay ``source`` (default configuration, T.txt / T.cov.txt in ``out_dir``) -> (the frame's
     step result, its quality, what the replay wrote)."""
-    from robotd.replay import replay
+    from robotd.tools.replay import replay
 
     cfg = load_config(None)
     results: list[StepResult] = []

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.outliers import OutlierParams, ransac_fundamental, ransac_similarity
+from robotd.core.outliers import OutlierParams, ransac_fundamental, ransac_similarity
 from robotd.research.synthetic_pairs import simulate_pairs
 
 RATES = (0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5)
@@ -33,9 +33,9 @@ DETECTORS = ("similarity_mahalanobis", "similarity_euclidean", "fundamental")
 
 
 def _bar(total: int, unit: str, desc: str) -> Any:
-    """The benchmark's progress on stderr (robotd.progress); cleared at the end, so the table or the
+    """The benchmark's progress on stderr (robotd.tools.progress); cleared at the end, so the table or the
     JSON object on stdout is all that stays."""
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     return progress_bar(total, unit, desc, leave=False, mininterval=0.5)
 

@@ -37,7 +37,7 @@ SIM = "sim://?width=640&height=400&fps=30&seed=1"
 
 
 def _per_topic(path: Path) -> dict[str, int]:
-    from robotd.mcap_scan import McapScan
+    from robotd.formats.mcap_scan import McapScan
 
     sizes: dict[str, int] = defaultdict(int)
     for ch, m in McapScan(path).messages():
@@ -49,9 +49,9 @@ def writer_run(seconds: float, image_format: str, tmp: Path) -> dict[str, Any]:
     import numpy as np
 
     import drivers
-    from robotd.geometry import R_to_euler
-    from robotd.msgs import PoseEstimate
-    from robotd.record import SessionWriter
+    from robotd.core.geometry import R_to_euler
+    from robotd.core.msgs import PoseEstimate
+    from robotd.formats.record import SessionWriter
 
     n = int(seconds * FPS)
     fast = SIM + "&realtime=0"  # as fast as rendered: the 30 Hz stamps are the simulator's own
@@ -112,7 +112,7 @@ def _crc_read(path: Path) -> int:
 def daemon_run(seconds: float, tmp: Path, hogs: int = 0, replay: bool = True) -> dict[str, Any]:
     from robotd.config import load_config
     from robotd.daemon import Daemon
-    from robotd.record import SessionReader
+    from robotd.formats.record import SessionReader
 
     cfg_file = tmp / "c.toml"
     cfg_file.write_text(f'[camera]\nurl = "{SIM}"\n[vehicle]\nurl = "{SIM}"\n[zenoh]\nenabled = false\n')
@@ -147,7 +147,7 @@ def daemon_run(seconds: float, tmp: Path, hogs: int = 0, replay: bool = True) ->
         "payload_MB_per_s_by_topic": {k: v / max(frames, 1) * FPS / 1e6 for k, v in sorted(_per_topic(path).items())},
     }
     if replay:
-        from robotd.replay import replay as run_replay
+        from robotd.tools.replay import replay as run_replay
 
         row["replayed_frames"] = run_replay(cfg, str(path), progress=False)["frames"]
     return row

@@ -1,7 +1,7 @@
 """Rectification cost: building the remap tables once, and rectifying one stereo pair.
 
 Rigs: the OAK-D factory calibration at 640x400 (14-coefficient rational model) and a
-synthetic 1280x800 rig, both with the OpenCV and the thesis rectification (robotd.stereo.Rectifier,
+synthetic 1280x800 rig, both with the OpenCV and the thesis rectification (robotd.core.stereo.Rectifier,
 CV_16SC2 tables, bilinear). Times are medians over --repeats runs on whatever machine runs this.
 Prints a Markdown table, or one JSON object with --json.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from robotd.stereo import Rectifier, StereoCalibration, camera_matrix
+from robotd.core.stereo import Rectifier, StereoCalibration, camera_matrix
 
 OAK_JSON = Path(os.environ.get("ROBOTD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / (
     "oakd-calibration/BW1098OBC_14442C10218CCCD200.json"

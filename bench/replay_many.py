@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 
 def make_recordings(folder: Path, n: int, frames: int, size: str) -> list[Path]:
     import drivers
-    from robotd.record import SessionWriter, record_session
+    from robotd.formats.record import SessionWriter, record_session
 
     w, h = size.split("x")
     out = []

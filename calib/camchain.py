@@ -43,8 +43,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from robotd.errors import CalibrationError
-from robotd.stereo import (
+from robotd.core.errors import CalibrationError
+from robotd.core.stereo import (
     DISTORTION_LENGTHS,
     Rectification,
     StereoCalibration,

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from robotd.errors import CalibrationError, InputError
-from robotd.stereo import Rectifier, RectifyMethod, StereoCalibration
+from robotd.core.errors import CalibrationError, InputError
+from robotd.core.stereo import Rectifier, RectifyMethod, StereoCalibration
 
 DETECTORS = ("sift", "orb")
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from robotd.errors import CalibrationError
-from robotd.stereo import StereoCalibration
+from robotd.core.errors import CalibrationError
+from robotd.core.stereo import StereoCalibration
 
 logger = logging.getLogger(__name__)
 

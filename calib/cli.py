@@ -10,7 +10,7 @@ stereo, import-oak and upgrade write a Kalibr camchain and, beside it, the ROS c
 ``<stem>_left.yaml`` and ``<stem>_right.yaml`` (``--no-ros-yaml``: not).
 
 Logging goes to stderr (configured here only); results go to stdout, as text or, with --json,
-as exactly one JSON object. A :class:`robotd.errors.RobotdError` becomes one line on stderr and
+as exactly one JSON object. A :class:`robotd.core.errors.RobotdError` becomes one line on stderr and
 exit status 2; argument errors exit with 2 as well. docs/calibration.md has worked examples.
 """
 
@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from robotd.errors import CalibrationError, RobotdError
+from robotd.core.errors import CalibrationError, RobotdError
 
 logger = logging.getLogger("robotd.calib")
 
@@ -153,7 +153,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     from calib.camchain import load_calibration
     from calib.check import check_pair
-    from robotd.stereo import Rectifier
+    from robotd.core.stereo import Rectifier
 
     calib = load_calibration(args.calib)
     images = []

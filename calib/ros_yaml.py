@@ -33,8 +33,8 @@ import numpy as np
 import yaml
 
 from calib.camchain import rectification_of
-from robotd.errors import CalibrationError
-from robotd.stereo import StereoCalibration
+from robotd.core.errors import CalibrationError
+from robotd.core.stereo import StereoCalibration
 
 logger = logging.getLogger(__name__)
 

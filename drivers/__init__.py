@@ -11,12 +11,12 @@ optional library only breaks its scheme.
 Contract shared by every driver:
 
 - A driver is a context manager (:class:`drivers.base.Driver`); ``__enter__`` opens the device
-  (or raises :class:`robotd.errors.DriverError` with the URL and the reason), ``__exit__``
+  (or raises :class:`robotd.core.errors.DriverError` with the URL and the reason), ``__exit__``
   releases it. ``close()`` may come from another thread and ends a running iterator.
-- ``StereoCamera.frames(timeout_s)`` yields :class:`robotd.msgs.StereoFrame` (rectified when the
+- ``StereoCamera.frames(timeout_s)`` yields :class:`robotd.core.msgs.StereoFrame` (rectified when the
   driver can rectify) and returns when the source ends (replay) or ``close()`` is called. A
   hardware camera that unplugs keeps retrying inside the driver and reports it in ``stats()``.
-- ``VehicleLink.odometry(timeout_s)`` yields :class:`robotd.msgs.Odometry` samples the same way.
+- ``VehicleLink.odometry(timeout_s)`` yields :class:`robotd.core.msgs.Odometry` samples the same way.
   Links fed by a receive thread (serial, MAVLink) share :class:`drivers.base.QueuedVehicleLink`:
   a drop-oldest queue, ``drain()`` and ``latest_controls()``.
 - Sending the SLAM pose is a role, not a link method: ``VehicleLink.autopilot`` is the link's
@@ -25,11 +25,11 @@ Contract shared by every driver:
   ``none://``, replay). A daemon that sends the pose to an autopilot other than its odometry
   source opens a MAVLink link for it and uses that link's ``autopilot``.
 - ``stats()`` returns counters (frames, drops, gaps, errors, reconnects) for the health output.
-- A user's calibration (``camera.calibration``, a :class:`robotd.stereo.StereoCalibration` read from
+- A user's calibration (``camera.calibration``, a :class:`robotd.core.stereo.StereoCalibration` read from
   the camchain file) reaches a camera as the keyword ``calibration``. The cameras that rectify raw
   images take it instead of their own (``oak://`` with ``rectify=host``, ``euroc://``); a camera
   whose rig is its own (its kind's ``own_rig``, :mod:`drivers.cameras`) refuses it with a
-  :class:`robotd.errors.CalibrationError` saying why, from :func:`open_camera` and
+  :class:`robotd.core.errors.CalibrationError` saying why, from :func:`open_camera` and
   :func:`check_camera_url` alike. ``calibration=None`` is no calibration, for every camera.
 """
 
@@ -41,12 +41,12 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from drivers.cameras import StereoCamera as StereoCamera  # the camera's protocol, with its registry
 from drivers.cameras import camera_driver, camera_kind, scheme_of
-from robotd.errors import CalibrationError, DriverError
+from robotd.core.errors import CalibrationError, DriverError
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from robotd.msgs import Odometry, PoseEstimate
+    from robotd.core.msgs import Odometry, PoseEstimate
 
 # what AutopilotLink.set_health accepts (besides None)
 HEALTH_STATES = ("starting", "tracking", "degraded", "failed")
@@ -105,7 +105,7 @@ _VEHICLES: dict[str, tuple[str, str]] = {
 # scheme -> (module, checker attribute). The checker takes (url, **options), as the factory does, and
 # raises DriverError for what the factory would refuse in the URL itself (scheme, parameter names and
 # values) without opening a device or reading a file: the config is checked with it at start-up,
-# before the kernels load (robotd.device_urls).
+# before the kernels load (robotd.daemon.device_urls).
 _VEHICLE_CHECKS: dict[str, tuple[str, str]] = {
     "sim": ("drivers.sim", "check_sim_url"),
     "none": ("drivers.sim", "check_null_url"),

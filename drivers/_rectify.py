@@ -1,7 +1,7 @@
 """Host-side rectification helpers for the replay and camera drivers.
 
-The raw-rig model (:class:`robotd.stereo.StereoCalibration`) and the remap-table
-:class:`robotd.stereo.Rectifier` live in ``robotd.stereo``; they are re-exported here so the
+The raw-rig model (:class:`robotd.core.stereo.StereoCalibration`) and the remap-table
+:class:`robotd.core.stereo.Rectifier` live in ``robotd.core.stereo``; they are re-exported here so the
 drivers have one import site. Conventions (docs/math.md §2.1): optical frames,
 ``x_right = R x_left + T`` with ``T`` in metres, ``b = -P2[0,3]/P2[0,0]``.
 """
@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.errors import CalibrationError
-from robotd.geometry import R_ROBOT_OPTICAL, se3
-from robotd.stereo import RectifiedStereo, Rectifier, StereoCalibration
+from robotd.core.errors import CalibrationError
+from robotd.core.geometry import R_ROBOT_OPTICAL, se3
+from robotd.core.stereo import RectifiedStereo, Rectifier, StereoCalibration
 
 __all__ = [
     "RectifiedStereo",

@@ -9,7 +9,7 @@ per-pixel ray casting. Depth bands let a long surface use a coarser mip level fa
 (minification without aliasing) and a sharp one close by. A surface with a coverage mask
 (``Surface.alpha``) is drawn only where the mask is set (a tree crown's outline).
 
-Camera optical frame: x right, y down, z forward (robotd.geometry); pixel centres at integers.
+Camera optical frame: x right, y down, z forward (robotd.core.geometry); pixel centres at integers.
 """
 
 from __future__ import annotations

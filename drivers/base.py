@@ -3,7 +3,7 @@
 :class:`Driver` is the base of every driver class: ``with driver:`` calls :meth:`Driver.open` and
 :meth:`Driver.close`. :class:`QueuedVehicleLink` is the base of the links whose receive thread
 decodes a byte stream (``serial://``, ``mavlink+…://``): the thread puts
-:class:`robotd.msgs.Odometry` samples into one bounded drop-oldest queue and the consumer iterates
+:class:`robotd.core.msgs.Odometry` samples into one bounded drop-oldest queue and the consumer iterates
 :meth:`QueuedVehicleLink.odometry`. :class:`ControlSample` is the commanded throttle/steering both
 of those links report.
 """
@@ -17,8 +17,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Self
 
-from robotd.msgs import Odometry
-from robotd.queues import DropOldestQueue
+from robotd.core.msgs import Odometry
+from robotd.formats.queues import DropOldestQueue
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,7 +43,7 @@ class Driver(abc.ABC):
     url: str
 
     def open(self) -> None:  # noqa: B027 - a deliberate no-op: replay and none:// hold no device
-        """Acquire the device, or raise :class:`robotd.errors.DriverError` with the URL."""
+        """Acquire the device, or raise :class:`robotd.core.errors.DriverError` with the URL."""
 
     @abc.abstractmethod
     def close(self) -> None:

@@ -10,12 +10,12 @@ registered scheme).
 
 What a kind declares, and who reads it:
 
-- ``usage``: its URL forms (``kitti://DIR``), for help texts and messages (``robotd.cli``);
+- ``usage``: its URL forms (``kitti://DIR``), for help texts and messages (``robotd.tools.cli``);
 - ``hardware``: a device that can appear late (plugged in, powered up): the daemon retries opening
   it (``robotd.daemon.devices``) instead of stopping; ``robotd replay-many`` replays the others;
 - ``own_rig``: why it refuses ``camera.calibration`` (its rig is its own), or None when it takes
   the keyword ``calibration`` and rectifies with it (``drivers.open_camera`` and
-  ``check_camera_url`` refuse it with a CalibrationError; ``robotd.device_urls`` names the key);
+  ``check_camera_url`` refuse it with a CalibrationError; ``robotd.daemon.device_urls`` names the key);
   ``factory_calibration``: the device's own calibration it rectifies with when
   ``camera.calibration`` is unset; ``calibration_size_in_url``: its URL check compares a
   calibration's image size with the URL's, else the size is checked when it opens (both for
@@ -32,7 +32,7 @@ What a kind declares, and who reads it:
 What a driver does (:class:`CameraDriver`; :class:`CameraBase` gives every default):
 
 - ``open`` / ``check_url``: the factory and the URL check (``drivers.open_camera``,
-  ``drivers.check_camera_url``; the config check at start-up in ``robotd.device_urls``);
+  ``drivers.check_camera_url``; the config check at start-up in ``robotd.daemon.device_urls``);
 - for ``robotd replay``: ``frame_total`` (the progress bar's total), ``paced`` (the URL that
   paces it at its own rate, ``--realtime``), ``replay_options`` (options that make two replays
   agree), ``replay_vehicle`` (the vehicle URL that replays its odometry, if any), ``status`` (what
@@ -54,13 +54,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 from urllib.parse import urlsplit
 
-from robotd.errors import DriverError
+from robotd.core.errors import DriverError
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from robotd.msgs import StereoFrame
-    from robotd.stereo import RectifiedStereo
+    from robotd.core.msgs import StereoFrame
+    from robotd.core.stereo import RectifiedStereo
 
 READS = ("device", "folder", "file", "nothing")
 

@@ -1,6 +1,6 @@
 """Replay sources: ``kitti://DIR``, ``euroc://DIR`` and ``mcap://FILE`` (or a bare ``FILE.mcap``).
 
-Each is a :class:`drivers.StereoCamera` yielding rectified :class:`robotd.msgs.StereoFrame`s, plus a
+Each is a :class:`drivers.StereoCamera` yielding rectified :class:`robotd.core.msgs.StereoFrame`s, plus a
 :class:`drivers.VehicleLink` companion. Replay drivers keep **dataset time**: ``t_ns`` is the
 dataset's own stamp (KITTI ``times.txt`` or 0.1 s × index, EuRoC nanosecond stamps, the recorded
 host-monotonic stamps of an MCAP session), strictly increasing, from the first selected frame on.
@@ -53,10 +53,10 @@ from drivers import AutopilotLink
 from drivers._rectify import Rectifier, StereoCalibration, T_robot_leftraw, check_calibration_size, user_rectifier
 from drivers.base import Driver
 from drivers.cameras import CameraBase, DatasetOdometry
-from robotd.errors import DatasetError, DriverError
-from robotd.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
-from robotd.msgs import Odometry, PoseEstimate, StereoFrame
-from robotd.stereo import RectifiedStereo
+from robotd.core.errors import DatasetError, DriverError
+from robotd.core.geometry import T_optical_to_robot, quat_to_R, se3, se3_inverse, so3_log
+from robotd.core.msgs import Odometry, PoseEstimate, StereoFrame
+from robotd.core.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
 
@@ -837,7 +837,7 @@ def check_mcap_vehicle_url(url: str, **options: Any) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# MCAP recordings (robotd.record)
+# MCAP recordings (robotd.formats.record)
 
 
 class McapCamera(Driver):
@@ -855,8 +855,8 @@ class McapCamera(Driver):
     host_clock = False
 
     def __init__(self, url: str | Path, **options: Any) -> None:
-        from robotd.errors import PersistenceError
-        from robotd.record import SessionReader
+        from robotd.core.errors import PersistenceError
+        from robotd.formats.record import SessionReader
 
         path, q = _split_url(url, "mcap")
         opts = {**q, **options}
@@ -896,7 +896,7 @@ class McapCamera(Driver):
 
     def events(self) -> Iterator[StereoFrame | Odometry]:
         """Frames (selected) and all odometry, interleaved in recorded order, paced if realtime."""
-        from robotd.record import TOPIC_FRAME, TOPIC_ODOMETRY
+        from robotd.formats.record import TOPIC_FRAME, TOPIC_ODOMETRY
 
         pacer = _Pacer(self.replay.realtime, self.replay.speed)
         k = -1
@@ -924,7 +924,7 @@ class McapCamera(Driver):
 
     def recording_status(self) -> dict[str, Any]:
         """After the frames were read: closed cleanly or not, and where reading stopped early
-        (robotd.record.SessionReader.status)."""
+        (robotd.formats.record.SessionReader.status)."""
         return self.reader.status()
 
     def recorded_odometry(self) -> list[Odometry]:

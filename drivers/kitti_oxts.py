@@ -8,7 +8,7 @@ A KITTI odometry-layout folder made from such a drive may keep the raw drive und
 (``raw/<drive>/oxts`` with the calibration files in ``raw/``); :func:`find_oxts` finds it there,
 whatever the drive's name.
 
-The records become :class:`robotd.msgs.Odometry` samples as a rover's wheel odometry would
+The records become :class:`robotd.core.msgs.Odometry` samples as a rover's wheel odometry would
 arrive: the body velocity and rates of the robot frame (FRD at the stereo baseline centre of the
 rectified rig), stamped on the image clock (a frame's ``times.txt`` stamp is its
 ``image_00/timestamps.txt`` stamp minus the first one; an OXTS record gets its own stamp minus
@@ -42,9 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
-from robotd.errors import DatasetError
-from robotd.geometry import R_ROBOT_OPTICAL, rot_x, rot_y, rot_z, se3, se3_inverse
-from robotd.msgs import Odometry
+from robotd.core.errors import DatasetError
+from robotd.core.geometry import R_ROBOT_OPTICAL, rot_x, rot_y, rot_z, se3, se3_inverse
+from robotd.core.msgs import Odometry
 
 logger = logging.getLogger(__name__)
 

@@ -68,8 +68,8 @@ from drivers.mavlink_odometry import OdometryDecoder
 from drivers.mavlink_options import MavlinkOptions
 from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.mavlink_setup import Autopilot, SetupLink, VehicleSetup
-from robotd.autopilot import CovarianceFloors, TimesyncFilter
-from robotd.errors import DriverError, RobotdError
+from robotd.core.errors import DriverError, RobotdError
+from robotd.formats.autopilot import CovarianceFloors, TimesyncFilter
 
 logger = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The MAVLink link's inbound vehicle messages: the autopilot's motion as :class:`~robotd.msgs.Odometry`
+"""The MAVLink link's inbound vehicle messages: the autopilot's motion as :class:`~robotd.core.msgs.Odometry`
 and its control inputs as :class:`~drivers.base.ControlSample` (drivers/mavlink_link.py's receive
 thread hands them over once they are known to be the autopilot's).
 
@@ -28,8 +28,8 @@ import numpy as np
 from drivers.base import ControlSample
 from drivers.mavlink_options import MavlinkOptions
 from drivers.serial_protocol import diff_drive
-from robotd.geometry import euler_to_R
-from robotd.msgs import Odometry
+from robotd.core.geometry import euler_to_R
+from robotd.core.msgs import Odometry
 
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
 PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can carry

@@ -26,9 +26,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers import HEALTH_STATES
-from robotd.autopilot import CovarianceFloors, odometry_fields, vision_position_fields
-from robotd.errors import DriverError
-from robotd.msgs import PoseEstimate
+from robotd.core.errors import DriverError
+from robotd.core.msgs import PoseEstimate
+from robotd.formats.autopilot import CovarianceFloors, odometry_fields, vision_position_fields
 
 # MAV_STATE enum values (HEARTBEAT.system_status)
 MAV_STATE_STANDBY = 3
@@ -88,7 +88,7 @@ class MavlinkAutopilot:
         """Queue the pose for the transmit thread; a newer pose replaces an unsent one.
 
         ``vel_R_mps`` (3,) is the body-frame velocity ODOMETRY carries (the daemon's
-        :class:`robotd.autopilot.ResetCounterPolicy` fits it); None or a non-finite value sends
+        :class:`robotd.formats.autopilot.ResetCounterPolicy` fits it); None or a non-finite value sends
         zero, since ArduPilot fuses the velocity without a NaN check."""
         v = np.zeros(3) if vel_R_mps is None else np.asarray(vel_R_mps, dtype=float).reshape(3)
         if not np.all(np.isfinite(v)):

@@ -45,7 +45,7 @@ from drivers.serial_protocol import (
     cobs_encode,
     encode_body,
 )
-from robotd.errors import RobotdError
+from robotd.core.errors import RobotdError
 
 logger = logging.getLogger(__name__)
 

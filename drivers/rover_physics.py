@@ -105,7 +105,7 @@ from typing import Any
 import numpy as np
 
 from drivers.base import is_loopback
-from robotd.errors import DriverError, ProtocolError
+from robotd.core.errors import DriverError, ProtocolError
 
 logger = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ URL: ``serial:///dev/ttyACM0?baud=115200&wheel_radius_m=0.05&ticks_per_rev=1024&
 (keyword options override the query). Use a stable name (``/dev/serial/by-id/...`` or a udev
 symlink): after an unplug the link reopens the same name.
 
-Threads: one reader owns ``read_until`` and the decoder and puts :class:`robotd.msgs.Odometry`
+Threads: one reader owns ``read_until`` and the decoder and puts :class:`robotd.core.msgs.Odometry`
 samples into a bounded drop-oldest queue (drops counted); writes (version requests, forwarded
 poses) go through one lock. On ``SerialException``/``OSError`` the reader closes the port, backs
 off (doubling up to ``backoff_max_s``), reopens, and reports ``state = "degraded"`` meanwhile
@@ -52,8 +52,8 @@ from drivers.serial_protocol import (
     seq_gap,
     tick_delta,
 )
-from robotd.errors import DriverError, ProtocolError, RobotdError
-from robotd.msgs import Odometry, PoseEstimate
+from robotd.core.errors import DriverError, ProtocolError, RobotdError
+from robotd.core.msgs import Odometry, PoseEstimate
 
 logger = logging.getLogger(__name__)
 

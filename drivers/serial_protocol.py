@@ -26,7 +26,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from robotd.errors import ProtocolError
+from robotd.core.errors import ProtocolError
 
 PROTOCOL_VERSION = 1
 HEADER = struct.Struct("<BBHI")  # ver, type, seq, t_mcu_us

@@ -106,10 +106,10 @@ from drivers.base import Driver
 from drivers.cameras import CameraBase, DatasetOdometry
 from drivers.simfollow import FollowedTrajectory, parse_follow, truth_push_args
 from drivers.simworld import WORLDS, World, build_world, rig_baseline_m
-from robotd.errors import DriverError
-from robotd.geometry import R_ROBOT_OPTICAL, se3
-from robotd.msgs import Odometry, PoseEstimate, StereoFrame
-from robotd.stereo import RectifiedStereo
+from robotd.core.errors import DriverError
+from robotd.core.geometry import R_ROBOT_OPTICAL, se3
+from robotd.core.msgs import Odometry, PoseEstimate, StereoFrame
+from robotd.core.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 a rover driving along a path (drivers/simworld.py builds the yard worlds from them,
 drivers/simterrain.py the open terrain).
 
-Frames (``robotd.geometry``): FRD, the world ``W`` the robot frame at t = 0; a world's layout
+Frames (``robotd.core.geometry``): FRD, the world ``W`` the robot frame at t = 0; a world's layout
 lies in its own frame ``Y`` (the yard frame), moved into ``W`` once at construction.
 """
 
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from robotd.geometry import euler_rate_matrix, euler_to_R, se3
+from robotd.core.geometry import euler_rate_matrix, euler_to_R, se3
 
 # --------------------------------------------------------------------------------------------
 # Surfaces

@@ -34,8 +34,8 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers.simbase import TruthState
-from robotd.errors import DriverError
-from robotd.geometry import euler_to_R, se3, se3_inverse, so3_exp
+from robotd.core.errors import DriverError
+from robotd.core.geometry import euler_to_R, se3, se3_inverse, so3_exp
 
 logger = logging.getLogger(__name__)
 

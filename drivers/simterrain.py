@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 
 from drivers.simbase import Surface, TruthState, VaryingSpeed, make_surface, rover_truth, value_noise
-from robotd.geometry import euler_to_R, se3, se3_inverse
+from robotd.core.geometry import euler_to_R, se3, se3_inverse
 
 CAM_HEIGHT_M = 1.65  # robot origin above the ground [m] (KITTI's camera height)
 BASELINE_M = 0.9  # the default baseline [m]: fb = 387 px·m at 640×400, KITTI's (718 px × 0.54 m)

@@ -3,7 +3,7 @@ the rover's trajectory through it, with its exact velocities for the odometry. T
 (surfaces, value noise, a rover's truth) are in drivers/simbase.py; the open-terrain world in
 drivers/simterrain.py, which :func:`build_world` builds as it builds the yard's.
 
-Frames (``robotd.geometry``): the world ``W`` is the robot frame at t = 0 (FRD: x forward,
+Frames (``robotd.core.geometry``): the world ``W`` is the robot frame at t = 0 (FRD: x forward,
 y right, z down), so the truth starts at the identity and the flat ground lies at z = +h, h the
 camera height. The yard is laid out in its own frame ``Y`` (same axes, origin on the ground below
 the yard centre shifted up by h) and moved into ``W`` once at construction.
@@ -32,8 +32,8 @@ from drivers.simbase import (
     value_noise,
 )
 from drivers.simterrain import BASELINE_M, RoadLoop, terrain_surfaces
-from robotd.errors import DriverError
-from robotd.geometry import euler_to_R, se3, se3_inverse
+from robotd.core.errors import DriverError
+from robotd.core.geometry import euler_to_R, se3, se3_inverse
 
 # --------------------------------------------------------------------------------------------
 # Procedural textures of the yard (value noise: drivers/simbase.py)

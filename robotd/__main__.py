@@ -4,6 +4,6 @@ from __future__ import annotations
 
 import sys
 
-from robotd.cli import main
+from robotd.tools.cli import main
 
 sys.exit(main())

@@ -1,11 +1,15 @@
 """The layers of docs/architecture.md "Module map", enforced by walking the imports.
 
+- every layer is a folder: ``LAYERS`` names packages (folders), and no module of robotd/ sits beside
+  them but the package's own ``__init__.py`` and ``__main__.py``;
 - every row of the page's layer table: ``LAYERS`` puts each module of robotd/, drivers/ and calib/
   in the layer its row names, ``RULES`` says what each layer may import (its own layer, whole
   layers, single modules of others, libraries), and the page's table and ``LAYERS`` must agree;
-- core (geometry, stereo, msgs, statecheck, frontend, outliers, slam, ...): numpy, scipy, OpenCV and numba only;
-- pipeline (pipeline, the step's stages, relocalise, config_params, config, ...): the core, no I/O (but the
-  config's loader);
+- core (robotd/core/: geometry, stereo, msgs, statecheck, outliers, ...; robotd/frontend/,
+  robotd/slam/): numpy, scipy, OpenCV and numba only;
+- pipeline (robotd/pipeline/: the step, its stages, relocalise, odometry, feed, ...; robotd/config/):
+  the core, no I/O (but the config's loader);
+- drivers (drivers/): the core and three modules of the formats, each hardware library in its owner;
 - the daemon never imports the research package, not even indirectly;
 - no import cycles among the modules of robotd, drivers and calib;
 - each hardware library has one importer.
@@ -24,61 +28,30 @@ from tests.support.paths import REPO
 
 PACKAGES = ("robotd", "drivers", "calib")
 
-# docs/architecture.md's layer table, row by row: which modules (a file, or a package with a
-# trailing slash) belong to which layer. The one place the test says it; the page must agree
-# (test_the_doc_table_and_the_layers_agree).
+# docs/architecture.md's layer table, row by row: which packages (a folder, with a trailing slash)
+# belong to which layer, every module in them included. The one place the test says it; the page
+# must agree (test_the_doc_table_and_the_layers_agree). Each layer is one or a few folders, so the
+# tree shows the layers (test_every_layer_is_a_folder); the only files named are robotd's own two.
 LAYERS: dict[str, tuple[str, ...]] = {
     "core": (
         "robotd/__init__.py",  # the package itself: its docstring and __version__
-        "robotd/msgs.py",
-        "robotd/errors.py",
-        "robotd/choices.py",
-        "robotd/geometry.py",
-        "robotd/stereo.py",
-        "robotd/statecheck.py",
-        "robotd/timing.py",
-        "robotd/jit.py",
-        "robotd/outliers.py",
-        "robotd/_outlier_kernels.py",
+        "robotd/core/",
         "robotd/frontend/",
         "robotd/slam/",
     ),
-    "pipeline": (
-        "robotd/pipeline.py",
-        "robotd/stages/",
-        "robotd/relocalise.py",
-        "robotd/stall.py",
-        "robotd/odometry.py",
-        "robotd/feed.py",
-        "robotd/config_params.py",
-        "robotd/config.py",
-        "robotd/config_bounds.py",
-    ),
-    "formats": (
-        "robotd/queues.py",
-        "robotd/autopilot.py",
-        "robotd/codec.py",
-        "robotd/persist.py",
-        "robotd/record.py",
-        "robotd/mcap_scan.py",
-        "robotd/foxglove_pb.py",
-    ),
+    "pipeline": ("robotd/pipeline/", "robotd/config/"),
+    "formats": ("robotd/formats/",),
     "drivers": ("drivers/",),
-    "service": ("robotd/daemon/", "robotd/outputs/", "robotd/device_urls.py"),
+    "service": ("robotd/daemon/", "robotd/outputs/"),
     "tools": (
-        "robotd/cli.py",
-        "robotd/__main__.py",
-        "robotd/doctor.py",
-        "robotd/journal.py",
-        "robotd/replay.py",
-        "robotd/echo.py",
-        "robotd/fleet.py",
-        "robotd/progress.py",
-        "robotd/batch/",
+        "robotd/tools/",
+        "robotd/__main__.py",  # ``python -m robotd``: the command of robotd/tools/cli.py
         "calib/",
     ),
     "research": ("robotd/research/",),
 }
+# the modules of robotd/ outside every layer's folder: the package itself and ``python -m robotd``
+TOP_LEVEL = ("robotd/__init__.py", "robotd/__main__.py")
 CORE = list(LAYERS["core"])
 PIPELINE = list(LAYERS["pipeline"])
 ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
@@ -200,14 +173,15 @@ def _check_layer(
 
 
 def _dotted(entry: str) -> str:
-    """``robotd/slam/`` -> ``robotd.slam``, ``robotd/msgs.py`` -> ``robotd.msgs``,
+    """``robotd/slam/`` -> ``robotd.slam``, ``robotd/core/msgs.py`` -> ``robotd.core.msgs``,
     ``robotd/__init__.py`` -> ``robotd``."""
     return entry.removesuffix("/").removesuffix("/__init__.py").removesuffix(".py").replace("/", ".")
 
 
 # the package's own name is no prefix here: ``robotd`` would let in every module of robotd
 CORE_MODULES = tuple(_dotted(c) for c in CORE if not c.endswith("__init__.py"))
-# what config.py's loader needs to read the TOML file: the pipeline's one file access
+# what the config's loader (robotd/config/__init__.py) needs to read the TOML file: the
+# pipeline's one file access
 CONFIG_LOADER_LIBRARIES = frozenset({"pathlib", "tomllib", "re", "types"})
 
 
@@ -222,10 +196,9 @@ def test_pipeline_imports_the_core_and_the_config_only() -> None:
     files = _files(PIPELINE)
     assert all((REPO / e).exists() for e in PIPELINE) and len(files) > len(PIPELINE)
     pipeline_modules = tuple(_dotted(p) for p in PIPELINE)
-    bad = _check_layer([f for f in files if f.name != "config.py"], (*CORE_MODULES, *pipeline_modules))
-    bad += _check_layer(
-        [f for f in files if f.name == "config.py"], (*CORE_MODULES, *pipeline_modules), CONFIG_LOADER_LIBRARIES
-    )
+    loader = [f for f in files if _module_name(f) in MODULE_LIBRARIES]
+    bad = _check_layer([f for f in files if f not in loader], (*CORE_MODULES, *pipeline_modules))
+    bad += _check_layer(loader, (*CORE_MODULES, *pipeline_modules), CONFIG_LOADER_LIBRARIES)
     assert not bad, "the pipeline imports I/O or modules outside the core:\n" + "\n".join(bad)
 
 
@@ -345,7 +318,7 @@ RULES: dict[str, Rule] = {
     # the hardware libraries' owners are test_each_hardware_library_has_one_importer's
     "drivers": Rule(
         layers=frozenset({"core"}),
-        modules=("robotd.queues", "robotd.autopilot", "robotd.record"),
+        modules=("robotd.formats.queues", "robotd.formats.autopilot", "robotd.formats.record"),
         third_party=frozenset({"numpy", "cv2", "numba", "yaml", *HARDWARE_OWNERS}),
     ),
     "service": Rule(layers=frozenset({"core", "pipeline", "formats", "drivers"}), modules=("calib.camchain",)),
@@ -415,6 +388,37 @@ def test_every_module_is_in_one_layer() -> None:
     assert set(layers.values()) == set(LAYERS) == set(RULES)
 
 
+def test_every_layer_is_a_folder() -> None:
+    """The tree shows the layers: each entry of LAYERS is a package (a folder with its
+    ``__init__.py``) but robotd's own two modules, and every module of robotd/ is in one of those
+    folders: none sits beside them."""
+    files = sorted(e for entries in LAYERS.values() for e in entries if not e.endswith("/"))
+    assert files == sorted(TOP_LEVEL), f"LAYERS names files, not folders: {sorted(set(files) - set(TOP_LEVEL))}"
+    folders = [e for entries in LAYERS.values() for e in entries if e.endswith("/")]
+    bad = [f"{e} is no package" for e in folders if not (REPO / e / "__init__.py").is_file()]
+    flat = sorted(p.relative_to(REPO).as_posix() for p in (REPO / "robotd").glob("*.py"))
+    bad += [
+        f"{f} sits beside the layers' folders: move it into its layer's package" for f in flat if f not in TOP_LEVEL
+    ]
+    subpackages = sorted(
+        f"robotd/{d.name}/" for d in (REPO / "robotd").iterdir() if d.is_dir() and (d / "__init__.py").is_file()
+    )
+    bad += [f"{d} is in no layer of LAYERS" for d in subpackages if d not in folders]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_drivers_import_the_core_and_three_modules_of_the_formats() -> None:
+    """The drivers' row, held like every other (test_each_layer_imports_only_what_its_row_allows),
+    and not vacuously: the drivers do import the core and the formats' record module."""
+    graph, layers = _graph(), _module_layers()
+    drivers = {m: deps for m, deps in graph.items() if layers[m] == "drivers"}
+    assert len(drivers) > 20, "driver modules not found"
+    used = {d for deps in drivers.values() for d in deps if layers[d] != "drivers"}
+    assert {"robotd.core.msgs", "robotd.formats.record"} <= used, sorted(used)
+    bad = [v for v in _project_violations(drivers, layers)]
+    assert not bad, "the drivers import what their row does not allow:\n" + "\n".join(bad)
+
+
 def test_each_layer_imports_only_what_its_row_allows() -> None:
     bad = _project_violations(_graph(), _module_layers())
     assert not bad, "imports the layer table of docs/architecture.md does not allow:\n" + "\n".join(bad)
@@ -426,23 +430,23 @@ def test_each_layer_uses_only_the_libraries_its_row_allows() -> None:
 
 
 def test_the_layer_check_finds_a_violation() -> None:
-    layers = {"robotd.geometry": "core", "robotd.pipeline": "pipeline", "drivers.sim": "drivers"}
-    layers |= {"robotd.record": "formats", "robotd.codec": "formats", "robotd.daemon.x": "service"}
+    layers = {"robotd.core.geometry": "core", "robotd.pipeline.step": "pipeline", "drivers.sim": "drivers"}
+    layers |= {"robotd.formats.record": "formats", "robotd.formats.codec": "formats", "robotd.daemon.x": "service"}
     layers |= {"robotd.research.sitl": "research", "calib.camchain": "tools"}
     graph = {
-        "robotd.geometry": {"robotd.pipeline"},  # core up to the pipeline
-        "robotd.pipeline": {"robotd.geometry"},
-        "drivers.sim": {"robotd.record", "robotd.codec"},  # record may, codec may not
-        "robotd.record": set(),
-        "robotd.codec": set(),
+        "robotd.core.geometry": {"robotd.pipeline.step"},  # core up to the pipeline
+        "robotd.pipeline.step": {"robotd.core.geometry"},
+        "drivers.sim": {"robotd.formats.record", "robotd.formats.codec"},  # record may, codec may not
+        "robotd.formats.record": set(),
+        "robotd.formats.codec": set(),
         "robotd.daemon.x": {"calib.camchain", "robotd.research.sitl"},  # camchain may, research not
         "robotd.research.sitl": {"robotd.daemon.x"},  # never the daemon
         "calib.camchain": set(),
     }
     assert _project_violations(graph, layers) == [
-        "drivers.sim (drivers) imports robotd.codec (formats)",
+        "drivers.sim (drivers) imports robotd.formats.codec (formats)",
+        "robotd.core.geometry (core) imports robotd.pipeline.step (pipeline)",
         "robotd.daemon.x (service) imports robotd.research.sitl (research)",
-        "robotd.geometry (core) imports robotd.pipeline (pipeline)",
         "robotd.research.sitl (research) imports robotd.daemon.x (service)",
     ]
 
@@ -467,7 +471,7 @@ def _doc_rows() -> dict[str, str]:
 
 def _doc_paths(cell: str) -> list[str]:
     """The repository paths a modules cell names outside its parentheses: a path in backticks
-    (``robotd/msgs.py``, ``robotd/slam/``), or a bare file name (``errors.py``) in the folder of
+    (``robotd/core/msgs.py``, ``robotd/slam/``), or a bare file name (``errors.py``) in the folder of
     the last path before it."""
     while True:
         shorter = re.sub(r"\([^()]*\)", "", cell)

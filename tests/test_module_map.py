@@ -1,6 +1,6 @@
 """docs/architecture.md "Module map" names every module under robotd/ and drivers/.
 
-A module counts as named when the page holds its repository path (``robotd/pipeline.py``), or
+A module counts as named when the page holds its repository path (``robotd/pipeline/step.py``), or
 when one entry of the page (a table row, a list item or a paragraph) holds both its package's
 path (``robotd/outputs/``, ``drivers/oak/``; ``robotd/`` for the top-level modules) and its file
 name in backticks (`` `runner.py` ``). A package's ``__init__.py`` and its private ``_*.py``
@@ -59,14 +59,16 @@ def python_modules() -> list[str]:
 
 def test_every_module_is_in_the_module_map() -> None:
     modules = python_modules()
-    assert "robotd/pipeline.py" in modules and "drivers/sim.py" in modules
+    assert "robotd/pipeline/step.py" in modules and "drivers/sim.py" in modules
     missing = unnamed(DOC.read_text(encoding="utf-8"), modules)
     assert not missing, f"{DOC.relative_to(REPO)} does not name: {missing}"
 
 
 def test_the_rule_catches_what_it_is_for() -> None:
-    page = "| core | `robotd/geometry.py`, `robotd/slam/` (`ekf.py`) |\n\n- `drivers/`: `sim.py`\n"
-    assert unnamed(page, ["robotd/geometry.py", "robotd/slam/ekf.py", "robotd/slam/_book.py", "drivers/sim.py"]) == []
+    page = "| core | `robotd/core/geometry.py`, `robotd/slam/` (`ekf.py`) |\n\n- `drivers/`: `sim.py`\n"
+    assert (
+        unnamed(page, ["robotd/core/geometry.py", "robotd/slam/ekf.py", "robotd/slam/_book.py", "drivers/sim.py"]) == []
+    )
     assert unnamed(page, ["robotd/slam/fastslam.py"]) == ["robotd/slam/fastslam.py"]
     # a file name next to another package's path does not count
     assert unnamed(page, ["drivers/ekf.py"]) == ["drivers/ekf.py"]

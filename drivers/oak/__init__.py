@@ -20,7 +20,7 @@ from drivers.oak.calibration import (
     read_device_calibration,
     stereo_calibration_from_handler,
 )
-from robotd.errors import DriverError
+from robotd.core.errors import DriverError
 
 __all__ = [
     "available_devices",

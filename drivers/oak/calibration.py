@@ -1,4 +1,4 @@
-"""OAK-D factory calibration -> :class:`robotd.stereo.StereoCalibration` (the only depthai import).
+"""OAK-D factory calibration -> :class:`robotd.core.stereo.StereoCalibration` (the only depthai import).
 
 depthai reports lengths in **centimetres** and intrinsics for the sensor's full resolution unless
 asked for an output size (docs/interfaces.md §2.3). This module is the border: it converts to metres
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import CalibrationError, DriverError
-from robotd.stereo import StereoCalibration
+from robotd.core.errors import CalibrationError, DriverError
+from robotd.core.stereo import StereoCalibration
 
 logger = logging.getLogger(__name__)
 

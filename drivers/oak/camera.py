@@ -41,9 +41,9 @@ import numpy as np
 
 from drivers._rectify import Rectifier, StereoCalibration, check_calibration_size, user_rectifier
 from drivers.base import Driver
-from robotd.errors import CalibrationError, DriverError
-from robotd.msgs import StereoFrame
-from robotd.stereo import RectifiedStereo
+from robotd.core.errors import CalibrationError, DriverError
+from robotd.core.msgs import StereoFrame
+from robotd.core.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
 

@@ -14,9 +14,9 @@ from typing import Any, TypeVar
 
 import drivers
 from robotd.config import Config
+from robotd.core.errors import DriverError
+from robotd.daemon.device_urls import calibration_refusals, camera_options, link_options
 from robotd.daemon.sdnotify import Notifier
-from robotd.device_urls import calibration_refusals, camera_options, link_options
-from robotd.errors import DriverError
 
 logger = logging.getLogger(__name__)
 
@@ -39,11 +39,11 @@ def open_devices(
     give_up_at: float = math.inf,
 ) -> Devices:
     """Open the camera and the vehicle link (and a separate autopilot link when ``mavlink.enabled``
-    and the vehicle link is not MAVLink: robotd.device_urls.device_urls); each is closed when
+    and the vehicle link is not MAVLink: robotd.daemon.device_urls.device_urls); each is closed when
     ``stack`` unwinds. Hardware that is missing is retried until ``stop`` or the monotonic time
     ``give_up_at`` (``--duration``); the URLs were checked before (check_device_urls), so a
     DriverError here is the device's, not a typo's. The camera gets ``camera.calibration``
-    (robotd.device_urls.camera_options); a camera that cannot use it is a ConfigError naming the
+    (robotd.daemon.device_urls.camera_options); a camera that cannot use it is a ConfigError naming the
     key, never retried."""
 
     def open_(kind: str, opener: Callable[..., contextlib.AbstractContextManager[D]], url: str, **extra: Any) -> D:

@@ -25,11 +25,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from robotd.core.geometry import se3_inverse
 from robotd.daemon.budget import LatencyBudget, StageTimer
-from robotd.feed import FeedCounters
-from robotd.geometry import se3_inverse
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs.base import StepReport
-from robotd.queues import DropOldestQueue
+from robotd.pipeline.feed import FeedCounters
 
 
 def rss_mb() -> float:
@@ -59,7 +59,7 @@ class HasStats(Protocol):
 
 @dataclass
 class DaemonStats(FeedCounters):
-    """The daemon threads' counters; the SLAM thread's feed counts its own (robotd.feed.FeedCounters:
+    """The daemon threads' counters; the SLAM thread's feed counts its own (robotd.pipeline.feed.FeedCounters:
     step_errors, seq_gaps, frames_without_odometry, frames_before_odometry and their stamps) here too."""
 
     started_ns: int = field(default_factory=time.monotonic_ns)

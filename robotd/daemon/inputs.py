@@ -14,10 +14,10 @@ import threading
 from collections.abc import Callable, Sequence
 
 import drivers
+from robotd.core.errors import RobotdError
+from robotd.core.msgs import Odometry, StereoFrame
 from robotd.daemon.health import DaemonStats
-from robotd.errors import RobotdError
-from robotd.msgs import Odometry, StereoFrame
-from robotd.queues import DropOldestQueue
+from robotd.formats.queues import DropOldestQueue
 
 logger = logging.getLogger("robotd.daemon")
 

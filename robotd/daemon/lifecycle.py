@@ -5,7 +5,7 @@ Threads:
 - camera: ``camera.frames()`` → the outputs' tees (the recorder's sensor log: every frame) → frame
   queue (bounded, drop-oldest, counted)
 - vehicle: ``vehicle.odometry()`` → the tees (every sample) → odometry queue (bounded, drop-oldest, counted)
-- slam (slam_thread.py): frame queue → :class:`robotd.feed.Feed`, the per-frame loop ``robotd
+- slam (slam_thread.py): frame queue → :class:`robotd.pipeline.feed.Feed`, the per-frame loop ``robotd
   replay`` runs too (odometry gated and integrated to the frame's capture time → ``Pipeline.step``,
   a failed step skipped) → publish queue; the latency budget degrades (features, particles, frame
   skipping) and recovers. It is the only thread that touches the pipeline: the map and state
@@ -33,11 +33,14 @@ from typing import Any
 import numpy as np
 
 import drivers
-from robotd import jit
-from robotd.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.config import Config
-from robotd.config_params import odometry_limits_from_config
+from robotd.config.params import odometry_limits_from_config
+from robotd.core import jit
+from robotd.core.errors import ConfigError, RobotdError
+from robotd.core.jit import CompileWatch
+from robotd.core.msgs import Odometry, StereoFrame
 from robotd.daemon.budget import LatencyBudget, StageTimer, budget_for
+from robotd.daemon.device_urls import check_device_urls
 from robotd.daemon.devices import open_devices
 from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, DaemonStats, HealthMonitor
 from robotd.daemon.inputs import pump_frames, pump_odometry
@@ -48,18 +51,15 @@ from robotd.daemon.slam_thread import Deliveries, SlamThread, Stepped
 from robotd.daemon.state import open_state
 from robotd.daemon.supervisor import Supervisor
 from robotd.daemon.threadpools import ThreadLimits, limit_threads
-from robotd.device_urls import check_device_urls
-from robotd.errors import ConfigError, RobotdError
-from robotd.feed import Feed
-from robotd.jit import CompileWatch
-from robotd.msgs import Odometry, StereoFrame
-from robotd.odometry import OdometryGate, OdometryIntegrator
+from robotd.formats.autopilot import ResetCounterPolicy, ResetEvent
+from robotd.formats.persist import CounterFile, StateDirLock, default_state_dir
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs import Output, OutputContext, OutputRunner, build_outputs
 from robotd.outputs.mapfile import MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
-from robotd.persist import CounterFile, StateDirLock, default_state_dir
-from robotd.pipeline import Pipeline
-from robotd.queues import DropOldestQueue
+from robotd.pipeline.feed import Feed
+from robotd.pipeline.odometry import OdometryGate, OdometryIntegrator
+from robotd.pipeline.step import Pipeline
 from robotd.slam.estimator import Persistent
 
 logger = logging.getLogger("robotd.daemon")  # the name users filter the lifecycle lines by
@@ -119,7 +119,7 @@ class Daemon:
         self.counter_file: CounterFile | None = None
         self._pending_event: str | None = None  # a discontinuity before the first step (map load)
         self.pipeline: Pipeline | None = None
-        self.feed: Feed | None = None  # the per-frame loop the SLAM thread runs (robotd.feed)
+        self.feed: Feed | None = None  # the per-frame loop the SLAM thread runs (robotd.pipeline.feed)
         self.budget: LatencyBudget | None = None
         self.maps: MapFileOutput | None = None
         self.recorder: RecorderOutput | None = None
@@ -168,12 +168,12 @@ class Daemon:
         )
         # the device URLs' schemes and parameters before anything slow (the CLI checked them too)
         check_device_urls(cfg)
-        if self.keep_state:  # one robotd per state directory, before anything slow (robotd.persist)
+        if self.keep_state:  # one robotd per state directory, before anything slow (robotd.formats.persist)
             stack.enter_context(StateDirLock(default_state_dir(cfg.persistence.state_dir), cfg.robot.id))
         # the kernels first: compiling them (a cold numba cache) takes a while, and the devices are
         # opened only then, so no camera streams into a queue nobody reads (and sim:// starts its
         # path when the daemon can follow it). The compile is announced only when numba finds no
-        # cached kernel (robotd.jit.CompileWatch), never on a warm start.
+        # cached kernel (robotd.core.jit.CompileWatch), never on a warm start.
         _load_kernels(cfg)
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
         dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
@@ -247,7 +247,7 @@ class Daemon:
             )
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
-            # map fixes the prediction could not explain, refused (robotd.stages.motion)
+            # map fixes the prediction could not explain, refused (robotd.pipeline.stages.motion)
             doc["implausible_fixes"] = c.implausible_fixes
         doc.update(self.output_runner.health())  # every output's counters and stats
         return self.health.assess(doc, needs_vehicle=self._needs_vehicle)
@@ -416,7 +416,7 @@ class Daemon:
 
 def _load_kernels(cfg: Config) -> None:
     """Compile or load every numba kernel a step uses; the compile is announced only when numba
-    finds no cached kernel (robotd.jit.CompileWatch), never on a warm start."""
+    finds no cached kernel (robotd.core.jit.CompileWatch), never on a warm start."""
     logger.info("loading the filter and matcher kernels")
     with CompileWatch(lambda: logger.info(COMPILING_UNCACHED if jit.UNCACHED else COMPILING)) as watch:
         seconds = Pipeline.warmup((cfg.slam.measurement,), (cfg.slam.dim,))

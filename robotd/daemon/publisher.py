@@ -1,7 +1,7 @@
 """The daemon's publisher thread: every SLAM step's :class:`~robotd.outputs.base.StepReport` (the
 reset counter, the pose quality, the health state, the latency) to the outputs' workers.
 
-The reset counter (robotd.autopilot.ResetCounterPolicy) tells the autopilot where robotd's pose
+The reset counter (robotd.formats.autopilot.ResetCounterPolicy) tells the autopilot where robotd's pose
 stream jumped (a map load, a relocalisation, an attitude reset, a stall no odometry covered, a
 jump the policy sees itself); each new value is saved to the counter file, so the next run starts
 a new segment.
@@ -14,15 +14,15 @@ import time
 
 import numpy as np
 
-from robotd.autopilot import ResetCounterPolicy
 from robotd.config import Config
+from robotd.core.msgs import StepResult
 from robotd.daemon.budget import LatencyBudget
 from robotd.daemon.health import MAX_POSE_SIGMA_M, HealthMonitor
 from robotd.daemon.slam_thread import Stepped
-from robotd.msgs import StepResult
+from robotd.formats.autopilot import ResetCounterPolicy
+from robotd.formats.persist import CounterFile
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs import OutputRunner, StepReport, pose_quality
-from robotd.persist import CounterFile
-from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger("robotd.daemon")
 

@@ -1,7 +1,7 @@
-"""The daemon's SLAM thread: frame queue → :class:`robotd.feed.Feed` → publish queue.
+"""The daemon's SLAM thread: frame queue → :class:`robotd.pipeline.feed.Feed` → publish queue.
 
 Each frame takes the odometry queued since the last one, and goes through the feed the replay uses
-too (robotd.feed: gate, integrate, step, skip on error), with the daemon's own two additions: the
+too (robotd.pipeline.feed: gate, integrate, step, skip on error), with the daemon's own two additions: the
 latency budget admits the frame or skips it (and degrades features and particles, or recovers,
 after each step), and a gap between the frames that reached the step beyond the stall threshold
 is a stall. It is the only thread that touches the pipeline: the map and state snapshots the outputs
@@ -17,14 +17,14 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
-from robotd.autopilot import ResetEvent
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.daemon.budget import LatencyBudget
 from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, HealthMonitor
-from robotd.feed import Feed
-from robotd.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
+from robotd.formats.autopilot import ResetEvent
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs import OutputRunner
 from robotd.outputs.base import shortest_period
-from robotd.queues import DropOldestQueue
+from robotd.pipeline.feed import Feed
 
 logger = logging.getLogger("robotd.daemon")
 

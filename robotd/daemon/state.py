@@ -1,4 +1,4 @@
-"""The daemon's state under the state directory (robotd.persist): the reset counter file and the
+"""The daemon's state under the state directory (robotd.formats.persist): the reset counter file and the
 map file, which is an input too (resumed before the first step) and then saved like any output."""
 
 from __future__ import annotations
@@ -7,12 +7,12 @@ import contextlib
 import logging
 from dataclasses import dataclass
 
-from robotd.autopilot import ResetCounterPolicy
 from robotd.config import Config
+from robotd.formats.autopilot import ResetCounterPolicy
+from robotd.formats.persist import CounterFile, default_state_dir
 from robotd.outputs import enter_output
 from robotd.outputs.mapfile import MapFileOutput
-from robotd.persist import CounterFile, default_state_dir
-from robotd.pipeline import Pipeline
+from robotd.pipeline.step import Pipeline
 from robotd.slam.estimator import Persistent
 
 logger = logging.getLogger("robotd.daemon")

@@ -67,7 +67,7 @@ def limit_blas_threads(n: int) -> list[tuple[BlasPool, int]]:
 
     Best effort: OpenBLAS may ignore a second change in one process (seen when an earlier daemon in
     the same process had limited and restored it, the limit then being set from another thread);
-    that is logged. ``robotd`` itself sets OPENBLAS_NUM_THREADS=1 before numpy loads (robotd.cli),
+    that is logged. ``robotd`` itself sets OPENBLAS_NUM_THREADS=1 before numpy loads (robotd.tools.cli),
     which this only repeats; it matters for daemons embedded in other programs (bench/daemon.py)."""
     from threadpoolctl import ThreadpoolController
 

@@ -4,14 +4,14 @@ The caller sorts (two stable numpy sorts, ≈ 0.08 ms on 4000 ORB candidates); t
 and the refill are one pass here instead of the numpy version's further sorts and gathers
 (≈ 0.45 ms per image in all, holding the GIL the other image's detection thread also needs).
 numba's own stable argsort was slower than numpy's and data-dependent. Compiled by
-:func:`robotd.jit.jit` (disk cache, GIL released).
+:func:`robotd.core.jit.jit` (disk cache, GIL released).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from robotd.jit import jit
+from robotd.core.jit import jit
 
 
 @jit

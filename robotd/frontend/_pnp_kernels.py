@@ -13,12 +13,12 @@ import math
 
 import numpy as np
 
-from robotd.jit import jit
+from robotd.core.jit import jit
 
 
 @jit(inline="always")
 def _so3_exp(w: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Rodrigues' formula (as robotd.geometry.so3_exp)."""
+    """Rodrigues' formula (as robotd.core.geometry.so3_exp)."""
     th = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
     K = np.zeros((3, 3))
     K[0, 1], K[0, 2] = -w[2], w[1]

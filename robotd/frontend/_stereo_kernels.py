@@ -9,14 +9,14 @@ and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads r
 - :func:`ratio_cross_kernel`: ratio test (or lone-candidate limit) and cross-check.
 - :func:`refine_kernel`: ZSSD patch cost at integer disparities and the parabola fit.
 
-Compiled by :func:`robotd.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for read-only installs).
+Compiled by :func:`robotd.core.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for read-only installs).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from robotd.jit import jit
+from robotd.core.jit import jit
 
 
 @jit

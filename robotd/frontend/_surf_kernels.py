@@ -14,7 +14,7 @@ Both read a float64 integral image ``ii`` of shape (H+1, W+1) with a zero first 
 ``ii[r, c]`` is the sum of ``image[:r, :c]`` (OpenCV's ``cv2.integral`` layout). Pixel centres are at
 integer coordinates (x = column, y = row).
 
-Both are compiled by :func:`robotd.jit.jit` (disk cache, ``NUMBA_CACHE_DIR`` and the fallback for
+Both are compiled by :func:`robotd.core.jit.jit` (disk cache, ``NUMBA_CACHE_DIR`` and the fallback for
 read-only installs are explained there); they release the GIL, so the left and right images can be
 processed in two threads. The helpers stay plain ``numba.njit``: they are compiled only into the
 two kernels, whose cache entries hold them, and only the kernels' entry points release the GIL.
@@ -27,7 +27,7 @@ import math
 import numba
 import numpy as np
 
-from robotd.jit import jit
+from robotd.core.jit import jit
 
 
 @jit

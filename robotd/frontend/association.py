@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import ConfigError, InputError, PersistenceError
+from robotd.core.errors import ConfigError, InputError, PersistenceError
+from robotd.core.statecheck import ID_LIMIT, INT64_MAX, StateTable
+from robotd.core.statecheck import check_finite as check_saved_finite
 from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check
-from robotd.statecheck import ID_LIMIT, INT64_MAX, StateTable
-from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
 
@@ -231,7 +231,7 @@ class LandmarkDescriptors:
         return Correspondences(status, ids, dist, stats)
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume: numpy arrays and scalars only (robotd.persist)."""
+        """Everything needed to resume: numpy arrays and scalars only (robotd.formats.persist)."""
         return {
             "dim": self.dim,
             "binary": self.binary,

@@ -19,8 +19,8 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from robotd.choices import DETECTORS
-from robotd.errors import ConfigError, InputError
+from robotd.core.choices import DETECTORS
+from robotd.core.errors import ConfigError, InputError
 from robotd.frontend import _detect_kernels as _dk
 from robotd.frontend.features import Features
 

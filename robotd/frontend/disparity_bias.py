@@ -37,10 +37,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.errors import ConfigError
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import so3_exp
+from robotd.core.stereo import RectifiedStereo, triangulate
 from robotd.frontend.pnp import project_stereo
-from robotd.geometry import so3_exp
-from robotd.stereo import RectifiedStereo, triangulate
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ class DisparityBiasParams:
 
 
 def _triangulate(z: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
-    """Pixels (..., 3) = (x_l, x_r, y) -> points (..., 3) in the robot frame (robotd.stereo.triangulate)."""
+    """Pixels (..., 3) = (x_l, x_r, y) -> points (..., 3) in the robot frame (robotd.core.stereo.triangulate)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return triangulate(z[..., 0], z[..., 1], z[..., 2], rig.f_px, rig.px, rig.py, rig.baseline_m)
 

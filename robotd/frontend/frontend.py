@@ -30,7 +30,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.errors import InputError
+from robotd.core.errors import InputError
+from robotd.core.geometry import se3, se3_inverse, so3_log
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations
+from robotd.core.outliers import (
+    OutlierParams,
+    OutlierResult,
+    detect_outliers,
+    fit_similarity_mahalanobis,
+    ransac_similarity,
+)
+from robotd.core.stereo import RectifiedStereo, project
+from robotd.core.timing import StageClock
 from robotd.frontend.association import (
     IDENTIFIED,
     NEW,
@@ -50,17 +61,6 @@ from robotd.frontend.stereo_match import (
     match_stereo,
     ratio_and_cross_check,
 )
-from robotd.geometry import se3, se3_inverse, so3_log
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations
-from robotd.outliers import (
-    OutlierParams,
-    OutlierResult,
-    detect_outliers,
-    fit_similarity_mahalanobis,
-    ransac_similarity,
-)
-from robotd.stereo import RectifiedStereo, project
-from robotd.timing import StageClock
 
 logger = logging.getLogger(__name__)
 

@@ -43,11 +43,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.errors import ConfigError
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import so3_exp, so3_log, umeyama_batch
+from robotd.core.outliers import iteration_budget, sample_indices
+from robotd.core.stereo import RectifiedStereo
 from robotd.frontend import _pnp_kernels as _k
-from robotd.geometry import so3_exp, so3_log, umeyama_batch
-from robotd.outliers import iteration_budget, sample_indices
-from robotd.stereo import RectifiedStereo
 
 
 @dataclass(frozen=True, slots=True)

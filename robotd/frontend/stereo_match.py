@@ -30,10 +30,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robotd.errors import ConfigError, InputError
+from robotd.core.errors import ConfigError, InputError
+from robotd.core.stereo import (
+    RectifiedStereo,
+    debias_points,
+    gate_selection_shift,
+    triangulate,
+    triangulation_covariance,
+)
 from robotd.frontend import _stereo_kernels as _k
 from robotd.frontend.features import Features
-from robotd.stereo import RectifiedStereo, debias_points, gate_selection_shift, triangulate, triangulation_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -155,10 +161,10 @@ class StereoMatchParams:
     patch_half_px, search_px: patch half-size h and search radius r of the refinement.
     refine_reject_edge: drop matches whose SSD minimum lies at ±r (descriptor and photometry disagree).
     sigma_x_px, sigma_y_px, cov_inflation: pixel noise of §3.1 and the §3.3 inflation.
-    debias_depth: remove the second-order triangulation bias (robotd.stereo.debias_points); on
+    debias_depth: remove the second-order triangulation bias (robotd.core.stereo.debias_points); on
       kitti-seq1 it takes the distance overestimate from 0.9 % to 0.7 % and the drift below 1 %.
     debias_limits: correct the disparities of matches near the gate's limits for the selection the
-      gate makes (robotd.stereo.gate_selection_shift): a point near the far limit is kept only when
+      gate makes (robotd.core.stereo.gate_selection_shift): a point near the far limit is kept only when
       its noise made it look nearer, so it comes out too near (docs/frontend.md).
     """
 

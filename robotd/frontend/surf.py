@@ -47,7 +47,7 @@ The heavy loops (response maps, orientation, descriptor) are numba kernels in ``
 their plain numpy/Python twins, ``hessian_layer_reference`` and ``describe_reference`` (the same
 mathematics, which the tests compare the kernels against), are in tests/support/reference_surf.py.
 Haar samples that fall partly outside the image see zeros there (the box sums are clipped). The
-kernels are compiled on first use and cached on disk (:mod:`robotd.jit` explains
+kernels are compiled on first use and cached on disk (:mod:`robotd.core.jit` explains
 ``NUMBA_CACHE_DIR`` for read-only installs); they release the GIL, so two images can be processed
 in two threads.
 """
@@ -63,7 +63,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from robotd.errors import ConfigError, InputError
+from robotd.core.errors import ConfigError, InputError
 from robotd.frontend import _surf_kernels as _k
 from robotd.frontend.features import Features
 
@@ -404,7 +404,7 @@ def detect_and_compute(
     Returns :class:`Features` (see the module docstring for every field's convention), in the
     order kept (strongest first unless ``select`` reorders), at most ``params.max_features`` of
     them. Empty, tiny or featureless images give zero features; a wrong type, shape or dtype raises
-    :class:`~robotd.errors.InputError`.
+    :class:`~robotd.core.errors.InputError`.
     """
     p = params or SurfParams()
     image, mask = _validate(image, mask)

@@ -19,9 +19,9 @@ from typing import Any
 
 from drivers import AutopilotLink
 from robotd.config import Config
+from robotd.core.stereo import RectifiedStereo
 from robotd.outputs.base import Output, StepReport, pose_quality
 from robotd.outputs.runner import OutputRunner, enter_output
-from robotd.stereo import RectifiedStereo
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,7 +12,7 @@ import logging
 from typing import Any
 
 from drivers import AutopilotLink
-from robotd.errors import RobotdError
+from robotd.core.errors import RobotdError
 from robotd.outputs.base import Output, StepReport
 
 logger = logging.getLogger(__name__)

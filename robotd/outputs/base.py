@@ -34,8 +34,8 @@ from typing import Any, Self
 
 import numpy as np
 
-from robotd.autopilot import position_sigma_m, quality_from
-from robotd.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+from robotd.core.msgs import LandmarkMap, Odometry, StepResult, StereoFrame
+from robotd.formats.autopilot import position_sigma_m, quality_from
 
 HEALTH_STATES = ("tracking", "degraded", "failed")
 
@@ -65,7 +65,7 @@ class StepReport:
 
 
 def pose_quality(result: StepResult, min_inliers: int, good_sigma_m: float = 0.2) -> int:
-    """The pose's quality in MAVLink's convention (robotd.autopilot.quality_from): −1 lost, else
+    """The pose's quality in MAVLink's convention (robotd.formats.autopilot.quality_from): −1 lost, else
     1..100 from the accepted correspondences, N_eff/N, the reported position sigma against
     ``good_sigma_m`` (``mavlink.quality_good_sigma_m``) and the consistency monitor's state."""
     pose = result.pose

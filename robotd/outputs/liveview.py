@@ -3,7 +3,7 @@ app while robotd runs, over the Foxglove SDK's WebSocket server (docs/recording.
 behind a front that also accepts viewers offering only the older ``foxglove.websocket.v1``
 subprotocol (liveview_front).
 
-The messages are the ones a recording holds (robotd.record.FoxgloveScene): images with the
+The messages are the ones a recording holds (robotd.formats.record.FoxgloveScene): images with the
 feature tracks, the pose, trajectory and ground truth, the landmark map with its ellipsoids, the
 transforms world → robot → cameras, the odometry. The server listens on loopback by default
 (``liveview.host``); nothing is sent, and no image is encoded, for a channel no client has
@@ -24,12 +24,12 @@ from collections.abc import Sequence
 from typing import Any
 
 from robotd.config import LiveViewConfig
-from robotd.errors import DriverError
-from robotd.msgs import Odometry, StereoFrame
+from robotd.core.errors import DriverError
+from robotd.core.msgs import Odometry, StereoFrame
+from robotd.core.stereo import RectifiedStereo
+from robotd.formats.record import FoxgloveScene, Item, calibration_to_json, message_encoding, payload, schema_record
 from robotd.outputs.base import Output, StepReport
 from robotd.outputs.liveview_front import SubprotocolFront
-from robotd.record import FoxgloveScene, Item, calibration_to_json, message_encoding, payload, schema_record
-from robotd.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
 

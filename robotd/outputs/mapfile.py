@@ -1,5 +1,5 @@
 """The map-file output: the pipeline's state (filter and landmark descriptors) saved to disk
-periodically and at shutdown, and the resume from it at start-up (robotd.persist: atomic,
+periodically and at shutdown, and the resume from it at start-up (robotd.formats.persist: atomic,
 versioned, checked; a bad file is moved aside, never overwritten).
 
 The SLAM thread takes the state snapshot between steps; the file is written on this output's own
@@ -16,11 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from robotd.config import PersistenceConfig
-from robotd.errors import MapMismatchError, PersistenceError
+from robotd.core.errors import MapMismatchError, PersistenceError
+from robotd.formats.persist import MapStore, default_state_dir
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs.base import Output, StepReport
-from robotd.persist import MapStore, default_state_dir
-from robotd.pipeline import Pipeline
-from robotd.queues import DropOldestQueue
+from robotd.pipeline.step import Pipeline
 
 logger = logging.getLogger(__name__)
 

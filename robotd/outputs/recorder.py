@@ -1,7 +1,7 @@
 """The recording output (``robotd record OUT.mcap``): the sensor log, every camera frame and every
 vehicle sample as the devices delivered them, whatever SLAM kept up with, and beside them what
 SLAM made of the frames it processed (every published pose, the features the filter used and,
-once a second, the landmark map), in one MCAP file (robotd.record, docs/recording.md).
+once a second, the landmark map), in one MCAP file (robotd.formats.record, docs/recording.md).
 
 The inputs come from the daemon's input threads (:meth:`RecorderOutput.tee_frame` on the camera
 thread, :meth:`RecorderOutput.tee_odometry` on the vehicle thread), before the SLAM frame queue
@@ -23,11 +23,11 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
-from robotd.errors import RobotdError
-from robotd.msgs import LandmarkMap, Observations, Odometry, PoseEstimate, StereoFrame
+from robotd.core.errors import RobotdError
+from robotd.core.msgs import LandmarkMap, Observations, Odometry, PoseEstimate, StereoFrame
+from robotd.core.stereo import RectifiedStereo
+from robotd.formats.record import SessionWriter
 from robotd.outputs.base import Output, StepReport
-from robotd.record import SessionWriter
-from robotd.stereo import RectifiedStereo
 
 logger = logging.getLogger(__name__)
 

@@ -43,8 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from robotd.geometry import R_to_quat, euler_to_R
-from robotd.msgs import LandmarkMap, PoseEstimate
+from robotd.core.geometry import R_to_quat, euler_to_R
+from robotd.core.msgs import LandmarkMap, PoseEstimate
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"

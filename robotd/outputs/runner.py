@@ -36,10 +36,10 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar
 
-from robotd.errors import RobotdError
-from robotd.msgs import Odometry, StereoFrame
+from robotd.core.errors import RobotdError
+from robotd.core.msgs import Odometry, StereoFrame
+from robotd.formats.queues import DropOldestQueue
 from robotd.outputs.base import Output, StepReport
-from robotd.queues import DropOldestQueue
 
 logger = logging.getLogger(__name__)
 

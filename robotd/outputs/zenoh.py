@@ -3,7 +3,7 @@
 Keys under ``robotd/<robot_id>/``:
 
 - ``pose``    JSON, every processed frame (PoseEstimate + quality, reset_counter, latency)
-- ``map``     CBOR (robotd.codec, schema robotd.map/1), published periodically; also a queryable
+- ``map``     CBOR (robotd.formats.codec, schema robotd.map/1), published periodically; also a queryable
               that answers with the full current map
 - ``health``  JSON at 1 Hz: stage latencies p50/p99, drops, deadline misses, N_eff, counts, budget
 - ``alive``   liveliness token (PUT while the daemon runs, DELETE when it stops or dies)
@@ -28,11 +28,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from robotd.codec import encode_map
 from robotd.config import ZenohConfig
-from robotd.errors import DriverError
-from robotd.geometry import euler_to_quat
-from robotd.msgs import LandmarkMap, PoseEstimate
+from robotd.core.errors import DriverError
+from robotd.core.geometry import euler_to_quat
+from robotd.core.msgs import LandmarkMap, PoseEstimate
+from robotd.formats.codec import encode_map
 from robotd.outputs.base import Output, StepReport
 
 logger = logging.getLogger(__name__)

@@ -33,8 +33,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import spsolve
 
-from robotd.errors import EstimatorError, InputError
-from robotd.geometry import (
+from robotd.core.errors import EstimatorError, InputError
+from robotd.core.geometry import (
     euler_rate_jacobian,
     euler_rate_matrix,
     euler_to_R,
@@ -42,7 +42,7 @@ from robotd.geometry import (
     pose2_compose,
     wrap_angle,
 )
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate
 
 logger = logging.getLogger(__name__)
 

@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from robotd.errors import DatasetError, InputError
-from robotd.geometry import (
+from robotd.core.errors import DatasetError, InputError
+from robotd.core.geometry import (
     R_ROBOT_OPTICAL,
     R_to_quat,
     quat_to_R,
@@ -83,7 +83,7 @@ class Trajectory:
 
 def poses_to_T(poses: np.ndarray) -> np.ndarray:
     """(N, 3) planar (x, y, yaw), (N, 6) (x, y, z, roll, pitch, yaw) or (N, 4, 4) -> (N, 4, 4)."""
-    from robotd.geometry import pose6_to_T
+    from robotd.core.geometry import pose6_to_T
 
     p = np.asarray(poses, dtype=float)
     if p.ndim == 3 and p.shape[1:] == (4, 4):

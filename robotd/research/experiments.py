@@ -5,7 +5,7 @@
 (a) §12.1 2D SLAM: EKF SLAM, FastSLAM 1.0 and 2.0 on the same simulated runs, correct data;
 (b) §12.2 the number of particles for FastSLAM 1.0 and 2.0;
 (c) §12.3 landmark identification: error against the mismatch rate, each filter with and
-    without the outlier stage (``robotd.outliers``, similarity RANSAC with Mahalanobis consensus);
+    without the outlier stage (``robotd.core.outliers``, similarity RANSAC with Mahalanobis consensus);
 (d) §12.4 3D SLAM on terrain;
 (e) §12.1 real planar data: FastSLAM 2.0 on MRCLAM dataset 1, robot 1 (``run_mrclam``);
 
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from robotd.geometry import wrap_angle
+from robotd.core.geometry import wrap_angle
 from robotd.research.batch import solve_sim
 from robotd.research.evaluate import anees_band, ate, map_rmse, nees, plot_trajectory, poses_to_T
 from robotd.research.landmark_sim import SimConfig, SimRun, dead_reckoning, inject_mismatches, simulate
@@ -140,7 +140,7 @@ def _outlier_filter(est: Any, obs: Any, rng: np.random.Generator, dim: int) -> t
     Returns (observations to feed, kept mask over the re-observations, ms). New landmarks pass
     through. When RANSAC accepts nothing (< min_inliers), every re-observation is dropped (§5.3).
     """
-    from robotd.outliers import OutlierParams, ransac_similarity
+    from robotd.core.outliers import OutlierParams, ransac_similarity
 
     old = np.flatnonzero(~obs.is_new)
     keep_old = np.ones(len(old), bool)
@@ -420,7 +420,7 @@ def run_experiments(
 
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    from robotd.progress import progress_bar
+    from robotd.tools.progress import progress_bar
 
     if plan is None:
         plan = ExperimentPlan.quick(seeds or 1) if quick else ExperimentPlan.full(seeds or 10)
@@ -592,7 +592,7 @@ def _run_campaign(
     rep += [
         f"2D world of (a); {len(mseeds)} seeds per setting. Mismatches are injected into re-observations at the "
         "given rate, half to a mapped landmark within 1 m of the true one. 'RANSAC' is the outlier stage of "
-        "`robotd.outliers` (similarity model, Mahalanobis consensus χ²₂,0.99, defaults of §5.5) run on the map "
+        "`robotd.core.outliers` (similarity model, Mahalanobis consensus χ²₂,0.99, defaults of §5.5) run on the map "
         "landmarks (of the EKF, or the best FastSLAM particle) against the measurements, before the filter. "
         "Cells: ATE RMSE [m], mean ± std; in brackets the number of diverged runs when any.",
         "",
@@ -887,7 +887,7 @@ def run_mrclam(
     subjects 11 and 17, which this copy of the data has swapped (see
     ``robotd.research.datasets.mrclam.MRCLAM1_SWAP_11_17`` for the evidence).
     """
-    from robotd.geometry import umeyama
+    from robotd.core.geometry import umeyama
     from robotd.research.datasets.mrclam import MRCLAM1_SWAP_11_17, load_mrclam
 
     t_start = time.perf_counter()

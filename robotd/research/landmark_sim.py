@@ -2,7 +2,7 @@
 
 This is the point-landmark simulator the filter experiments use (not the rendered-image rover of
 ``drivers/sim.py``). It produces, per frame, exactly what the estimator consumes — a
-:class:`robotd.msgs.MotionIncrement` and :class:`robotd.msgs.Observations` — plus the truth kept
+:class:`robotd.core.msgs.MotionIncrement` and :class:`robotd.core.msgs.Observations` — plus the truth kept
 alongside for evaluation (true pose, true landmark ids, which correspondences are wrong).
 
 Frames (docs/math.md §1.2): world ``W`` is the robot frame at the first pose (forward-right-down,
@@ -11,7 +11,7 @@ so the start pose is the identity); robot ``R`` is FRD at the baseline centre. P
 z = roll = pitch = 0 and landmarks in the camera's plane (Z_W = 0).
 
 Measurements follow §12's recipe so that the noise is the real stereo noise, not a Gaussian in 3D:
-project each landmark to the rectified pixels (robotd.stereo.project), add pixel noise
+project each landmark to the rectified pixels (robotd.core.stereo.project), add pixel noise
 (σ_x on x_L and x_R, σ_x on each row so the mean row has σ_x/√2), keep those inside the image and
 the disparity limits of §2.2, triangulate (eq. 3.2.14) and attach the first-order covariance Q_i
 (§3.1). Depth error therefore grows with range².
@@ -39,10 +39,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from robotd.errors import ConfigError
-from robotd.geometry import R_to_euler, euler_to_R, pose2_compose, pose2_inverse, so3_exp, so3_log, wrap_angle
-from robotd.msgs import MotionIncrement, Observations
-from robotd.stereo import gate_selection_shift, project, triangulate, triangulation_covariance
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import R_to_euler, euler_to_R, pose2_compose, pose2_inverse, so3_exp, so3_log, wrap_angle
+from robotd.core.msgs import MotionIncrement, Observations
+from robotd.core.stereo import gate_selection_shift, project, triangulate, triangulation_covariance
 
 logger = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ class SimConfig:
     sigma_px: float = 0.5  # per pixel coordinate; the mean row has sigma_px/√2
     d_min_px: float = 5.0
     # correct the kept disparities for the gate's selection, as the front end can
-    # (frontend.debias_limits, off by default like there; robotd.stereo.gate_selection_shift);
+    # (frontend.debias_limits, off by default like there; robotd.core.stereo.gate_selection_shift);
     # stereo noise only
     debias_limits: bool = False
     # "stereo": pixel noise then triangulation (§12, the default); "gaussian" / "isotropic": a 3D

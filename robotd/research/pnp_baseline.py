@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 
 import drivers
-from robotd.errors import RobotdError
-from robotd.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
-from robotd.stereo import RectifiedStereo
+from robotd.core.errors import RobotdError
+from robotd.core.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
+from robotd.core.stereo import RectifiedStereo
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,11 +121,11 @@ class PnPOdometry:
 
 def run_pnp(source: str, max_frames: int = 0, params: PnPParams = PnPParams()) -> dict[str, Any]:
     """Run the baseline over ``source`` (any camera URL robotd replays); a summary with the keys of
-    :func:`robotd.replay.replay`'s that apply (frames, lost_frames, step_ms_p50/p95, wall_s and the
+    :func:`robotd.tools.replay.replay`'s that apply (frames, lost_frames, step_ms_p50/p95, wall_s and the
     ``truth_*`` metrics when the source carries truth)."""
     # the replay's own evaluation (truth relative to its first pose, evaluate_trajectories), so the
     # baseline and robotd are judged by the same code
-    from robotd.replay import _truth_metrics
+    from robotd.tools.replay import _truth_metrics
 
     stamps: list[int] = []
     poses: list[np.ndarray] = []

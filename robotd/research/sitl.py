@@ -47,7 +47,7 @@ import numpy as np
 
 from drivers.rover_physics import JsonPhysicsServer, RoverModel, RoverParams
 from drivers.simworld import LoopTrajectory
-from robotd.errors import RobotdError
+from robotd.core.errors import RobotdError
 
 logger = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.geometry import euler_to_R, se3, se3_inverse
-from robotd.stereo import RectifiedStereo, project, triangulate, triangulation_covariance
+from robotd.core.geometry import euler_to_R, se3, se3_inverse
+from robotd.core.stereo import RectifiedStereo, project, triangulate, triangulation_covariance
 
 # the project's OAK-D rig at 640×400 (docs/math.md §12)
 OAKD_RIG = RectifiedStereo(f_px=430.0, px=319.5, py=199.5, baseline_m=0.0755, width=640, height=400)

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.errors import InputError, PersistenceError
-from robotd.statecheck import COUNTER_LIMIT, ID_LIMIT, StateTable, check_finite
+from robotd.core.errors import InputError, PersistenceError
+from robotd.core.statecheck import COUNTER_LIMIT, ID_LIMIT, StateTable, check_finite
 
 # where a landmark counts as recognisable (module docstring): its observed distances widened by this
 # factor either way, and within this angle of the mean direction it was seen from

@@ -7,13 +7,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from robotd.choices import MAX_PARTICLES
-from robotd.errors import PersistenceError
+from robotd.core.choices import MAX_PARTICLES
+from robotd.core.errors import PersistenceError
+from robotd.core.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
+from robotd.core.statecheck import check_finite as check_saved_finite
 from robotd.slam._book import LandmarkBook
 from robotd.slam._store import LandmarkStore
 from robotd.slam.common import FILTER_CODE, check_header, check_saved_poses
-from robotd.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
-from robotd.statecheck import check_finite as check_saved_finite
 
 
 class Particles(Protocol):

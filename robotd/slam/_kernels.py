@@ -34,7 +34,7 @@ inlined at every call) moved the 3D results in their last bits. Check an edit of
 its algebra the same way (old against new, cold against cold and warm against warm: numba's own
 compiled and cached code differ in the last bits in 3D).
 
-Compiled by :func:`robotd.jit.jit` (first call compiles for ~10–20 s, later processes load the disk
+Compiled by :func:`robotd.core.jit.jit` (first call compiles for ~10–20 s, later processes load the disk
 cache; ``NUMBA_CACHE_DIR`` must be writable by the service, else every process compiles anew).
 """
 
@@ -48,8 +48,8 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-from robotd.errors import InputError
-from robotd.jit import jit
+from robotd.core.errors import InputError
+from robotd.core.jit import jit
 from robotd.slam._store import LandmarkStore
 from robotd.slam.models import (
     CARTESIAN_2D,
@@ -1334,7 +1334,7 @@ def _predict3(pose, u, M, extra, want_S, cos_pitch_min, out_pose, out_S):  # typ
 
 @jit(fastmath=_FM, inline="always")
 def _so3_exp_jr(wx: float, wy: float, wz: float, Rw, Jr) -> None:  # type: ignore[no-untyped-def]
-    """exp([w]×) and the right Jacobian J_r(w) into Rw, Jr (3, 3), as robotd.geometry's."""
+    """exp([w]×) and the right Jacobian J_r(w) into Rw, Jr (3, 3), as robotd.core.geometry's."""
     th2 = wx * wx + wy * wy + wz * wz
     th = math.sqrt(th2)
     if th < 1e-4:

@@ -11,8 +11,11 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import InputError, MapMismatchError, PersistenceError
-from robotd.msgs import MotionIncrement, Observations, UpdateReport
+from robotd.core.errors import InputError, MapMismatchError, PersistenceError
+from robotd.core.msgs import MotionIncrement, Observations, UpdateReport
+from robotd.core.statecheck import ANGLE_LIMIT_RAD, POSITION_LIMIT_M, T_NS_LIMIT, StateTable
+from robotd.core.statecheck import check_finite as check_saved_finite
+from robotd.core.stereo import project
 from robotd.slam._book import LandmarkBook
 from robotd.slam.models import (
     CARTESIAN_2D,
@@ -25,9 +28,6 @@ from robotd.slam.models import (
     stereo_pixel_model,
 )
 from robotd.slam.params import SlamParams
-from robotd.statecheck import ANGLE_LIMIT_RAD, POSITION_LIMIT_M, T_NS_LIMIT, StateTable
-from robotd.statecheck import check_finite as check_saved_finite
-from robotd.stereo import project
 
 NO_IDS = np.zeros(0, np.int64)  # an empty id list (read-only: shared)
 NO_IDS.flags.writeable = False

@@ -19,9 +19,11 @@ import numpy as np
 import scipy.linalg
 import scipy.linalg.blas
 
-from robotd.errors import EstimatorError, InputError
-from robotd.geometry import euler_to_R, rot2, wrap_angle
-from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
+from robotd.core.errors import EstimatorError, InputError
+from robotd.core.geometry import euler_to_R, rot2, wrap_angle
+from robotd.core.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
+from robotd.core.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
+from robotd.core.statecheck import check_finite as check_saved_finite
 from robotd.slam._book import LandmarkBook, note_and_recognise
 from robotd.slam._linalg import sym
 from robotd.slam.common import (
@@ -52,8 +54,6 @@ from robotd.slam.models import (
     velocity2d_noise,
 )
 from robotd.slam.params import SlamParams, VisibleFn
-from robotd.statecheck import POSITION_LIMIT_M, StateTable, check_covariances
-from robotd.statecheck import check_finite as check_saved_finite
 
 logger = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from robotd.errors import PersistenceError
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
+from robotd.core.errors import PersistenceError
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 
 
 @runtime_checkable

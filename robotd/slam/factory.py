@@ -8,7 +8,7 @@ the filter reads its declared :class:`EstimatorKind` (:func:`estimator_kind`) in
 comparing names:
 
 - ``particles`` (a :class:`ParticleCost`, or None): the filter holds a particle set, so
-  ``slam.n_particles`` sizes it and is bounded by its cost (robotd.config_bounds), and the latency
+  ``slam.n_particles`` sizes it and is bounded by its cost (robotd.config.bounds), and the latency
   budget may trade particles for time (the daemon calls ``set_particles``);
 - ``anchored_covariance``: the filter's own pose covariance is only the last fix, so the reported
   covariance anchors new landmarks at it (robotd.slam.uncertainty.ReportedCovariance).
@@ -23,8 +23,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from robotd.choices import MEASUREMENTS
-from robotd.errors import ConfigError
+from robotd.core.choices import MEASUREMENTS
+from robotd.core.errors import ConfigError
 
 if TYPE_CHECKING:
     import numpy as np
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class ParticleCost:
-    """What one particle costs, for the bounds on ``slam.n_particles`` (robotd.config_bounds)."""
+    """What one particle costs, for the bounds on ``slam.n_particles`` (robotd.config.bounds)."""
 
     # µs of one step per particle and observation, on one core of the reference machine
     step_us_per_obs: float

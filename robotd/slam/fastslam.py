@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from robotd.errors import InputError, SingularityError
-from robotd.geometry import euler_to_R, rot2
-from robotd.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
+from robotd.core.errors import InputError, SingularityError
+from robotd.core.geometry import euler_to_R, rot2
+from robotd.core.msgs import LandmarkMap, MotionIncrement, PoseEstimate, UpdateReport
 from robotd.slam._book import LandmarkBook, note_and_recognise
 from robotd.slam._fastslam_gravity import gravity_update
 from robotd.slam._fastslam_state import check_state, saved_state

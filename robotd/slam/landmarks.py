@@ -29,7 +29,7 @@ from typing import Protocol
 
 import numpy as np
 
-from robotd.msgs import Observations, UpdateReport
+from robotd.core.msgs import Observations, UpdateReport
 from robotd.slam.estimator import Estimator
 
 _NONE = np.zeros(0, np.int64)

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.geometry import euler_to_R
-from robotd.msgs import LandmarkMap, Observations, PoseEstimate
-from robotd.stereo import covariance_from_points
+from robotd.core.geometry import euler_to_R
+from robotd.core.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.stereo import covariance_from_points
 
 
 def covariance_at_prediction(

@@ -20,8 +20,8 @@ from functools import partial
 
 import numpy as np
 
-from robotd.errors import EstimatorError, SingularityError
-from robotd.geometry import (
+from robotd.core.errors import EstimatorError, SingularityError
+from robotd.core.geometry import (
     R_to_euler,
     drot2,
     euler_rate_matrix,
@@ -46,7 +46,7 @@ def _rot3_all(eta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
 
     The products of docs/math.md §1.3 expanded in closed form and written into preallocated
     arrays: on the filters' hot path this is ~5× cheaper than composing stacked elementary
-    rotations (``robotd.geometry.euler_to_R_derivatives``, which the tests compare against).
+    rotations (``robotd.core.geometry.euler_to_R_derivatives``, which the tests compare against).
     """
     cr, sr = np.cos(eta[:, 0]), np.sin(eta[:, 0])
     cp, sp = np.cos(eta[:, 1]), np.sin(eta[:, 1])
@@ -416,7 +416,7 @@ def range_bearing_inverse(x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.
 # --------------------------------------------------------------------------------------------
 # Stereo pixel measurement (docs/slam.md "Measurement models"): z = π(R(η)ᵀ(m − p)), the landmark's
 # columns in the left and right rectified images and its row, π the rectified projection of
-# robotd.stereo.project. 3D: z = (x_L, x_R, y); 2D: z = (x_L, x_R) (no height, the columns do not
+# robotd.core.stereo.project. 3D: z = (x_L, x_R, y); 2D: z = (x_L, x_R) (no height, the columns do not
 # depend on it). The Jacobians chain π's through the Cartesian models': H = J_π(q) · H_cart.
 
 # Predicted depths are clamped to at least this: h stays finite for a landmark that a (wrong)
@@ -428,7 +428,7 @@ def stereo_projection(q: np.ndarray, f: float, px: float, py: float, b: float) -
     """π of robot-frame points and its Jacobian: q (B, 3) -> (x_L, x_R, y) (B, 3), J_π (B, 3, 3);
     q (B, 2) (X, Y) -> (x_L, x_R) (B, 2), J_π (B, 2, 2). Depths below PIXEL_MIN_DEPTH_M are clamped.
 
-    x_L = p_x + f (Y + b/2)/X, x_R = p_x + f (Y − b/2)/X, y = p_y + f Z/X (robotd.stereo.project).
+    x_L = p_x + f (Y + b/2)/X, x_R = p_x + f (Y − b/2)/X, y = p_y + f Z/X (robotd.core.stereo.project).
     """
     q = np.asarray(q, dtype=float)
     n = q.shape[-1]
@@ -455,7 +455,7 @@ def stereo_triangulation(z: np.ndarray, f: float, px: float, py: float, b: float
     """π⁻¹ and its Jacobian: z (B, 3) (x_L, x_R, y) -> q (B, 3), J (B, 3, 3) = ∂q/∂z (= J_π⁻¹);
     z (B, 2) (x_L, x_R) -> (X, Y) (B, 2), J (B, 2, 2). The disparity x_L − x_R must be positive.
 
-    robotd.stereo.triangulate (eq. 3.2.14) and its Jacobian (docs/math.md §3.1) written in q:
+    robotd.core.stereo.triangulate (eq. 3.2.14) and its Jacobian (docs/math.md §3.1) written in q:
     J = X/(f b) · [[−X, X, 0], [−(Y − b/2), Y + b/2, 0], [−Z, Z, b]].
     """
     z = np.asarray(z, dtype=float)

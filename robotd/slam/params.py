@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from robotd.choices import MEASUREMENTS
-from robotd.errors import ConfigError
+from robotd.core.choices import MEASUREMENTS
+from robotd.core.errors import ConfigError
 
 MOTION_COV_SOURCES = ("auto", "message", "model")
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.errors import EstimatorError
-from robotd.geometry import wrap_angle
+from robotd.core.errors import EstimatorError
+from robotd.core.geometry import wrap_angle
 from robotd.slam._linalg import logsumexp
 
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from robotd.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.msgs import LandmarkMap, Observations, PoseEstimate
 from robotd.slam.models import MeasurementModel
 
 # The χ² medians the robust NIS ratio divides by, per measurement size.
@@ -363,7 +363,7 @@ class ReportedCovariance:
         extra, self._extra = self._extra, np.zeros((6, 6))
         if not self.enabled:
             if not np.any(extra):
-                return pose  # (a PoseEstimate's mean and covariance are finite: robotd.msgs refuses others)
+                return pose  # (a PoseEstimate's mean and covariance are finite: robotd.core.msgs refuses others)
             return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, pose.cov + extra, pose.neff, pose.n_particles)
         cov = pose.cov * self.monitor.scale + extra
         if self.anchors is not None:

@@ -1,4 +1,4 @@
-"""bench/accuracy.py runs robotd's replays on replay-many's engine (robotd.batch) and keeps its table:
+"""bench/accuracy.py runs robotd's replays on replay-many's engine (robotd.tools.batch) and keeps its table:
 the same figures as a replay in this process, and with ``--out`` a rerun replays nothing."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from types import ModuleType
 import pytest
 
 from robotd.config import load_config
-from robotd.replay import replay
+from robotd.tools.replay import replay
 from tests.support.paths import REPO
 
 

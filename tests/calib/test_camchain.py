@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from calib.camchain import calibration_from_dict, calibration_to_dict, load_calibration, save_calibration
-from robotd.errors import CalibrationError
-from robotd.stereo import StereoCalibration, camera_matrix
+from robotd.core.errors import CalibrationError
+from robotd.core.stereo import StereoCalibration, camera_matrix
 
 
 def _calib(rng: np.random.Generator, model: str = "radtan", n: int = 4, skew: float = 0.0) -> StereoCalibration:

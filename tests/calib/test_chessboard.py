@@ -19,7 +19,7 @@ from calib.camchain import load_calibration
 from calib.check import row_offsets
 from calib.chessboard import StereoCalibrationReport, calibrate_directory, detect_corners, find_pairs
 from calib.cli import main
-from robotd.stereo import Rectifier, rectify_opencv, rectify_thesis, triangulate
+from robotd.core.stereo import Rectifier, rectify_opencv, rectify_thesis, triangulate
 from tests.support.tolerances import CONDITIONED_RTOL, ROUNDOFF_RTOL
 
 SET = ("stereo-calib", "opencv-chessboard-stereo")

@@ -13,7 +13,7 @@ import pytest
 
 from calib.camchain import save_calibration
 from calib.cli import main
-from robotd.stereo import StereoCalibration, camera_matrix
+from robotd.core.stereo import StereoCalibration, camera_matrix
 
 
 def _write_synthetic_pair(tmp_path: Path) -> tuple[Path, Path, Path]:

@@ -17,7 +17,7 @@ import yaml
 
 from calib.camchain import load_calibration, save_calibration
 from calib.cli import main
-from robotd.stereo import StereoCalibration, camera_matrix, rectify_opencv
+from robotd.core.stereo import StereoCalibration, camera_matrix, rectify_opencv
 from tests.support.kalibr_camchain import KALIBR_CAMERA_KEYS, KalibrError, read_camchain
 from tests.support.paths import REPO
 from tests.support.ros_camera_info import read_camera_info

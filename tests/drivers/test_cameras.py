@@ -39,17 +39,17 @@ from drivers.cameras import (
     register_camera,
     unregister_camera,
 )
-from robotd import doctor
-from robotd.batch.sources import check_sources, expand_sources, source_digest
-from robotd.cli import build_parser
 from robotd.config import load_config
+from robotd.core.errors import ConfigError, DriverError, InputError
+from robotd.core.msgs import StereoFrame
+from robotd.core.stereo import RectifiedStereo
+from robotd.daemon.device_urls import check_device_urls
 from robotd.daemon.devices import open_with_retry
 from robotd.daemon.sdnotify import Notifier
-from robotd.device_urls import check_device_urls
-from robotd.errors import ConfigError, DriverError, InputError
-from robotd.msgs import StereoFrame
-from robotd.replay import _frame_total, replay
-from robotd.stereo import RectifiedStereo
+from robotd.tools import doctor
+from robotd.tools.batch.sources import check_sources, expand_sources, source_digest
+from robotd.tools.cli import build_parser
+from robotd.tools.replay import _frame_total, replay
 from tests.calib.test_camchain import _calib
 from tests.support.paths import REPO
 from tests.support.saved_maps import sim_frames
@@ -221,10 +221,10 @@ def test_the_help_lists_a_registered_camera(fake: MemoryCameraDriver, capsys: py
 # Nothing outside drivers/ names a camera's scheme
 
 SCANNED = ("robotd", "calib")
-# robotd/config.py holds the configuration's defaults and each key's documentation (camera.url =
+# robotd/config/__init__.py holds the configuration's defaults and each key's documentation (camera.url =
 # "sim://", the URL forms it takes), which config/robotd.toml repeats; it is in the pipeline layer,
 # which may not import the drivers, so it cannot ask the registry.
-EXEMPT = {"robotd/config.py"}
+EXEMPT = {"robotd/config/__init__.py"}
 
 
 def _scheme_mentions(source: str, schemes: list[str]) -> list[tuple[int, str]]:

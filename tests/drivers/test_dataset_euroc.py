@@ -14,7 +14,7 @@ import yaml
 from calib.camchain import load_calibration, save_calibration
 from drivers import open_camera
 from drivers.dataset import EurocCamera, read_euroc_truth
-from robotd.errors import CalibrationError, DatasetError
+from robotd.core.errors import CalibrationError, DatasetError
 from tests.conftest import data_path
 from tests.support.tolerances import ROUNDOFF_ATOL
 

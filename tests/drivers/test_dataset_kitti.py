@@ -11,8 +11,8 @@ import pytest
 
 from drivers import StereoCamera, open_camera
 from drivers.dataset import KittiCamera, kitti_truth_to_robot, open_kitti_vehicle
-from robotd.errors import DatasetError, DriverError
-from robotd.geometry import R_ROBOT_OPTICAL, pose6_to_T, se3
+from robotd.core.errors import DatasetError, DriverError
+from robotd.core.geometry import R_ROBOT_OPTICAL, pose6_to_T, se3
 from tests.support.tolerances import CONDITIONED_ATOL, ROUNDOFF_ATOL
 
 F, CX, CY, B = 700.0, 16.0, 8.0, 0.5

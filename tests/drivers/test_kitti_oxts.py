@@ -20,8 +20,8 @@ from drivers.kitti_oxts import (
     read_timestamps_ns,
 )
 from robotd.config import ReplayConfig
-from robotd.errors import DatasetError, DriverError
-from robotd.geometry import rot_x, rot_y, rot_z
+from robotd.core.errors import DatasetError, DriverError
+from robotd.core.geometry import rot_x, rot_y, rot_z
 from tests.drivers.test_dataset_kitti import B, make_kitti
 from tests.support.tolerances import CONDITIONED_ATOL
 
@@ -200,7 +200,7 @@ DR_MAX_RPE_ROT_DEG = 0.25
 
 def test_oxts_dead_reckoning_follows_the_truth_of_kitti_raw_0009(shared_data) -> None:
     from drivers.dataset import KittiCamera
-    from robotd.odometry import OdometryGate, dead_reckon
+    from robotd.pipeline.odometry import OdometryGate, dead_reckon
     from robotd.research.evaluate import Trajectory, evaluate_trajectories
 
     root = shared_data("kitti-raw-0009", "raw")
@@ -220,7 +220,7 @@ def test_oxts_dead_reckoning_follows_the_truth_of_kitti_raw_0009(shared_data) ->
 @pytest.fixture(scope="module")
 def oxts_replay() -> dict:
     from robotd.config import load_config
-    from robotd.replay import replay
+    from robotd.tools.replay import replay
     from tests.conftest import data_path
 
     root = data_path("kitti-raw-0009")

@@ -21,11 +21,11 @@ from drivers.mavlink_link import MavlinkVehicle, mavlink_module, parse_mavlink_u
 from drivers.mavlink_mock import MockAutopilot
 from drivers.mavlink_options import DEFAULT_RATES_HZ
 from drivers.mavlink_setup import ORIGIN_CHECK_S
-from robotd import autopilot
-from robotd.autopilot import DIAG_INDEX
-from robotd.errors import DriverError
-from robotd.geometry import euler_to_R
-from robotd.msgs import PoseEstimate
+from robotd.core.errors import DriverError
+from robotd.core.geometry import euler_to_R
+from robotd.core.msgs import PoseEstimate
+from robotd.formats import autopilot
+from robotd.formats.autopilot import DIAG_INDEX
 from tests.support.tolerances import CENTRAL_DIFF_ATOL, FLOAT32_ROUNDING_TOL
 from tests.support.waiting import wait_for
 
@@ -50,7 +50,7 @@ def stream_poses(link: MavlinkVehicle, duration_s: float, hz: float = 30.0, qual
 
 
 def test_enum_values_match_pymavlink() -> None:
-    # robotd.autopilot hard-codes these to stay pymavlink-free
+    # robotd.formats.autopilot hard-codes these to stay pymavlink-free
     assert autopilot.MAV_FRAME_LOCAL_FRD == m.MAV_FRAME_LOCAL_FRD == 20
     assert autopilot.MAV_FRAME_BODY_FRD == m.MAV_FRAME_BODY_FRD == 12
     assert autopilot.MAV_ESTIMATOR_TYPE_VIO == m.MAV_ESTIMATOR_TYPE_VIO
@@ -136,7 +136,7 @@ def test_odometry_pose_covariance_is_the_estimates_in_the_mavlink_frames() -> No
     triangle row-major (docs/mavlink.md §2), the floor raising only diagonal entries below it."""
     from pymavlink.quaternion import Quaternion
 
-    from robotd.geometry import numerical_jacobian
+    from robotd.core.geometry import numerical_jacobian
 
     rng = np.random.default_rng(14)
     xyz, rpy = np.array([12.5, -3.25, 0.75]), np.array([0.12, -0.31, 2.6])  # yawed far from identity
@@ -601,7 +601,7 @@ def test_refused_rates_are_retried_at_half_logged_counted_and_in_health(caplog: 
     without the link being any less ok."""
     from robotd.daemon.budget import LatencyBudget
     from robotd.daemon.health import HealthMonitor
-    from robotd.queues import DropOldestQueue
+    from robotd.formats.queues import DropOldestQueue
 
     caplog.set_level(logging.INFO, logger="drivers.mavlink_link")
     rates = {"ATTITUDE": 50.0, "WHEEL_DISTANCE": 50.0, "SYSTEM_TIME": 1.0}
@@ -653,7 +653,7 @@ def test_local_position_odometry_covers_every_frame_with_a_slow_attitude_stream(
     half the frames without odometry (issue 24: 291 of 544 on the SITL). Each sample now takes
     the attitude at its own stamp, the yaw carried by the yaw rate. Simulated clock: the
     autopilot's messages go through the link's own handlers with given arrival times."""
-    from robotd.odometry import OdometryIntegrator
+    from robotd.pipeline.odometry import OdometryIntegrator
 
     link = MavlinkVehicle("mavlink+udp://127.0.0.1:14551?mode=in", sysid=1)  # never opened: no socket
     ap = _Autopilot()

@@ -26,7 +26,7 @@ import pytest
 
 from drivers.mavlink_link import MavlinkVehicle
 from drivers.mavlink_options import DEFAULT_RATES_HZ
-from robotd.odometry import OdometryIntegrator
+from robotd.pipeline.odometry import OdometryIntegrator
 from tests.support.paths import REPO
 
 SITL_ENV = "ROBOTD_ARDUPILOT_SITL"

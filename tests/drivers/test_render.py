@@ -10,8 +10,8 @@ import pytest
 from drivers._render import ViewRenderer, clip_polygon_z
 from drivers.sim import SimParams, SimRig
 from drivers.simworld import build_world, make_surface
-from robotd.geometry import euler_to_R, se3
-from robotd.stereo import project, triangulate
+from robotd.core.geometry import euler_to_R, se3
+from robotd.core.stereo import project, triangulate
 from tests.support.tolerances import FLOAT32_ARITH_TOL, ROUNDOFF_ATOL
 
 F, PX, PY, B, W, H = 430.0, 319.5, 199.5, 0.0755, 640, 400
@@ -242,7 +242,7 @@ def test_enough_orb_features_on_most_frames(rig: SimRig):
 def test_truth_poses_agree_with_the_motion_the_images_show(rig: SimRig, k0: int):
     """A feature of frame k0, lifted with the z-buffer and moved by the truth's relative pose,
     reprojects onto its SIFT match in frame k0 + 6 (0.2 s later): truth and images agree."""
-    from robotd.geometry import se3_inverse
+    from robotd.core.geometry import se3_inverse
 
     m = rig.model
     f0, depth0 = rig.render(k0, 0)

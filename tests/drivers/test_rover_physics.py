@@ -34,7 +34,7 @@ from drivers.rover_physics import (
     encode_truth,
     main,
 )
-from robotd.errors import DriverError
+from robotd.core.errors import DriverError
 from tests.support.paths import REPO
 from tests.support.tolerances import CONDITIONED_ATOL, CONDITIONED_RTOL, ROUNDOFF_ATOL
 

@@ -15,8 +15,8 @@ from drivers import open_vehicle
 from drivers.mcu_sim import McuSimulator, open_pty
 from drivers.serial_link import SerialVehicle
 from drivers.serial_protocol import U32, WheelGeometry, encode_frame
-from robotd.errors import DriverError
-from robotd.msgs import PoseEstimate
+from robotd.core.errors import DriverError
+from robotd.core.msgs import PoseEstimate
 from tests.support.tolerances import FLOAT32_ARITH_TOL, FLOAT32_ROUNDING_TOL
 from tests.support.waiting import wait_for
 

@@ -30,7 +30,7 @@ from drivers.serial_protocol import (
     seq_gap,
     tick_delta,
 )
-from robotd.errors import ProtocolError
+from robotd.core.errors import ProtocolError
 
 U32 = 1 << 32
 

@@ -12,8 +12,8 @@ import pytest
 
 from drivers import AutopilotLink, StereoCamera, VehicleLink, open_camera, open_vehicle
 from drivers.sim import SimVehicle, open_sim_camera, open_sim_vehicle, parse_sim_url
-from robotd.errors import DriverError
-from robotd.geometry import T_to_pose6, se3, se3_inverse, so3_exp
+from robotd.core.errors import DriverError
+from robotd.core.geometry import T_to_pose6, se3, se3_inverse, so3_exp
 from tests.support.paths import REPO
 
 SMALL = "width=160&height=100"  # fast renders where the image content does not matter
@@ -234,7 +234,7 @@ def test_close_from_another_thread_stops_iteration_promptly(kind: str):
 
 
 def test_send_pose_reports_the_error_against_truth():
-    from robotd.msgs import PoseEstimate
+    from robotd.core.msgs import PoseEstimate
 
     with open_sim_vehicle("sim://?realtime=0&seed=4") as veh:
         t_ns = veh.sample_t_ns(100)

@@ -15,9 +15,9 @@ import pytest
 from drivers import open_camera, open_vehicle
 from drivers.sim import SimParams, SimRig
 from drivers.simworld import WORLDS, LaneCrossing, build_world
+from robotd.core.geometry import T_to_pose6, se3_inverse
+from robotd.core.stereo import triangulate
 from robotd.frontend.detectors import DetectorParams, make_detector
-from robotd.geometry import T_to_pose6, se3_inverse
-from robotd.stereo import triangulate
 
 NEW_WORLDS = ("turn_in_place", "moving_box", "low_texture", "open_terrain")
 FPS = 30.0
@@ -328,7 +328,7 @@ def terrain_frames():
     """Frames around the lap at 640×400 (car pace: frame k is k metres on), their depth, the
     front end's ORB features and stereo matches with the far limit at 0.5 px."""
     from robotd.config import load_config
-    from robotd.config_params import frontend_params_from_config
+    from robotd.config.params import frontend_params_from_config
     from robotd.frontend.frontend import Frontend
 
     out = []

@@ -14,8 +14,8 @@ from drivers.rover_physics import TruthSample, encode_truth
 from drivers.sim import open_sim_camera, open_sim_vehicle, parse_sim_url
 from drivers.simfollow import MAX_EXTRAPOLATION_S, FollowedTrajectory
 from drivers.simworld import LoopTrajectory
-from robotd.errors import DriverError
-from robotd.geometry import R_to_euler
+from robotd.core.errors import DriverError
+from robotd.core.geometry import R_to_euler
 from tests.support.tolerances import ROUNDOFF_ATOL
 
 

@@ -215,7 +215,7 @@ def check_serial_handler(link: Any, frames: Sequence[Any], t_host_ns: Sequence[i
     ``RobotdError`` counted as a bad value (nothing else may come out); then every odometry sample
     is finite and the plausibility gate refuses (and counts) the implausible ones, and the controls
     are within ±1. Returns the number of bad values."""
-    from robotd.errors import RobotdError
+    from robotd.core.errors import RobotdError
     from tests.support.odometry_checks import assert_finite_and_gated
 
     bad = 0
@@ -282,7 +282,7 @@ class SerialTarget:
 
     def check(self, case: Case) -> str:
         from drivers.serial_protocol import decode_frame
-        from robotd.errors import ProtocolError
+        from robotd.core.errors import ProtocolError
 
         msgs, spans, touched, cuts, wheel_source = case.context
         try:
@@ -551,7 +551,7 @@ def check_config(blob: bytes, tmp: Path) -> str:
     """The loader returns a Config or raises ConfigError with a one-line message; whatever it
     accepts, ``print-config`` (``to_toml``) writes back as TOML that loads to the same Config."""
     from robotd.config import load_config, to_toml
-    from robotd.errors import ConfigError
+    from robotd.core.errors import ConfigError
 
     path = tmp / "c.toml"
     path.write_bytes(blob)
@@ -865,15 +865,15 @@ PER_INPUT_S = 2.0  # a mutated input is read (twice) in well under this; the cam
 
 
 def recording_model() -> Any:
-    from robotd.stereo import RectifiedStereo
+    from robotd.core.stereo import RectifiedStereo
 
     return RectifiedStereo(60.0, 32.0, 20.0, 0.075, 64, 40)
 
 
 def small_recording(tmp: Path) -> bytes:
     """A small real format-2 recording (8 frames of 64×40, several chunks) by SessionWriter."""
-    from robotd.msgs import Odometry, PoseEstimate, StereoFrame
-    from robotd.record import SessionWriter
+    from robotd.core.msgs import Odometry, PoseEstimate, StereoFrame
+    from robotd.formats.record import SessionWriter
 
     rng = np.random.default_rng(7)
     path = tmp / "small.mcap"
@@ -1008,8 +1008,8 @@ def read_all(path: Path, limit_s: float | None = PER_INPUT_S) -> str:
     robotd's own error may come out (and, with ``limit_s``, within that time). Returns
     ``"read"`` (both to the end), ``"stopped"`` (read up to damage) or ``"refused"``."""
     from drivers.dataset import McapCamera
-    from robotd.errors import RobotdError
-    from robotd.record import SessionReader
+    from robotd.core.errors import RobotdError
+    from robotd.formats.record import SessionReader
 
     t0 = time.monotonic()
     outcome = "read"

@@ -2,7 +2,7 @@
 values of every TOML type (and out of every range), nesting, mutated copies of the shipped file and
 raw bytes that are not UTF-8. The loader returns a Config or raises ConfigError with a one-line
 message, nothing else; and whatever it accepts, ``print-config`` writes back as TOML that loads to
-the same Config (tests/robotd/test_config.py covers arbitrary strings in one key; this covers whole
+the same Config (tests/robotd/config/test_config.py covers arbitrary strings in one key; this covers whole
 documents).
 """
 

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.mavlink_link import mavlink_module
-from robotd.odometry import OdometryGate
+from robotd.pipeline.odometry import OdometryGate
 from tests.fuzz.targets import (
     AUTOPILOT,
     INT_RANGES,

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from drivers.dataset import McapCamera
-from robotd.record import SessionReader
+from robotd.formats.record import SessionReader
 from tests.fuzz.targets import (
     FORMAT1_RECORDING,
     PNG_SIDES,

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.serial_protocol import ControlInputs, Frame, Heartbeat, Version, WheelOdometry, decode_frame
-from robotd.errors import ProtocolError
-from robotd.odometry import OdometryGate
+from robotd.core.errors import ProtocolError
+from robotd.pipeline.odometry import OdometryGate
 from tests.fuzz.targets import check_decoded_stream, check_serial_handler, encode_stream, mutate_stream, serial_link
 
 U32 = 1 << 32

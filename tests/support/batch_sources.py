@@ -17,7 +17,7 @@ def sim_url(seed: int, world: str = "yard", extra: str = "") -> str:
 def write_recording(path: Path, seed: int, max_frames: int = 10) -> Path:
     """A robotd recording (MCAP) of a short simulated drive, written by the recording writer."""
     import drivers
-    from robotd.record import SessionWriter, record_session
+    from robotd.formats.record import SessionWriter, record_session
 
     url = sim_url(seed)
     with drivers.open_camera(url) as cam, drivers.open_vehicle(url) as veh:

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from robotd.msgs import Odometry
-from robotd.odometry import OdometryGate
+from robotd.core.msgs import Odometry
+from robotd.pipeline.odometry import OdometryGate
 
 
 def assert_finite_and_gated(samples: Sequence[Odometry]) -> None:

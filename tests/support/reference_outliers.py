@@ -1,10 +1,10 @@
-"""Readable numpy twins of the outlier stage's numba kernels (robotd/_outlier_kernels.py).
+"""Readable numpy twins of the outlier stage's numba kernels (robotd/core/_outlier_kernels.py).
 
-- :func:`similarity_d2_numpy`: the Mahalanobis consensus of ``robotd.outliers.similarity_d2``.
-- :func:`fit_similarity_mahalanobis_numpy`: the weighted re-fit ``robotd.outliers.fit_similarity_mahalanobis``.
+- :func:`similarity_d2_numpy`: the Mahalanobis consensus of ``robotd.core.outliers.similarity_d2``.
+- :func:`fit_similarity_mahalanobis_numpy`: the weighted re-fit ``robotd.core.outliers.fit_similarity_mahalanobis``.
 
-Moved here unchanged from robotd/outliers.py (with :func:`_exp_rot`, which only the twin used). The
-pieces the runtime shares with the twin are imported from robotd.outliers, not copied, so both
+Moved here unchanged from robotd/core/outliers.py (with :func:`_exp_rot`, which only the twin used). The
+pieces the runtime shares with the twin are imported from robotd.core.outliers, not copied, so both
 compute the residuals, the Gauss–Newton stopping tolerance and the fit's covariance alike.
 """
 
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from robotd.outliers import GN_STEP_TOL, _fit_covariance, mahalanobis_sq, similarity_residuals
+from robotd.core.outliers import GN_STEP_TOL, _fit_covariance, mahalanobis_sq, similarity_residuals
 
 
 def similarity_d2_numpy(
@@ -27,12 +27,12 @@ def similarity_d2_numpy(
     B: np.ndarray | None,
     euclidean: bool = False,
 ) -> np.ndarray:
-    """Readable twin of :func:`robotd.outliers.similarity_d2` and its Mahalanobis kernel
+    """Readable twin of :func:`robotd.core.outliers.similarity_d2` and its Mahalanobis kernel
     ``_outlier_kernels.similarity_d2_kernel``: the same formulas on stacked (K, N, d, d) covariances
-    and :func:`robotd.outliers.mahalanobis_sq`.
+    and :func:`robotd.core.outliers.mahalanobis_sq`.
 
     Agreement: rtol 1e-10 for d = 2, 3 with A and B, A only, B only
-    (tests/robotd/test_outliers.py::test_d2_kernel_matches_numpy_reference).
+    (tests/robotd/core/test_outliers.py::test_d2_kernel_matches_numpy_reference).
     """
     e = similarity_residuals(s, R, t, a, b)
     if euclidean:
@@ -75,13 +75,13 @@ def fit_similarity_mahalanobis_numpy(
     with_scale: bool = True,
     iterations: int = 5,
 ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Readable twin of :func:`robotd.outliers.fit_similarity_mahalanobis` and its kernels
+    """Readable twin of :func:`robotd.core.outliers.fit_similarity_mahalanobis` and its kernels
     ``_outlier_kernels.gn_weights`` and ``gn_fit``: the weights by ``np.linalg.inv`` and the
     Gauss–Newton loop on stacked Jacobians, with the same start, perturbations, stopping rule
-    (``GN_STEP_TOL``) and covariance (``robotd.outliers._fit_covariance``, shared).
+    (``GN_STEP_TOL``) and covariance (``robotd.core.outliers._fit_covariance``, shared).
 
     Agreement: s, R, t and cov to rtol 1e-9, atol 1e-12, in 2-D and 3-D, with and without scale
-    (tests/robotd/test_outliers.py::test_weighted_fit_kernel_matches_numpy_reference).
+    (tests/robotd/core/test_outliers.py::test_weighted_fit_kernel_matches_numpy_reference).
     """
     n, d = a.shape
     C = np.zeros((n, d, d))

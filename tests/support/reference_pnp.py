@@ -8,9 +8,9 @@ import math
 
 import numpy as np
 
+from robotd.core.geometry import skew, so3_exp
+from robotd.core.stereo import RectifiedStereo
 from robotd.frontend.pnp import PnpParams, project_stereo, projection_jacobian
-from robotd.geometry import skew, so3_exp
-from robotd.stereo import RectifiedStereo
 
 
 def residuals_jacobian(

@@ -1,7 +1,7 @@
 """Real saved maps for the persistence tests: the state of a pipeline that ran on ``sim://`` frames,
 made once per test session, and the map file format written around any (mutated) content.
 
-``seal`` writes the documented file layout (robotd.persist: magic, length, CBOR payload, CRC-32)
+``seal`` writes the documented file layout (robotd.formats.persist: magic, length, CBOR payload, CRC-32)
 itself, so a test can put content into a file that ``MapStore.save`` would never write, with a
 checksum that holds.
 """
@@ -19,12 +19,12 @@ import cbor2
 import numpy as np
 
 import drivers
-from robotd.codec import pack_tree
 from robotd.config import Config, load_config
-from robotd.msgs import StereoFrame
-from robotd.persist import MAGIC, STATE_SCHEMA
-from robotd.pipeline import Pipeline
-from robotd.stereo import RectifiedStereo
+from robotd.core.msgs import StereoFrame
+from robotd.core.stereo import RectifiedStereo
+from robotd.formats.codec import pack_tree
+from robotd.formats.persist import MAGIC, STATE_SCHEMA
+from robotd.pipeline.step import Pipeline
 
 N_MAP_FRAMES = 20  # frames the saved map is built from (~100 landmarks)
 # small, so that each fuzz example (EKF SLAM's cost grows with the square of the map) is cheap
@@ -82,7 +82,7 @@ def saved_state(filt: str = "fastslam2", dim: int = 3) -> dict[str, Any]:
 
 
 def payload(state: Any, robot: str = "r1", t_ns: int = 1, **top: Any) -> bytes:
-    """The CBOR payload of a map file holding ``state`` (arrays packed as robotd.codec does);
+    """The CBOR payload of a map file holding ``state`` (arrays packed as robotd.formats.codec does);
     ``top`` replaces or adds top-level payload keys."""
     msg = {"schema": STATE_SCHEMA, "robot": robot, "saved_unix_s": 0.0, "t_ns": t_ns, "state": pack_tree(state)}
     msg.update(top)

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.geometry import euler_to_R, wrap_angle
-from robotd.msgs import MotionIncrement, Observations
-from robotd.stereo import project, triangulate, triangulation_covariance
+from robotd.core.geometry import euler_to_R, wrap_angle
+from robotd.core.msgs import MotionIncrement, Observations
+from robotd.core.stereo import project, triangulate, triangulation_covariance
 
 # a KITTI-like rectified rig (f [px], p_x [px], p_y [px], baseline [m]) for the pixel-noise worlds
 KITTI_RIG = (718.0, 607.0, 185.0, 0.54)
@@ -55,7 +55,7 @@ class World:
             dr[1] = 0.01 * np.sin(0.2 * self.t)
             dp[2] = 0.01 * np.sin(0.25 * self.t)
         R = euler_to_R(self.x[3:])
-        from robotd.geometry import R_to_euler, so3_exp
+        from robotd.core.geometry import R_to_euler, so3_exp
 
         self.x[:3] += R @ dp
         self.x[3:] = wrap_angle(R_to_euler(R @ so3_exp(dr)))  # the §6.3 model (docs/math.md)

@@ -63,7 +63,7 @@ distances span many decades, so agreement is relative (measured ≤ 1e-14 relati
 # ------------------------------------------------------------------ derivatives
 
 CENTRAL_DIFF_ATOL = 1e-6
-"""An analytic Jacobian against robotd.geometry.numerical_jacobian (central differences, default
+"""An analytic Jacobian against robotd.core.geometry.numerical_jacobian (central differences, default
 step h = 1e-6): truncation h²/6·|f'''| ≈ 2e-13·|f'''| plus round-off EPS·|f|/h ≈ 2e-10·|f|. For
 the O(1)…O(10) functions tested that is ≤ ~2e-9 (measured ≤ 1.8e-9); 1e-6 is a ≥ 500× margin and
 still far below the error of a wrong sign or a missing term (O(0.1))."""
@@ -101,7 +101,7 @@ arccos(1 − δ) ≈ √(2δ), so a cosine COSINE_ROUNDOFF below 1 reads as √(
 floor is of the method, not of the data: the next double below 1 (δ = EPS/2) already reads as
 1.5e-8 rad, δ = EPS as 2.1e-8 rad = 1.2e-6 deg, which is why "heading RMSE < 1e-6 deg" after a
 rigid motion held on one CPU only. The same holds near π: arccos(−1 + δ) = π − √(2δ), so angles
-within ~1e-8 rad of π come back as exactly π (robotd.geometry.so3_log). Rotation matrix entries
+within ~1e-8 rad of π come back as exactly π (robotd.core.geometry.so3_log). Rotation matrix entries
 move by at most the angle error, so this bounds them too. A real alignment or rotation error is
 orders of magnitude larger."""
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robotd.errors import DatasetError
+from robotd.core.errors import DatasetError
 
 logger = logging.getLogger(__name__)
 

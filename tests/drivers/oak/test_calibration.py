@@ -13,8 +13,8 @@ import pytest
 from calib.camchain import load_calibration
 from calib.cli import main
 from drivers.oak import import_oak_calibration, load_oak_eeprom_json, open_oak_camera, read_device_calibration
-from robotd.errors import CalibrationError, DriverError
-from robotd.stereo import Rectifier
+from robotd.core.errors import CalibrationError, DriverError
+from robotd.core.stereo import Rectifier
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL
 
 # the README quotes the factory translation to 0.001 cm (1e-5 m)

@@ -23,7 +23,7 @@ from drivers.oak.camera import (  # noqa: E402
     make_sync,
     timedelta_ns,
 )
-from robotd.errors import DriverError  # noqa: E402
+from robotd.core.errors import DriverError  # noqa: E402
 from tests.support.tolerances import CONDITIONED_ATOL, CONDITIONED_RTOL, FLOAT32_ROUNDING_TOL  # noqa: E402
 
 # the README quotes the factory translation to 0.001 cm (1e-5 m)
@@ -364,7 +364,7 @@ def test_a_calibration_file_the_oak_cannot_use_is_refused_before_any_device(
     shared_data, tmp_path, url: str, size: tuple[int, int], message: str
 ) -> None:
     import drivers
-    from robotd.errors import CalibrationError
+    from robotd.core.errors import CalibrationError
 
     user = _recalibrated(shared_data, tmp_path, size)
     with pytest.raises(CalibrationError, match=message):

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from drivers.oak.host import check_udev, check_usb
-from tests.robotd.test_doctor import fake_sysfs
+from tests.robotd.tools.test_doctor import fake_sysfs
 from tests.support.paths import REPO
 
 

@@ -14,13 +14,13 @@ from typing import Any
 
 import pytest
 
-from robotd.cli import main
 from robotd.config import load_config
+from robotd.core.errors import ConfigError, DriverError
 from robotd.daemon import Daemon
 from robotd.daemon.devices import open_devices, open_with_retry
 from robotd.daemon.sdnotify import Notifier
-from robotd.errors import ConfigError, DriverError
-from robotd.pipeline import Pipeline
+from robotd.pipeline.step import Pipeline
+from robotd.tools.cli import main
 from tests.support.daemon_runs import HANG_GUARD_S, run_until
 from tests.support.paths import REPO
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from robotd.codec import decode_map
+from robotd.formats.codec import decode_map
 from tests.support.net import free_port, zenoh_client
 
 FPS = 10  # the simulated camera's rate

@@ -12,7 +12,7 @@ import robotd.outputs as outputs_mod
 from robotd.config import load_config
 from robotd.daemon import Daemon
 from robotd.outputs import Output, StepReport
-from robotd.pipeline import Pipeline
+from robotd.pipeline.step import Pipeline
 from tests.support.daemon_runs import HANG_GUARD_S, run_until
 
 

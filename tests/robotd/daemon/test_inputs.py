@@ -17,14 +17,14 @@ from typing import Any
 import pytest
 
 from robotd.config import load_config
+from robotd.core.msgs import StereoFrame
 from robotd.daemon import Daemon
 from robotd.daemon.health import DaemonStats
 from robotd.daemon.inputs import pump_frames, pump_odometry
-from robotd.msgs import StereoFrame
-from robotd.pipeline import Pipeline
-from robotd.queues import DropOldestQueue
-from robotd.record import SessionReader
-from robotd.replay import replay
+from robotd.formats.queues import DropOldestQueue
+from robotd.formats.record import SessionReader
+from robotd.pipeline.step import Pipeline
+from robotd.tools.replay import replay
 from tests.support.mcap_decode import decode_all
 
 FPS, SECONDS = 20, 3
@@ -105,7 +105,7 @@ class _Vehicle:
     def odometry(self, timeout_s: float = 1.0) -> Any:
         import numpy as np
 
-        from robotd.msgs import Odometry
+        from robotd.core.msgs import Odometry
 
         for k in range(50):
             yield Odometry(k, np.zeros(3), np.zeros(3))

@@ -2,7 +2,7 @@
 samples of that time lost (a stopped host), while the rover drives on. Before, the pose after
 it was tens of metres off (the constant-velocity prior's σ of 84 m spread the particles) and the
 steps failed at the pitch singularity; now the motion across the gap is the constant-velocity
-guess (robotd.stall) and the error stays within what driving 4 m blind allows.
+guess (robotd.pipeline.stall) and the error stays within what driving 4 m blind allows.
 
 The run ends 30 poses after the stall (3 s of the rover's time), not after 11 s of the host's: on a
 busy machine those may hold far fewer poses (tests/support/daemon_runs.py)."""

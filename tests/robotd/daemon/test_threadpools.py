@@ -67,7 +67,7 @@ def test_blas_threads_limited_while_running_and_restored(tmp_path: Path) -> None
 
 ENV_SCRIPT = r"""
 import json, os, sys
-import robotd.cli  # noqa: F401  (the robotd command's module: sets the defaults at import)
+import robotd.tools.cli  # noqa: F401  (the robotd command's module: sets the defaults at import)
 print(json.dumps({
     "omp": os.environ.get("OMP_WAIT_POLICY"),
     "blas": os.environ.get("OPENBLAS_NUM_THREADS"),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError, InputError, PersistenceError
+from robotd.core.errors import ConfigError, InputError, PersistenceError
 from robotd.frontend.association import (
     IDENTIFIED,
     NEW,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError, InputError
+from robotd.core.errors import ConfigError, InputError
 from robotd.frontend.detectors import DetectorParams, bucket_select, make_detector, surf_available
 from tests.support.images import smooth_texture
 

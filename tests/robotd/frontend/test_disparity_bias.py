@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 import robotd.frontend.stereo_match as sm
-from robotd.cli import main
-from robotd.errors import ConfigError
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import so3_exp
+from robotd.core.stereo import RectifiedStereo
 from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams, solve_offset
 from robotd.frontend.pnp import project_stereo as _project
-from robotd.geometry import so3_exp
-from robotd.stereo import RectifiedStereo
+from robotd.tools.cli import main
 
 RIG = RectifiedStereo(707.0, 601.0, 183.0, 0.537, 1241, 376)  # KITTI-like
 

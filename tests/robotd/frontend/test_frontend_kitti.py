@@ -8,13 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from robotd.errors import InputError
+from robotd.core.errors import InputError
+from robotd.core.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
+from robotd.core.msgs import Observations
+from robotd.core.outliers import OutlierParams
+from robotd.core.stereo import RectifiedStereo
 from robotd.frontend.detectors import DetectorParams, surf_available
 from robotd.frontend.frontend import Frontend, FrontendParams
-from robotd.geometry import R_ROBOT_OPTICAL, se3, se3_inverse
-from robotd.msgs import Observations
-from robotd.outliers import OutlierParams
-from robotd.stereo import RectifiedStereo
 
 DETECTORS = ["orb", "sift", pytest.param("surf", marks=pytest.mark.skipif(not surf_available(), reason="no SURF"))]
 

@@ -110,10 +110,10 @@ def test_bucket_kernel_equals_numpy(rng):
 
 def test_warmup_compiles_every_signature_the_pipeline_uses():
     # the daemon warms the kernels at start-up: its frames must not trigger a compile
-    from robotd import _outlier_kernels, outliers
     from robotd.config import load_config
+    from robotd.core import _outlier_kernels, outliers
     from robotd.frontend import _detect_kernels, _stereo_kernels, detectors, stereo_match
-    from robotd.pipeline import Pipeline
+    from robotd.pipeline.step import Pipeline
 
     kernels = [
         _detect_kernels.bucket_kernel,
@@ -140,8 +140,8 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
 
 def test_kernel_wrappers_refuse_inputs_the_kernels_would_read_past():
     # the kernels have no bounds checks: the wrappers must say what is wrong instead
-    from robotd.errors import InputError
-    from robotd.outliers import fit_similarity_mahalanobis, similarity_d2
+    from robotd.core.errors import InputError
+    from robotd.core.outliers import fit_similarity_mahalanobis, similarity_d2
 
     i, j, d = np.array([0, 0, 1]), np.array([0, 5, 1]), np.ones(3, np.float32)
     with pytest.raises(InputError, match="0 <= j < n_j = 4"):

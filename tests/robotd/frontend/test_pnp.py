@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import numerical_jacobian, so3_exp, so3_log
+from robotd.core.stereo import RectifiedStereo, triangulate
 from robotd.frontend.pnp import (
     MotionPrior,
     PnpParams,
@@ -14,8 +16,6 @@ from robotd.frontend.pnp import (
     projection_jacobian,
     stereo_pnp,
 )
-from robotd.geometry import numerical_jacobian, so3_exp, so3_log
-from robotd.stereo import RectifiedStereo, triangulate
 from tests.support import reference_pnp
 from tests.support.reference_pnp import residuals_jacobian
 

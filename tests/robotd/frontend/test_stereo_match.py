@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError, InputError
+from robotd.core.errors import ConfigError, InputError
+from robotd.core.stereo import RectifiedStereo, gate_selection_shift
 from robotd.frontend.detectors import DetectorParams, make_detector
 from robotd.frontend.features import Features
 from robotd.frontend.stereo_match import (
@@ -19,7 +20,6 @@ from robotd.frontend.stereo_match import (
     ratio_and_cross_check,
     refine_disparity,
 )
-from robotd.stereo import RectifiedStereo, gate_selection_shift
 from tests.support.images import smooth_texture
 from tests.support.tolerances import FLOAT32_ARITH_TOL
 

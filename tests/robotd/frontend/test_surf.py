@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from robotd import jit as J
-from robotd.errors import ConfigError, InputError
+from robotd.core import jit as J
+from robotd.core.errors import ConfigError, InputError
 from robotd.frontend import _surf_kernels as K
 from robotd.frontend import surf as S
 from robotd.frontend.features import Features
@@ -438,7 +438,7 @@ def test_init_sample_two_finds_the_blob_too() -> None:
 
 def test_jit_falls_back_without_a_disk_cache(monkeypatch: pytest.MonkeyPatch, caplog) -> None:
     """With no writable cache location numba refuses cache=True; the kernel must still compile, with
-    the same options otherwise (robotd.jit, the decorator of every kernel module)."""
+    the same options otherwise (robotd.core.jit, the decorator of every kernel module)."""
     real_njit = J.numba.njit
     calls: list[dict] = []
 

@@ -18,9 +18,9 @@ import pytest
 
 import robotd.outputs as outputs_mod
 from drivers.mavlink_mock import MockAutopilot, Received
-from robotd.autopilot import ResetCounterPolicy
 from robotd.config import load_config
 from robotd.daemon import Daemon
+from robotd.formats.autopilot import ResetCounterPolicy
 from robotd.outputs import Output, StepReport
 from tests.support.daemon_runs import HANG_GUARD_S, run_until
 from tests.support.tolerances import FLOAT32_ROUNDING_TOL

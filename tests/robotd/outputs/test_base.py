@@ -24,9 +24,9 @@ import pytest
 
 import robotd.outputs as outputs_mod
 from robotd.config import load_config
+from robotd.core.errors import DriverError
+from robotd.core.msgs import Odometry, StereoFrame
 from robotd.daemon import Daemon
-from robotd.errors import DriverError
-from robotd.msgs import Odometry, StereoFrame
 from robotd.outputs import Output, OutputContext, OutputRunner, StepReport
 from robotd.outputs.runner import QUEUE_SIZE
 from tests.support.daemon_runs import HANG_GUARD_S, run_until

@@ -24,13 +24,13 @@ pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk (robotd
 from websockets.sync.client import ClientConnection, connect
 
 from robotd.config import Config, LiveViewConfig
-from robotd.errors import DriverError
-from robotd.msgs import LandmarkMap, Observations, Odometry, PoseEstimate, StepResult, StereoFrame, UpdateReport
+from robotd.core.errors import DriverError
+from robotd.core.msgs import LandmarkMap, Observations, Odometry, PoseEstimate, StepResult, StereoFrame, UpdateReport
+from robotd.core.stereo import RectifiedStereo
+from robotd.formats.record import CHANNELS
 from robotd.outputs import OutputContext, build_outputs
 from robotd.outputs.base import StepReport
 from robotd.outputs.liveview import LiveViewOutput
-from robotd.record import CHANNELS
-from robotd.stereo import RectifiedStereo
 from tests.support.net import free_port
 from tests.support.paths import REPO
 

@@ -90,7 +90,7 @@ def test_unfinished_saves_of_dead_processes_are_removed_at_start(tmp_path: Path,
 
 
 def test_a_map_that_failed_to_resume_is_kept_not_overwritten(tmp_path: Path) -> None:
-    from robotd.errors import MapMismatchError
+    from robotd.core.errors import MapMismatchError
 
     class OtherFilter:  # a run whose config no longer matches the saved map (slam.dim 3 -> 2, say)
         def load_state_dict(self, state: object) -> None:

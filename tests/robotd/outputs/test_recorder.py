@@ -22,13 +22,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from robotd.cli import main
+from robotd.core.msgs import Odometry, PoseEstimate, StepResult, StereoFrame, UpdateReport
+from robotd.core.stereo import RectifiedStereo
 from robotd.daemon.health import HealthMonitor
-from robotd.msgs import Odometry, PoseEstimate, StepResult, StereoFrame, UpdateReport
+from robotd.formats.record import SessionReader, SessionWriter
 from robotd.outputs.base import StepReport
 from robotd.outputs.recorder import RecorderOutput, SampleQueue, summary_line
-from robotd.record import SessionReader, SessionWriter
-from robotd.stereo import RectifiedStereo
+from robotd.tools.cli import main
 from tests.support.mcap_decode import decode_all
 from tests.support.paths import REPO
 
@@ -211,8 +211,8 @@ def test_a_write_error_stops_the_recording_with_its_reason(tmp_path: Path) -> No
 
 def test_a_write_error_stops_robotd_record_with_exit_status_1(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from robotd.config import load_config
+    from robotd.core.errors import PersistenceError
     from robotd.daemon import Daemon
-    from robotd.errors import PersistenceError
 
     def full(self: SessionWriter, frame: StereoFrame) -> None:
         raise PersistenceError(f"{self.path}: No space left on device (simulated)")

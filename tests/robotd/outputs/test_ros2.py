@@ -14,7 +14,7 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from robotd.config import ZenohConfig
-from robotd.msgs import LandmarkMap, PoseEstimate, StepResult, UpdateReport
+from robotd.core.msgs import LandmarkMap, PoseEstimate, StepResult, UpdateReport
 from robotd.outputs.base import StepReport
 from robotd.outputs.ros2 import pose_to_ros
 from robotd.outputs.zenoh import ZenohOutput

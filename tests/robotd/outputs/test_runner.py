@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from robotd.core.errors import DriverError
+from robotd.core.msgs import Odometry, StereoFrame
 from robotd.daemon.health import HealthMonitor
-from robotd.errors import DriverError
-from robotd.msgs import Odometry, StereoFrame
 from robotd.outputs import Output, OutputRunner, StepReport, enter_output
 from robotd.outputs.runner import QUEUE_SIZE
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from robotd.cli import main
 from robotd.config import ZenohConfig
-from robotd.errors import DriverError
+from robotd.core.errors import DriverError
 from robotd.outputs.zenoh import ZenohOutput
+from robotd.tools.cli import main
 
 
 @pytest.fixture
@@ -45,8 +45,8 @@ def test_record_beside_a_run_leaves_no_file_when_it_cannot_start(
 
 
 def test_a_recording_that_got_no_frame_is_not_written(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from robotd.core.stereo import RectifiedStereo
     from robotd.outputs.recorder import RecorderOutput
-    from robotd.stereo import RectifiedStereo
 
     out = tmp_path / "empty.mcap"
     rec = RecorderOutput(str(out), RectifiedStereo(400.0, 320.0, 200.0, 0.075, 640, 400), {})

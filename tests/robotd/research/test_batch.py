@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import InputError
-from robotd.geometry import numerical_jacobian
+from robotd.core.errors import InputError
+from robotd.core.geometry import numerical_jacobian
 from robotd.research.batch import build_problem, solve_batch, solve_sim
 from robotd.research.evaluate import ate, poses_to_T
 from robotd.research.landmark_sim import SimConfig, dead_reckoning, simulate

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.errors import DatasetError, InputError
-from robotd.geometry import pose6_to_T, rot_z, se3, so3_exp
+from robotd.core.errors import DatasetError, InputError
+from robotd.core.geometry import pose6_to_T, rot_z, se3, so3_exp
 from robotd.research.evaluate import (
     MIN_PATH_FOR_RELATIVE_M,
     Trajectory,
@@ -271,7 +271,7 @@ def test_kitti_truth_is_read_with_its_times_and_in_the_robot_frame(tmp_path):
     assert r["ate_rmse_m"] < TUM_POSE_ATOL and r["drift_m"] < TUM_POSE_ATOL and r["rpe_trans_m"] < TUM_POSE_ATOL
     # the same estimate against truth left at the left camera (only the axes changed) errs by the
     # lever arm b/2 swinging through the turn: the comparison the robot frame fixes
-    from robotd.geometry import T_optical_to_robot
+    from robotd.core.geometry import T_optical_to_robot
 
     tr = read_kitti_poses(poses)
     m = evaluate_trajectories(Trajectory(tr.t_s, G), Trajectory(tr.t_s, T_optical_to_robot(tr.T)))
@@ -308,7 +308,7 @@ def test_kitti_truth_errors_and_a_missing_calibration(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="robotd.research.evaluate"):
         tr = read_trajectory(poses)
     assert "no calib.txt" in caplog.text
-    from robotd.geometry import T_optical_to_robot
+    from robotd.core.geometry import T_optical_to_robot
 
     assert np.allclose(tr.T, T_optical_to_robot(read_kitti_poses(poses).T), atol=1e-12)
 
@@ -374,7 +374,7 @@ def test_a_kitti_file_written_from_robot_poses_holds_the_left_cameras_and_reads_
 
 def _plain_umeyama_rmse(P: np.ndarray, Q: np.ndarray) -> float:
     """APE after the least-squares rigid fit of positions (Umeyama 1991), written out here as evo_ape
-    -a does it, independent of robotd.geometry."""
+    -a does it, independent of robotd.core.geometry."""
     p, q = P[:, :3, 3], Q[:, :3, 3]
     mp, mq = p.mean(0), q.mean(0)
     U, _, Vt = np.linalg.svd((q - mq).T @ (p - mp) / len(p))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.geometry import euler_to_R, se3
+from robotd.core.geometry import euler_to_R, se3
 from robotd.research.evaluate import ate
 
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from robotd.geometry import rot_z, se3, so3_exp
+from robotd.core.geometry import rot_z, se3, so3_exp
 from robotd.research.evaluate import (
     align_by_positions,
     cumulative_path,

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.errors import InputError
-from robotd.geometry import rot_z, se3
+from robotd.core.errors import InputError
+from robotd.core.geometry import rot_z, se3
 from robotd.research.evaluate import KITTI_SEGMENT_LENGTHS_M, segment_drift
 from tests.support.tolerances import ANGLE_FROM_COSINE_FLOOR_DEG, CONDITIONED_RTOL
 

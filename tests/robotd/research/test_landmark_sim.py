@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import ConfigError
-from robotd.geometry import euler_to_R
+from robotd.core.errors import ConfigError
+from robotd.core.geometry import euler_to_R
+from robotd.core.stereo import gate_selection_shift
 from robotd.research.landmark_sim import SimConfig, apply_increment, dead_reckoning, inject_mismatches, simulate
-from robotd.stereo import gate_selection_shift
 from tests.support.tolerances import CONDITIONED_ATOL
 
 SHORT2 = SimConfig(dim=2, path_length_m=40.0, landmark_density_per_m2=1.2)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import drivers
-from robotd.geometry import se3_inverse
+from robotd.core.geometry import se3_inverse
 from robotd.research.pnp_baseline import PnPOdometry, run_pnp
 from tests.support.paths import REPO
 

@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.msgs import Observations
+from robotd.core.msgs import Observations
+from robotd.core.statecheck import StateTable
 from robotd.slam._book import RECOGNISE_ANGLE_DEG, RECOGNISE_SCALE, LandmarkBook
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
-from robotd.statecheck import StateTable
 
 AHEAD = np.array([[1.0, 0.0, 0.0]])  # landmark -> robot, world frame
 
@@ -60,7 +60,7 @@ def test_views_survive_the_state_and_old_states_load() -> None:
 
 
 def test_implausible_views_are_refused_by_name() -> None:
-    from robotd.errors import PersistenceError
+    from robotd.core.errors import PersistenceError
 
     book, _ = _noted(4.0)
     state = book.state_dict()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.msgs import Observations
+from robotd.core.msgs import Observations
 from robotd.slam import models as md
 from robotd.slam.ekf import EkfSlam
 from robotd.slam.factory import make_estimator

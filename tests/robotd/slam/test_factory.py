@@ -18,14 +18,14 @@ import numpy as np
 import pytest
 
 import drivers
-from robotd import config_bounds
+from robotd.config import bounds as config_bounds
 from robotd.config import config_from_dict, load_config
-from robotd.config_bounds import Sizing, check_bounds
+from robotd.config.bounds import Sizing, check_bounds
+from robotd.core.errors import ConfigError, PersistenceError
+from robotd.core.geometry import R_to_euler, pose6_to_T, se3, so3_exp, transform_points
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
 from robotd.daemon import Daemon
-from robotd.errors import ConfigError, PersistenceError
-from robotd.geometry import R_to_euler, pose6_to_T, se3, so3_exp, transform_points
-from robotd.msgs import LandmarkMap, MotionIncrement, Observations, PoseEstimate, UpdateReport
-from robotd.pipeline import Pipeline
+from robotd.pipeline.step import Pipeline
 from robotd.slam import factory
 from robotd.slam.estimator import Estimator, Persistent, persistent
 from robotd.slam.factory import ESTIMATORS, EstimatorKind, ParticleCost, make_estimator, register, unregister

@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from robotd.errors import InputError, PersistenceError
-from robotd.msgs import MotionIncrement, Observations
+from robotd.core.errors import InputError, PersistenceError
+from robotd.core.msgs import MotionIncrement, Observations
 from robotd.slam import models as md
 from robotd.slam._kernels import fastslam_step
 from robotd.slam.factory import make_estimator
@@ -446,7 +446,7 @@ def test_mixture_estimate_does_not_depend_on_resampling(filt: str) -> None:
 
 
 def test_bad_estimator_options_name_the_key() -> None:
-    from robotd.errors import ConfigError
+    from robotd.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="slam.fs2_weights"):
         SlamParams(fs2_weights="joint")

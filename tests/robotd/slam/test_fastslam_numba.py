@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import EstimatorError, InputError
-from robotd.msgs import MotionIncrement
+from robotd.core.errors import EstimatorError, InputError
+from robotd.core.msgs import MotionIncrement
 from robotd.slam import models as md
 from robotd.slam._store import LandmarkStore
 from robotd.slam.factory import make_estimator

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.geometry import umeyama
+from robotd.core.geometry import umeyama
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
 

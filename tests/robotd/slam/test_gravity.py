@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import InputError
-from robotd.geometry import euler_to_R, numerical_jacobian
-from robotd.msgs import MotionIncrement, Odometry
+from robotd.core.errors import InputError
+from robotd.core.geometry import euler_to_R, numerical_jacobian
+from robotd.core.msgs import MotionIncrement, Odometry
 from robotd.slam import models as md
 from robotd.slam.factory import make_estimator
 from robotd.slam.params import SlamParams
@@ -116,7 +116,7 @@ def test_odometry_and_increment_check_their_gravity() -> None:
 @pytest.mark.parametrize("name", FILTERS)
 def test_reopen_lets_gravity_correct_a_filter_too_sure_of_a_wrong_tilt(name: str) -> None:
     """An unmodelled gyro bias leaves the filter sure of a wrong tilt: the gate then refuses the
-    right measurement for good. Reopened, roll and pitch take it (robotd.stages.attitude's
+    right measurement for good. Reopened, roll and pitch take it (robotd.pipeline.stages.attitude's
     Attitude.fuse_gravity does so after GRAVITY_REOPEN_S of refusals)."""
     est = make_estimator(SlamParams(filter=name, dim=3, n_particles=200), np.random.default_rng(5))
     x0 = np.array([0.0, 0.0, 0.0, 0.12, -0.1, 0.3])  # 6.9° and -5.7° off level, σ 0.06°
@@ -134,14 +134,14 @@ def test_reopen_lets_gravity_correct_a_filter_too_sure_of_a_wrong_tilt(name: str
 def _turning(t_s: float, tilt_W: np.ndarray | None = None) -> np.ndarray:
     """R_world_robot of a level rover turning at 0.5 rad/s, the world optionally tilted by a
     small rotation vector ``tilt_W`` (an error of the filter's attitude, fixed in the world)."""
-    from robotd.geometry import so3_exp
+    from robotd.core.geometry import so3_exp
 
     R = euler_to_R(np.array([0.0, 0.0, 0.5 * t_s]))
     return R if tilt_W is None else so3_exp(tilt_W) @ R
 
 
 def test_gravity_bias_fixed_in_the_robot_is_learnt_as_the_rover_turns() -> None:
-    from robotd.stages.attitude import GravityBias
+    from robotd.pipeline.stages.attitude import GravityBias
 
     b = np.array([0.005, -0.004, 0.0])  # a tilted IMU: 0.37° across the vertical
     gb = GravityBias(60.0)
@@ -155,7 +155,7 @@ def test_gravity_bias_fixed_in_the_robot_is_learnt_as_the_rover_turns() -> None:
 
 
 def test_gravity_bias_leaves_a_world_fixed_attitude_error_to_the_filter() -> None:
-    from robotd.stages.attitude import GravityBias
+    from robotd.pipeline.stages.attitude import GravityBias
 
     tilt = np.array([0.01, -0.008, 0.0])  # the filter's world is 0.73° off the vertical
     gb = GravityBias(60.0)
@@ -168,7 +168,7 @@ def test_gravity_bias_leaves_a_world_fixed_attitude_error_to_the_filter() -> Non
 
 
 def test_gravity_bias_off_is_the_identity() -> None:
-    from robotd.stages.attitude import GravityBias
+    from robotd.pipeline.stages.attitude import GravityBias
 
     g = np.array([0.1, 0.0, 1.0]) / np.linalg.norm([0.1, 0.0, 1.0])
     gb = GravityBias(0.0)
@@ -195,7 +195,7 @@ def test_gravity_leaves_the_heading_alone_in_a_tilted_world() -> None:
 
 
 def test_gravity_bias_is_capped_at_a_mounting_error() -> None:
-    from robotd.stages.attitude import GRAVITY_BIAS_MAX_RAD, GravityBias
+    from robotd.pipeline.stages.attitude import GRAVITY_BIAS_MAX_RAD, GravityBias
 
     gb = GravityBias(60.0)
     g_meas = euler_to_R(np.array([0.2, 0.0, 0.0])).T @ DOWN  # 11° off what the filter expects

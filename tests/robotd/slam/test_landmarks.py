@@ -20,11 +20,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from robotd.config import load_config
-from robotd.errors import InputError
-from robotd.msgs import Observations
-from robotd.pipeline import Pipeline
+from robotd.core.errors import InputError
+from robotd.core.msgs import Observations
+from robotd.core.stereo import RectifiedStereo
+from robotd.pipeline.step import Pipeline
 from robotd.slam.landmarks import LandmarkRegistry
-from robotd.stereo import RectifiedStereo
 
 RIG = RectifiedStereo(700.0, 320.0, 200.0, 0.12, 640, 400)
 
@@ -47,7 +47,7 @@ class Filter:
         self.prune: list[int] = []
 
     def update(self, obs: Observations):
-        from robotd.msgs import UpdateReport
+        from robotd.core.msgs import UpdateReport
 
         self.ids.update(obs.ids[obs.is_new].tolist())
         pruned = np.array(sorted(set(self.prune) & self.ids), np.int64)
@@ -179,7 +179,7 @@ def test_every_store_holds_the_filters_landmarks_whatever_happens(filt: str, act
 def test_a_replay_ends_with_as_many_descriptors_as_landmarks(monkeypatch) -> None:
     """``robotd replay`` on the simulated rover: at the end the descriptor store holds exactly the
     filter's landmarks (the soak once found 233 835 descriptors for 2 675 landmarks)."""
-    from robotd.replay import replay
+    from robotd.tools.replay import replay
 
     seen: list[Pipeline] = []
     pruned = []

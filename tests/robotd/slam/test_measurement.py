@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from robotd.geometry import euler_to_R
-from robotd.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.geometry import euler_to_R
+from robotd.core.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.stereo import covariance_from_points
 from robotd.research.batch import solve_sim
 from robotd.research.evaluate import ate, poses_to_T
 from robotd.research.experiments import run_filter
 from robotd.research.landmark_sim import SimConfig, simulate
 from robotd.slam.measurement import covariance_at_prediction
-from robotd.stereo import covariance_from_points
 from tests.support.tolerances import ROUNDOFF_RTOL
 
 F, B, SX, SY = 430.0, 0.0755, 0.5, 0.5 / np.sqrt(2.0)

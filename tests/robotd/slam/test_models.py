@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import EstimatorError
-from robotd.geometry import euler_to_R, numerical_jacobian, rot2, so3_exp
+from robotd.core.errors import EstimatorError
+from robotd.core.geometry import euler_to_R, numerical_jacobian, rot2, so3_exp
+from robotd.core.stereo import project, triangulation_jacobian
 from robotd.slam import models as md
-from robotd.stereo import project, triangulation_jacobian
 from tests.support.tolerances import CENTRAL_DIFF_ATOL, ROUNDOFF_ATOL, ULP_ATOL
 
 # ω = 1e-3 rad/s off the straight-line limit, central differences at h = 1e-5: the limit form and the
@@ -74,7 +74,7 @@ def test_motion3d_jacobians() -> None:
 
 
 def test_motion3d_rejects_pitch_singularity() -> None:
-    from robotd.errors import EstimatorError
+    from robotd.core.errors import EstimatorError
 
     x = np.array([[0.0, 0.0, 0.0, 0.0, np.pi / 2, 0.0]])
     with pytest.raises(EstimatorError, match="pitch"):
@@ -161,7 +161,7 @@ def test_noise_models_grow_with_motion() -> None:
 
 
 def test_closed_form_rotations_match_geometry() -> None:
-    from robotd.geometry import euler_to_R, euler_to_R_derivatives
+    from robotd.core.geometry import euler_to_R, euler_to_R_derivatives
 
     eta = np.random.default_rng(4).uniform(-3, 3, (20, 3))
     eta[:, 1] /= 2.5
@@ -219,8 +219,8 @@ def test_pixel_measurement_jacobians(dim: int, seed: int) -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_pixel_model_is_the_rigs_projection(dim: int) -> None:
-    """h is robotd.stereo.project of R(η)ᵀ(m − p) (2D: its columns); the inverse's J_z is R times the
-    triangulation Jacobian of robotd.stereo at the pixels."""
+    """h is robotd.core.stereo.project of R(η)ᵀ(m − p) (2D: its columns); the inverse's J_z is R times the
+    triangulation Jacobian of robotd.core.stereo at the pixels."""
     model, x, m, q = _pixel_case(dim, 7)
     q3 = np.r_[q, 0.0][:3]
     uv = np.stack(project(q3[None], *RIG), -1)[0]

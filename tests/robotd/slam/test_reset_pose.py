@@ -50,7 +50,7 @@ def test_reset_pose_then_track_from_there(name: str, dim: int) -> None:
 
 @pytest.mark.parametrize("name", ["ekf", "fastslam2"])
 def test_reset_pose_refuses_bad_input_and_changes_nothing(name: str) -> None:
-    from robotd.errors import InputError
+    from robotd.core.errors import InputError
 
     world = World(3, np.random.default_rng(1), sigma_z=0.02)
     est = make_estimator(SlamParams(filter=name, dim=3, n_particles=20), np.random.default_rng(2))
@@ -70,8 +70,8 @@ def test_reset_pose_refuses_bad_input_and_changes_nothing(name: str) -> None:
 
 
 def test_pose_from_a_similarity_that_is_not_finite_is_none() -> None:
-    from robotd.outliers import OutlierResult
-    from robotd.relocalise import pose_from_similarity
+    from robotd.core.outliers import OutlierResult
+    from robotd.pipeline.relocalise import pose_from_similarity
 
     def res(s, R, t):
         return OutlierResult(

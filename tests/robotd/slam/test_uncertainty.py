@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from robotd.geometry import euler_to_R, so3_exp, so3_log
-from robotd.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.geometry import euler_to_R, so3_exp, so3_log
+from robotd.core.msgs import LandmarkMap, Observations, PoseEstimate
 from robotd.slam.models import CARTESIAN_3D
 from robotd.slam.uncertainty import (
     AnchoredCovariance,
@@ -229,7 +229,7 @@ def test_on_real_kitti_drives_the_reported_covariance_covers_the_error(folder: s
     scale), the default configuration's position NEES is inside the 95 % χ²(3) band on at least
     80 % of the poses after them. Measured 0.90 and 1.00 (0.19 and 0.36 without the drift term)."""
     from robotd.config import load_config
-    from robotd.replay import replay
+    from robotd.tools.replay import replay
 
     s = replay(load_config(None, {}), f"kitti://{shared_data(folder)}", progress=False)
     assert s["truth_aligned_nees_pos_frames"] >= 40

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robotd.errors import DatasetError
+from robotd.core.errors import DatasetError
 from robotd.research.datasets.mrclam import MRCLAM1_SWAP_11_17, load_mrclam
 from robotd.research.experiments import run_mrclam
 

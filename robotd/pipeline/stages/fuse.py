@@ -1,0 +1,86 @@
+"""The filter's stages of the step: predict with the motion prior (and, in 3D, the vehicle's
+gravity), the consistency monitor's look at the frame before the update, and the update, which
+hands the filter the frame's observations through the landmark registry (robotd.slam.landmarks)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from robotd.config import Config
+from robotd.core.errors import SingularityError
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, UpdateReport
+from robotd.core.stereo import RectifiedStereo
+from robotd.core.timing import StageClock, stage
+from robotd.pipeline.stages.attitude import Attitude
+from robotd.slam.estimator import Estimator
+from robotd.slam.landmarks import LandmarkRegistry
+from robotd.slam.measurement import covariance_at_prediction
+from robotd.slam.uncertainty import ReportedCovariance
+
+
+class Fuse:
+    """The stages ``predict``, ``consistency`` and ``update`` on ``estimator``."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        rig: RectifiedStereo,
+        estimator: Estimator,
+        registry: LandmarkRegistry,
+        covariance: ReportedCovariance,
+        attitude: Attitude,
+        clock: StageClock,
+    ) -> None:
+        self.cfg = cfg
+        self.rig = rig
+        self.estimator = estimator
+        self.registry = registry
+        self.covariance = covariance
+        self.attitude = attitude
+        self.clock = clock
+
+    @stage("predict")
+    def predict(self, inc: MotionIncrement | None) -> None:
+        """The filter moved by ``inc`` (None: not moved), its covariance scaled by
+        ``slam.motion_noise_scale``; then, in 3D, the vehicle's gravity fused (slam.gravity)."""
+        if inc is not None:
+            k = self.cfg.slam.motion_noise_scale
+            if k != 1.0:
+                inc = dataclasses.replace(inc, cov=inc.cov * k)
+            try:
+                self.estimator.predict(inc)
+            except SingularityError:
+                # a pose (a particle) at pitch ±90°: no rover is there, and the model cannot move
+                # it, so every later frame would fail the same way; level it and go on
+                self.attitude.level(inc.t1_ns)
+                self.estimator.predict(inc)
+            if inc.gravity_R is not None and self.cfg.slam.gravity and self.cfg.slam.dim == 3:
+                self.attitude.fuse_gravity(inc.gravity_R, inc.gravity_sigma_rad, inc.t1_ns)
+
+    @stage("consistency")
+    def consistency(self, obs: Observations, landmarks: LandmarkMap) -> None:
+        """Before the update: the NIS of the frame's re-observations at the predicted pose, for
+        the reported covariance's consistency monitor (slam.covariance = "consistent")."""
+        self.covariance.observe(self.estimator.estimate(), obs, landmarks)
+
+    @stage("update")
+    def update(self, obs: Observations, landmarks: LandmarkMap) -> UpdateReport:
+        """The frame's observations into the filter, through the landmark registry: the landmarks
+        the filter prunes leave every store that keeps something for them."""
+        f = self.cfg.frontend
+        if f.cov_at == "predicted" and landmarks.n and self.cfg.slam.measurement == "cartesian":
+            # Q of re-observations at the predicted point, not the noisy pixels (docs/slam.md); the
+            # pixel model's noise is constant
+            obs = covariance_at_prediction(
+                obs,
+                self.estimator.estimate(),
+                landmarks,
+                self.rig.f_px,
+                self.rig.baseline_m,
+                f.sigma_x_px,
+                f.sigma_y_px,
+                f.cov_inflation,
+                f.depth_min_m,
+                planar=self.cfg.slam.dim == 2,
+            )
+        return self.registry.update(obs)

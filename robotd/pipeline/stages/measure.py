@@ -1,0 +1,111 @@
+"""The front end's stages as the step times them, and select.
+
+:class:`robotd.frontend.frontend.Frontend` does the work of detect, stereo, motion, identify and
+outliers; each method here is the one call of it the step makes, under the stage's name. Select is
+the pipeline's: it caps the filter's work per frame and commits the frame's decisions, numbering
+the new landmarks, which the landmark registry then holds as pending until the filter takes them
+(robotd.slam.landmarks).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robotd.config import Config
+from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, StereoFrame
+from robotd.core.timing import StageClock, stage
+from robotd.frontend.association import IDENTIFIED, NEW
+from robotd.frontend.frontend import FeaturePair, Frontend, Identification, Screening, VisualMotion
+from robotd.frontend.pnp import MotionPrior
+from robotd.frontend.stereo_match import StereoMatches
+from robotd.slam.landmarks import LandmarkRegistry
+
+# a frame that re-observed fewer map landmarks than this (the outlier stage's minimum) cannot be
+# fixed by the map: with slam.new_landmarks = "adaptive" its new landmarks are spread over depth
+ADAPTIVE_MIN_REOBSERVED = 6
+
+
+class Measure:
+    """The measuring stages of the step: ``frontend``'s, then select."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        frontend: Frontend,
+        rng: np.random.Generator,
+        registry: LandmarkRegistry,
+        clock: StageClock,
+    ) -> None:
+        self.cfg = cfg
+        self.frontend = frontend
+        self.rng = rng
+        self.registry = registry
+        self.clock = clock
+
+    @stage("detect")
+    def detect(self, frame: StereoFrame) -> FeaturePair:
+        """Features in both images (with ``frontend.parallel_detect``, the right one on the
+        front end's worker meanwhile)."""
+        return self.frontend.detect(frame.left, frame.right)
+
+    @stage("stereo")
+    def stereo(self, feats: FeaturePair, frame: StereoFrame) -> StereoMatches:
+        """Row matches triangulated with their covariance, in the robot frame."""
+        return self.frontend.match_stereo(feats, frame.left, frame.right)
+
+    @stage("motion")
+    def motion(
+        self, meas: StereoMatches, t_ns: int, increment: MotionIncrement | None, prior: MotionPrior | None
+    ) -> VisualMotion:
+        """The images' own motion since the last frame, checked against ``prior``: wanted on
+        vision alone (no odometry ``increment``) and with PnP, whose outliers against the prior
+        are the points that moved."""
+        wanted = increment is None or self.cfg.frontend.motion == "pnp"
+        return self.frontend.visual_motion(meas, t_ns, wanted, prior)
+
+    @stage("identify")
+    def identify(self, meas: StereoMatches, landmarks: LandmarkMap, view: np.ndarray | None) -> Identification:
+        """The measurements against the map's landmarks, those predicted in ``view`` (the predicted
+        pose T_world_robot (4, 4); None: the whole map)."""
+        return self.frontend.identify(meas, landmarks, view)
+
+    @stage("outliers")
+    def outliers(self, meas: StereoMatches, ident: Identification) -> Screening:
+        """The outlier stage on the putative matches (robotd.core.outliers); failures become REJECTED."""
+        return self.frontend.screen(meas, ident)
+
+    @stage("select")
+    def select(
+        self, meas: StereoMatches, ident: Identification, t_ns: int, moving: np.ndarray | None = None
+    ) -> Observations:
+        """Cap the filter's work per frame (slam.max_updates_per_frame, slam.max_new_per_frame): a
+        spread subset of the identified measurements, and the nearest new ones (smallest
+        covariance: the most precise landmarks to start from). The chosen new measurements become
+        landmarks (global ids, proposed to the landmark registry); the others are left out.
+        ``moving``: measurements seen to move since the previous frame (the outliers of the rover's
+        motion) do not become landmarks: the nearest points, first in line, are often on a vehicle."""
+        status = ident.corr.status
+        k_upd, k_new = self.cfg.slam.max_updates_per_frame, self.cfg.slam.max_new_per_frame
+        old, new = np.flatnonzero(status == IDENTIFIED), np.flatnonzero(status == NEW)
+        if moving is not None:
+            new = new[~np.isin(new, moving)]
+            old = old[~np.isin(old, moving)]
+        if old.size > k_upd:
+            old = np.sort(self.rng.choice(old, size=k_upd, replace=False))
+        if new.size > k_new:
+            new = self._pick_new(meas, new, k_new, reobserved=old.size)
+        self.frontend.commit(meas, ident, t_ns, new)
+        self.registry.propose(ident.corr.ids[new])
+        return self.frontend.observations(meas, ident, t_ns, np.sort(np.concatenate([old, new])))
+
+    def _pick_new(self, meas: StereoMatches, new: np.ndarray, k: int, reobserved: int) -> np.ndarray:
+        """``k`` of the ``new`` measurements (indices, sorted) to become landmarks, by precision
+        (the trace of their covariance): the most precise; with ``slam.new_landmarks = "adaptive"``
+        in a frame that re-observed fewer than ``ADAPTIVE_MIN_REOBSERVED`` landmarks, ``k`` spread
+        evenly over the precision ranks instead (near to far)."""
+        order = np.argsort(np.trace(meas.cov_R[new], axis1=1, axis2=2), kind="stable")
+        if self.cfg.slam.new_landmarks == "adaptive" and reobserved < ADAPTIVE_MIN_REOBSERVED:
+            pick = order[np.unique(np.linspace(0, order.size - 1, k).round().astype(np.int64))]
+        else:
+            pick = order[:k]
+        return np.sort(new[pick])

@@ -1,0 +1,1 @@
+"""Tests of the ``robotd.config`` package; this directory mirrors robotd/config/."""

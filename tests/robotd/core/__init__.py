@@ -1,0 +1,1 @@
+"""Tests of the ``robotd.core`` package; this directory mirrors robotd/core/."""

@@ -1,0 +1,1 @@
+"""Tests of the ``robotd.formats`` package; this directory mirrors robotd/formats/."""

@@ -1,0 +1,1 @@
+"""Tests of the ``robotd.pipeline`` package; this directory mirrors robotd/pipeline/."""

@@ -1,0 +1,1 @@
+"""Tests of the ``robotd.tools`` package; this directory mirrors robotd/tools/."""
