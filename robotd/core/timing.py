@@ -2,8 +2,10 @@
 
 A stage of ``Pipeline.step`` is a method decorated with :func:`stage` on an object that holds the
 step's :class:`StageClock` (robotd/pipeline/stages/): the step calls it as a plain method, and the
-decorator records how long it took under the stage's name. ``time.perf_counter`` only measures;
-nothing here reads a wall clock or sleeps, so a step stays pure with respect to I/O.
+decorator records how long it took under the stage's name. The front end's own stages are timed
+the same way, into the front end's clock (``Frontend.process``, robotd/frontend/frontend.py): a
+stage is always a decorated method, never a call wrapped by its caller. ``time.perf_counter`` only
+measures; nothing here reads a wall clock or sleeps, so a step stays pure with respect to I/O.
 """
 
 from __future__ import annotations
@@ -29,13 +31,6 @@ class StageClock:
         (what :meth:`finish` returned) are left as they were."""
         self.ms = {}
         self._t0 = time.perf_counter()
-
-    def run(self, stage: str, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
-        """Call ``fn(*args, **kwargs)`` as the stage ``stage`` and record how long it took."""
-        t0 = time.perf_counter()
-        out = fn(*args, **kwargs)
-        self.ms[stage] = (time.perf_counter() - t0) * 1e3
-        return out
 
     def finish(self) -> dict[str, float]:
         """The stage timings with ``total`` (since the clock was made or started) added."""

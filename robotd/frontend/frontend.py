@@ -1,6 +1,8 @@
 """The front end: a rectified stereo pair -> identified landmark measurements (docs/math.md §2–§5).
 
-Its stages are methods that the pipeline calls one by one, in data-flow order:
+Its stages are methods that the pipeline calls one by one, in data-flow order; the five it times
+(detect, stereo, identify, outliers, motion) are decorated with their stage's name
+(robotd.core.timing.stage) and time themselves into the front end's clock:
 
 - :meth:`Frontend.detect`: features in both images;
 - :meth:`Frontend.match_stereo`: stereo matches, triangulated with their covariance (§2–§3);
@@ -11,7 +13,8 @@ Its stages are methods that the pipeline calls one by one, in data-flow order:
 - :meth:`Frontend.commit`: identified landmarks take the new descriptors, the new landmarks the
   filter will initialise get their global ids, and the frame becomes "the previous frame".
 
-:meth:`Frontend.process` runs all of them for a caller without a filter (benchmarks, tests).
+:meth:`Frontend.process` runs all of them, as plain calls, for a caller without a filter
+(benchmarks, tests), and reports the clock's timings.
 
 Pure with respect to I/O: no threads, files or sockets (a worker thread detects the second image
 at the same time); randomness from the injected generator. State between frames: the landmark
@@ -41,7 +44,7 @@ from robotd.core.outliers import (
     ransac_similarity,
 )
 from robotd.core.stereo import RectifiedStereo, project
-from robotd.core.timing import StageClock
+from robotd.core.timing import StageClock, stage
 from robotd.frontend.association import (
     IDENTIFIED,
     NEW,
@@ -263,6 +266,10 @@ class Frontend:
         self.descriptors = descriptors
         self._prev: _PrevFrame | None = None
         self.disparity_bias = DisparityBias(self.params.disparity_bias)
+        # the clock the front end's stages time themselves into (robotd.core.timing.stage), which
+        # process() reads; the step times the same calls into its own clock through its stages
+        # (robotd/pipeline/stages/measure.py) and never reads this one
+        self.clock = StageClock()
 
     def reset(self) -> None:
         """Forget the previous frame (after a gap or a relocalisation); keeps the descriptors."""
@@ -270,6 +277,7 @@ class Frontend:
         self.disparity_bias.reset_tracks()
 
     # ---------------------------------------------------------------------------- the stages
+    @stage("detect")
     def detect(self, left: np.ndarray, right: np.ndarray) -> FeaturePair:
         """Features of a rectified pair: ``left``/``right`` (H, W) uint8 images of the rig's size."""
         left = check_image(left, "left")
@@ -296,12 +304,14 @@ class Frontend:
             self.descriptors = LandmarkDescriptors(dim, self.detector.binary)
         return FeaturePair(fl, fr)
 
+    @stage("stereo")
     def match_stereo(self, feats: FeaturePair, left: np.ndarray, right: np.ndarray) -> StereoMatches:
         """Stereo matches of the pair, triangulated in the robot frame with their covariance."""
         return match_stereo(
             feats.left, feats.right, self.rig, self.params.stereo, left, right, self.disparity_bias.value_px
         )
 
+    @stage("identify")
     def identify(
         self,
         meas: StereoMatches,
@@ -355,6 +365,7 @@ class Frontend:
             return None
         return corr
 
+    @stage("outliers")
     def screen(self, meas: StereoMatches, ident: Identification) -> Screening:
         """The outlier stage on the IDENTIFIED candidates; the failures become REJECTED."""
         corr = ident.corr
@@ -386,6 +397,7 @@ class Frontend:
         corr.status[cand[~inl]] = REJECTED
         return Screening(res, res.T_b_a() if (res.accepted and ident.ref_is_map) else None)
 
+    @stage("motion")
     def visual_motion(
         self, meas: StereoMatches, t_ns: int, wanted: bool = True, prior: MotionPrior | None = None
     ) -> VisualMotion:
@@ -531,14 +543,14 @@ class Frontend:
     ) -> FrontendResult:
         """Every stage on one rectified pair, for callers without a filter (benchmarks, tests): all
         new measurements become landmarks. Arguments as for :meth:`detect` and :meth:`identify`."""
-        clock = StageClock()
-        feats = clock.run("detect", self.detect, left, right)
-        meas = clock.run("stereo", self.match_stereo, feats, left, right)
-        ident = clock.run("identify", self.identify, meas, map_landmarks_W, T_world_robot_prior)
-        screen = clock.run("outliers", self.screen, meas, ident)
-        motion = clock.run("motion", self.visual_motion, meas, t_ns, self.params.motion)
+        self.clock.start()
+        feats = self.detect(left, right)
+        meas = self.match_stereo(feats, left, right)
+        ident = self.identify(meas, map_landmarks_W, T_world_robot_prior)
+        screen = self.screen(meas, ident)
+        motion = self.visual_motion(meas, t_ns, self.params.motion)
         self.commit(meas, ident, t_ns)
-        timings = clock.finish()
+        timings = self.clock.finish()
         counts = self.counts(feats, meas, ident, screen, motion)
         logger.debug("frontend t=%d: %s; ms %s", t_ns, counts, {k: round(v, 2) for k, v in timings.items()})
         obs = self.observations(meas, ident, t_ns)

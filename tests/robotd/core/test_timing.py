@@ -51,8 +51,3 @@ def test_start_begins_a_new_step_and_leaves_the_last_steps_timings() -> None:
     s.add(2)
     second = clock.finish()
     assert list(first) == list(second) == ["add", "total"] and first is not second
-
-
-def test_run_times_a_call_as_a_stage() -> None:
-    clock = StageClock()
-    assert clock.run("sum", sum, [1, 2]) == 3 and list(clock.ms) == ["sum"]
