@@ -41,9 +41,9 @@ from robotd.core.msgs import (
 from robotd.core.statecheck import StateTable
 from robotd.core.stereo import RectifiedStereo
 from robotd.core.timing import StageClock
-from robotd.frontend.association import IDENTIFIED, LandmarkDescriptors
+from robotd.frontend.association import LandmarkDescriptors
 from robotd.frontend.detectors import make_detector
-from robotd.frontend.frontend import Frontend, Identification, Screening
+from robotd.frontend.frontend import Frontend, Identification
 from robotd.frontend.stereo_match import StereoMatches
 from robotd.pipeline.relocalise import MIN_INLIERS
 from robotd.pipeline.stages.attitude import Attitude
@@ -131,7 +131,7 @@ class Pipeline:
         # points seen to move since the previous frame are not mapped; on vision alone, when the
         # images gave no motion, nothing is known to move (the bare stretch needs its landmarks)
         moved = visual.increment is not None or increment is not None
-        screen = self._plausible(ident, fe.outliers(meas, ident), view, inc, moved, t_ns)
+        screen = motion.check_fix(ident, fe.outliers(meas, ident), view, inc, moved, t_ns, self.tracking)
         counts = self.frontend.counts(feats, meas, ident, screen, visual)
         if relocalising and not self.relocalising.attempt(screen):
             return self._not_relocalised(frame, meas, ident, counts)
@@ -154,26 +154,6 @@ class Pipeline:
         """The relocalising path's end while the map is not found yet (robotd.pipeline.stages.relocalising)."""
         pose, tracking = self.relocalising.not_found(meas, ident, frame.t_ns)
         return self._result(frame, counts, UpdateReport(), pose, tracking, 0)
-
-    def _plausible(
-        self,
-        ident: Identification,
-        screen: Screening,
-        view: np.ndarray | None,
-        inc: MotionIncrement | None,
-        measured: bool,
-        t_ns: int,
-    ) -> Screening:
-        """``screen``, unless, while tracking, the pose its consensus implies is one the prediction
-        ``view`` cannot explain (``MotionModel.fix_is_plausible``): then its matches are neither
-        fused nor mapped again this frame, and the pose follows the prediction. Lost, or without a
-        prediction, any fix is welcome."""
-        if view is None or not self.tracking:
-            return screen
-        if self.motion.fix_is_plausible(screen.similarity, view, inc, measured, t_ns):
-            return screen
-        ident.corr.reject(ident.corr.status == IDENTIFIED)
-        return Screening(screen.result, None)
 
     def _after_update(
         self, t_ns: int, obs: Observations, landmarks: LandmarkMap, moved: bool, relocalising: bool

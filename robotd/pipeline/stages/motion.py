@@ -19,6 +19,8 @@ import numpy as np
 from robotd.config import Config
 from robotd.core.geometry import se3, so3_exp, so3_log
 from robotd.core.msgs import LandmarkMap, MotionIncrement
+from robotd.frontend.association import IDENTIFIED
+from robotd.frontend.frontend import Identification, Screening
 from robotd.frontend.pnp import MotionPrior, PnpParams, motion_prior
 from robotd.pipeline.stages.tracking import PipelineCounters
 from robotd.pipeline.stall import Reach, still_prior
@@ -185,6 +187,27 @@ class MotionModel:
         if inc is not None:
             T = T @ se3(so3_exp(inc.drot_R_rad), inc.dp_R_m)
         return T
+
+    def check_fix(
+        self,
+        ident: Identification,
+        screen: Screening,
+        view: np.ndarray | None,
+        inc: MotionIncrement | None,
+        measured: bool,
+        t_ns: int,
+        tracking: bool,
+    ) -> Screening:
+        """``screen``, unless, while ``tracking``, the pose its consensus implies is one the
+        prediction ``view`` cannot explain (:meth:`fix_is_plausible`): then its matches are neither
+        fused nor mapped again this frame (``ident``'s identified correspondences are rejected),
+        and the pose follows the prediction. Lost, or without a prediction, any fix is welcome."""
+        if view is None or not tracking:
+            return screen
+        if self.fix_is_plausible(screen.similarity, view, inc, measured, t_ns):
+            return screen
+        ident.corr.reject(ident.corr.status == IDENTIFIED)
+        return Screening(screen.result, None)
 
     def fix_is_plausible(
         self,
