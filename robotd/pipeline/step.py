@@ -111,7 +111,7 @@ class Pipeline:
         (None: visual only). Each stage is timed by one clock (``StepResult.timings_ms``)."""
         self.clock.start()
         fe, motion, t_ns = self.measure, self.motion, frame.t_ns
-        landmarks = self.estimator.landmarks()
+        landmarks = self.relocalising.tracked(self.estimator.landmarks())
         relocalising = self.relocalising.active(landmarks)
         # measure: features in both images, stereo matches triangulated with their covariance
         feats = fe.detect(frame)
@@ -143,7 +143,7 @@ class Pipeline:
             if self.covariance.enabled:
                 self.fuse.consistency(obs, landmarks)
             report = self.fuse.update(obs, landmarks)
-        found = self.relocalising.searching() and self.relocalising.search(meas, landmarks)  # a late find
+        found = self.relocalising.searching() and self.relocalising.search(meas)  # a late find
         pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising or found)
         return self._result(frame, counts, report, pose, tracking, n_identified, relocalising or found, obs)
 

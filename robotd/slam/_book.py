@@ -41,6 +41,7 @@ class LandmarkBook:
         self.far = np.zeros(capacity)
         self.view = np.zeros((capacity, 3))
         self.n_slots = 0  # high-water mark: slots >= n_slots were never used
+        self.held_below = 0  # landmarks with smaller ids are never counted missed (Estimator.hold_landmarks)
         self.free: list[int] = []
 
     @property
@@ -144,6 +145,8 @@ class LandmarkBook:
         """
         self.counter[observed] += 1
         missed = np.setdiff1d(expected, np.concatenate([observed, born]))
+        if self.held_below:
+            missed = missed[self.slot_id[missed] >= self.held_below]
         self.counter[missed] -= 1
         return missed[self.counter[missed] < 0]
 

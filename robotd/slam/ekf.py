@@ -276,6 +276,10 @@ class EkfSlam(UpdateEntryPoints):
         m3, C3 = lm_to_3d(m, C, self.params.pose_cov_floor_2d)
         return LandmarkMap(self.landmark_ids(), m3, C3)
 
+    def hold_landmarks(self, below_id: int) -> None:
+        """Estimator.hold_landmarks: the book's existence rule skips the ids below ``below_id``."""
+        self.book.held_below = max(0, int(below_id))
+
     def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
         """Relocalisation: the pose mean becomes ``x`` (dx,), its covariance ``cov`` (default: a
         1 cm / 0.1° floor) and its correlations with the landmarks zero; the landmarks are kept."""

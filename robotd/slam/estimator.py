@@ -64,6 +64,11 @@ class Estimator(Protocol):
         """Relocalisation: put the pose at ``x`` (dx,) with covariance ``cov``; the map is kept."""
         ...
 
+    def hold_landmarks(self, below_id: int) -> None:
+        """Landmarks with ids below ``below_id`` are never deleted for being missed (0: none held):
+        a loaded map while the pose is not yet found in it (robotd/pipeline/relocalise.py)."""
+        ...
+
 
 @runtime_checkable
 class Persistent(Protocol):

@@ -410,6 +410,10 @@ class FastSlam(UpdateEntryPoints):
         m, C = lm_to_3d(*self.store.gather_particle(self.best, s), self.params.pose_cov_floor_2d)
         return LandmarkMap(self.book.slot_id[s].copy(), m, C)
 
+    def hold_landmarks(self, below_id: int) -> None:
+        """Estimator.hold_landmarks: the book's existence rule skips the ids below ``below_id``."""
+        self.book.held_below = max(0, int(below_id))
+
     def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
         """Relocalisation: every particle's pose drawn from N(x, cov) (exactly x when ``cov`` is None).
 

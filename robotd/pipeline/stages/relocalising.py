@@ -66,17 +66,31 @@ class Relocalising:
             self.counters.relocalisation_failures += 1
         return fixed
 
+    def tracked(self, landmarks: LandmarkMap) -> LandmarkMap:
+        """The landmarks the step tracks with (all of them); while the search goes on, the filter
+        holds the loaded map's (Estimator.hold_landmarks). The pose is then a guess in the loaded
+        map's frame, and counting the loaded landmarks missed from it deleted the map being
+        searched (ArduPilot's SITL: 2,687 -> 2,024 landmarks in 5 s, and no find after)."""
+        r = self.relocaliser
+        if r.searching and r.loaded_ids.size:
+            self.estimator.hold_landmarks(int(r.loaded_ids[-1]) + 1)
+        elif r.loaded_ids.size and not r.active:
+            r.loaded_ids = np.zeros(0, np.int64)  # the search ended: the map is one map again
+            self.estimator.hold_landmarks(0)
+        return landmarks
+
     def searching(self) -> bool:
         """The stage ``search`` looks in this frame (after the relocalising window, one frame in
         robotd.pipeline.relocalise.SEARCH_EVERY)."""
         return self.relocaliser.search_due()
 
     @stage("search")
-    def search(self, meas: StereoMatches, landmarks: LandmarkMap) -> bool:
+    def search(self, meas: StereoMatches) -> bool:
         """The frame against the loaded map's landmarks alone (no pose prior); when the pose found
         agrees with the last find (robotd.pipeline.relocalise.Relocaliser.agrees), the filter's pose is
         reset to it. True when it was (a discontinuity: the step reports it as relocalised)."""
         r = self.relocaliser
+        landmarks = self.estimator.landmarks()
         keep = np.isin(landmarks.ids, r.loaded_ids)
         if int(np.count_nonzero(keep)) < MIN_INLIERS:
             return False
@@ -84,6 +98,7 @@ class Relocalising:
         screen = self.frontend.screen(meas, self.frontend.identify(meas, loaded, None))
         n_in = 0 if screen.result is None or screen.similarity is None else int(screen.result.n_inliers)
         fix = pose_from_similarity(screen.result) if screen.result is not None and n_in >= MIN_INLIERS else None
+        logger.debug("search: %d inliers against %d landmarks of the loaded map", n_in, loaded.n)
         if fix is None or not r.agrees(pose6_to_T(fix), self.estimator.estimate().T_world_robot):
             return False
         left = r.search_left

@@ -79,6 +79,9 @@ class DeadReckoning:
     def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
         self.T = pose6_to_T(x)
 
+    def hold_landmarks(self, below_id: int) -> None:
+        pass
+
 
 NO_PARTICLES = EstimatorKind(particles=None, anchored_covariance=False)
 # a particle filter of the fake's own costs: 2 µs per particle and observation, 1 kB per landmark
