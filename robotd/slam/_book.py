@@ -217,14 +217,30 @@ class LandmarkBook:
 
 
 def note_and_recognise(
-    book: LandmarkBook, slots: np.ndarray, p_R: np.ndarray, R_wr: np.ndarray, observed: np.ndarray, born: np.ndarray
+    book: LandmarkBook,
+    slots: np.ndarray,
+    p_R: np.ndarray,
+    R_wr: np.ndarray,
+    observed: np.ndarray,
+    born: np.ndarray,
+    in_view: np.ndarray,
 ) -> np.ndarray:
-    """The filters' half of the existence rule: ``slots`` (N,) at robot-frame positions ``p_R``
-    (N, dim) from a robot of orientation ``R_wr`` (dim, dim). Notes where the ``observed`` and
-    ``born`` slots were seen from, and returns (N,) True where each can be recognised
-    (:meth:`LandmarkBook.recognisable`)."""
+    """The filters' half of the existence rule: ``slots`` (N,) ascending, at robot-frame positions
+    ``p_R`` (N, dim) from a robot of orientation ``R_wr`` (dim, dim); ``in_view`` (N,) the field
+    of view's verdict. Notes where the ``observed`` and ``born`` slots were seen from, and returns
+    the slots in view that can be recognised (:meth:`LandmarkBook.recognisable`), the ones a miss
+    counts against. Only those rows are transformed: the map grows, the view does not."""
+    seen = np.concatenate([observed, born])
+    pos = np.searchsorted(slots, seen)
+    ok = pos < slots.size
+    pos = pos[ok][slots[pos[ok]] == seen[ok]]
+    book.note_views(slots[pos], *_views(p_R[pos], R_wr))
+    rows = np.flatnonzero(in_view)
+    return slots[rows][book.recognisable(slots[rows], *_views(p_R[rows], R_wr))]
+
+
+def _views(p_R: np.ndarray, R_wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (N,) and unit directions (N, dim) landmark -> robot in the world frame of the
+    robot-frame positions ``p_R`` (N, dim) seen from orientation ``R_wr``."""
     dist = np.linalg.norm(p_R, axis=1)
-    dirs = -(p_R @ R_wr.T) / np.maximum(dist, 1e-9)[:, None]  # landmark -> robot, world frame
-    seen = np.isin(slots, np.concatenate([observed, born]))
-    book.note_views(slots[seen], dist[seen], dirs[seen])
-    return book.recognisable(slots, dist, dirs)
+    return dist, -(p_R @ R_wr.T) / np.maximum(dist, 1e-9)[:, None]

@@ -245,7 +245,7 @@ class EkfSlam(UpdateEntryPoints):
         R = euler_to_R(x[3:6]) if self.dim == 3 else rot2(x[2])
         slots = np.arange(M)
         in_view = np.asarray(self.visible(zc), bool)
-        expected = slots[in_view & note_and_recognise(self.book, slots, zc, R, observed, born)]
+        expected = note_and_recognise(self.book, slots, zc, R, observed, born, in_view)
         dead = self.book.existence_update(observed, expected, born)
         if dead.size == 0:
             return NO_IDS

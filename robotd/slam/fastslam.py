@@ -347,7 +347,7 @@ class FastSlam(UpdateEntryPoints):
         R = euler_to_R(x[3:6]) if self.dim == 3 else rot2(x[2])
         p = self._best_view(active)
         in_view = np.asarray(self.visible(p), bool)
-        expected = active[in_view & note_and_recognise(self.book, active, p, R, observed, born)]
+        expected = note_and_recognise(self.book, active, p, R, observed, born, in_view)
         dead = self.book.existence_update(observed, expected, born)
         if dead.size == 0:
             return NO_IDS
