@@ -98,7 +98,9 @@ import cv2
 cv2.imread("/nonexistent/robotd-test.png")  # OpenCV's own [ WARN:…] line on fd 2
 os.write(2, b"[2024-01-01 00:00:00.000] [depthai] [error] a native error\nan untagged native line\n")
 print("a line on stdout")
-threading.Thread(target=lambda: 1 / 0).start()
+t = threading.Thread(target=lambda: 1 / 0)
+t.start()
+t.join()  # else its traceback and the main thread's are written at once, and may share a line
 raise RuntimeError("the end\nof the process")
 """
 
