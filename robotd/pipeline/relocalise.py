@@ -26,7 +26,7 @@ import logging
 
 import numpy as np
 
-from robotd.core.geometry import R_to_euler, se3_inverse
+from robotd.core.geometry import R_to_euler, rotation_angle, se3_inverse
 from robotd.core.outliers import OutlierResult
 from robotd.slam.estimator import Estimator
 
@@ -91,7 +91,7 @@ class Relocaliser:
         if last is None:
             return False
         D = se3_inverse(se3_inverse(last[0]) @ T_found) @ (se3_inverse(last[1]) @ T_tracked)
-        ang = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        ang = float(np.degrees(rotation_angle(D[:3, :3])))
         dist = float(np.linalg.norm(D[:3, 3]))
         logger.debug("search: two finds differ from the tracked motion by %.2f m, %.1f deg", dist, ang)
         return bool(dist <= AGREE_M and ang <= AGREE_DEG)

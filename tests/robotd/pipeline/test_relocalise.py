@@ -103,55 +103,59 @@ def test_planar_resume_continues_from_the_saved_pose():
     assert r.tracking and r.counts["identified"] > 0
 
 
-def test_relocalises_mid_drive_in_ground_the_first_lap_mapped():
-    # The yard's loop is 28.5 m: at 1.5 m/s and 15 frames/s a lap is about 285 frames. The map is
-    # saved at frame 359, the next frame is 360 + 15 (a second's downtime, 1.5 m on). Before the
-    # landmarks remembered where they were seen from (docs/slam.md "Which landmarks the map
-    # keeps"), the second lap had deleted the first lap's landmarks there: 0 inliers for 30
-    # frames, 3.9 m off after (seeds 1 and 2).
+@pytest.fixture(scope="module")
+def laps():
+    """The yard at 1.5 m/s and 15 frames/s (a lap of 28.5 m is about 285 frames), 400 frames,
+    mapped by one pipeline up to frame 359; its saved state after frames 179 and 359."""
     url = "sim://?realtime=0&fps=15&seed=1&speed=1.5&odometry=0"
     with drivers.open_camera(url) as cam:
         it = cam.frames()
         frames = [next(it) for _ in range(400)]
         rig = cam.rectified_model()
     cfg = load_config(None, {"camera": {"url": url}, "vehicle": {"url": url}})
-    truth0 = se3_inverse(frames[0].truth_T_world_robot)
     a = Pipeline(cfg, rig, np.random.default_rng(3))
-    for f in frames[:360]:
+    states = {}
+    for k, f in enumerate(frames[:360]):
         a.step(f, None)
+        if k + 1 in (180, 360):
+            states[k + 1] = a.state_dict()
+    return frames, cfg, rig, states
+
+
+def _restarted(laps, saved_after: int, frames_run: range) -> tuple[Pipeline, list[float], list[int]]:
+    """A pipeline resumed from the map saved after ``saved_after`` frames, fed ``frames_run``:
+    itself, its position error against the truth per frame, and the frames (indices into the
+    run) it reported relocalised."""
+    frames, cfg, rig, states = laps
+    truth0 = se3_inverse(frames[0].truth_T_world_robot)
     b = Pipeline(cfg, rig, np.random.default_rng(4))
-    b.load_state_dict(a.state_dict())
-    errs = []
-    for f in frames[375:400]:
+    b.load_state_dict(states[saved_after])
+    errs, jumps = [], []
+    for k, f in enumerate(frames[i] for i in frames_run):
         r = b.step(f, None)
-        errs.append(np.linalg.norm(r.pose.T_world_robot[:3, 3] - (truth0 @ f.truth_T_world_robot)[:3, 3]))
-    assert b.counters.relocalisations == 1 and r.tracking
+        errs.append(float(np.linalg.norm(r.pose.T_world_robot[:3, 3] - (truth0 @ f.truth_T_world_robot)[:3, 3])))
+        if r.relocalised:
+            jumps.append(k)
+    assert r.tracking
+    return b, errs, jumps
+
+
+def test_relocalises_mid_drive_in_ground_the_first_lap_mapped(laps):
+    # The map is saved after frame 359, the next frame is 360 + 15 (a second's downtime, 1.5 m on).
+    # Before the landmarks remembered where they were seen from (docs/slam.md "Which landmarks the
+    # map keeps"), the second lap had deleted the first lap's landmarks there: 0 inliers for 30
+    # frames, 3.9 m off after (seeds 1 and 2).
+    b, errs, _ = _restarted(laps, 360, range(375, 400))
+    assert b.counters.relocalisations == 1
     assert max(errs[5:]) < 0.2, np.round(errs, 3)
 
 
-def test_finds_the_loaded_map_after_the_relocalising_window():
+def test_finds_the_loaded_map_after_the_relocalising_window(laps):
     # The map holds the first 63 % of a lap; restarted 2.8 m on (frame 180 + 28), the rover faces
     # ground the map does not hold for the whole relocalising window (2 s): it fails. The search
     # goes on, and when the rover drives into the first lap's ground two finds agree and the pose
     # jumps there. Without the search it stays metres off for the rest of the run.
-    url = "sim://?realtime=0&fps=15&seed=1&speed=1.5&odometry=0"
-    with drivers.open_camera(url) as cam:
-        it = cam.frames()
-        frames = [next(it) for _ in range(358)]
-        rig = cam.rectified_model()
-    cfg = load_config(None, {"camera": {"url": url}, "vehicle": {"url": url}})
-    truth0 = se3_inverse(frames[0].truth_T_world_robot)
-    a = Pipeline(cfg, rig, np.random.default_rng(3))
-    for f in frames[:180]:
-        a.step(f, None)
-    b = Pipeline(cfg, rig, np.random.default_rng(4))
-    b.load_state_dict(a.state_dict())
-    errs, jumps = [], []
-    for k, f in enumerate(frames[208:358]):
-        r = b.step(f, None)
-        errs.append(np.linalg.norm(r.pose.T_world_robot[:3, 3] - (truth0 @ f.truth_T_world_robot)[:3, 3]))
-        if r.relocalised:
-            jumps.append(k)
+    b, errs, jumps = _restarted(laps, 180, range(208, 358))
     assert b.counters.relocalisation_failures == 1 and b.counters.relocalisations == 1, jumps
     assert jumps and jumps[0] > relocalise.MAX_FRAMES and errs[jumps[0] - 1] > 1.0  # off until found
     assert max(errs[jumps[0] :]) < 0.15, np.round(errs[jumps[0] :], 3)
