@@ -43,15 +43,20 @@ def session(rng: np.random.Generator, n: int = 6) -> list[StereoFrame | Odometry
     return events
 
 
+def put(w: SessionWriter, e: Any) -> None:
+    """Write one event of :func:`session` with the writer's call for its type."""
+    if isinstance(e, StereoFrame):
+        w.write_frame(e)
+    elif isinstance(e, Odometry):
+        w.write_odometry(e)
+    else:
+        w.write_pose(e)
+
+
 def write(path: Path, events: list[Any], **kw: Any) -> SessionWriter:
     with SessionWriter(path, MODEL, {"source": "test://", "seed": 1}, **kw) as w:
         for e in events:
-            if isinstance(e, StereoFrame):
-                w.write_frame(e)
-            elif isinstance(e, Odometry):
-                w.write_odometry(e)
-            else:
-                w.write_pose(e)
+            put(w, e)
     return w
 
 
@@ -107,12 +112,8 @@ def test_every_channel_decodes_with_its_declared_foxglove_schema(tmp_path: Path,
     uv = np.array([[30.0, 20.0, 10.0], [50.0, 41.0, 30.0]])
     with SessionWriter(path, MODEL, {"source": "test://"}, wall_offset_ns=wall0 - T0) as w:
         for e in events:
-            if isinstance(e, StereoFrame):
-                w.write_frame(e)
-            elif isinstance(e, Odometry):
-                w.write_odometry(e)
-            else:
-                w.write_pose(e)
+            put(w, e)
+            if isinstance(e, PoseEstimate):
                 w.write_features(Observations(e.t_ns, np.ones((2, 3)), np.stack([np.eye(3)] * 2),
                                               np.array([3, 7]), np.array([False, True]), uv))  # fmt: skip
                 uv = uv + 1.0
@@ -291,12 +292,7 @@ def test_format1_recordings_still_read_and_replay_like_their_format2_copy(
     new = tmp_path / "format2.mcap"
     with SessionWriter(new, old.calibration, old.meta, raw_calibration=old.calibration_json["raw"]) as w:
         for e in events:
-            if isinstance(e, StereoFrame):
-                w.write_frame(e)
-            elif isinstance(e, Odometry):
-                w.write_odometry(e)
-            else:
-                w.write_pose(e)
+            put(w, e)
     back = list(SessionReader(new).events())
     assert len(back) == len(events)
     for a, b in zip(events, back):
@@ -360,12 +356,7 @@ def test_a_recorder_that_was_killed_leaves_a_replayable_file_kept_by_the_next_on
     events = session(rng, 12)
     w = SessionWriter(path, MODEL, {}, flush_period_s=0.0)  # every message's chunk goes to the OS at once
     for e in events[:-3]:  # ... and then the process dies: no close, no summary
-        if isinstance(e, StereoFrame):
-            w.write_frame(e)
-        elif isinstance(e, Odometry):
-            w.write_odometry(e)
-        else:
-            w.write_pose(e)
+        put(w, e)
     assert not path.exists() and w.tmp_path.stat().st_size > 0
     r = SessionReader(w.tmp_path)
     assert len(list(r.frames())) == 11 and not r.finished
