@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi2 quantiles; scipy.stats costs 1 s of start-up
 
 from robotd.core._outlier_kernels import gn_fit, gn_weights, similarity_d2_kernel
 from robotd.core.choices import OUTLIER_METHODS
@@ -110,7 +110,7 @@ class OutlierParams:
 @functools.lru_cache(maxsize=64)
 def _chi2_ppf(p: float, dof: int) -> float:
     # scipy's ppf costs ≈ 0.2 ms per call, and RANSAC runs once or twice per frame
-    return float(chi2.ppf(p, dof))
+    return float(chdtri(dof, 1.0 - p))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
