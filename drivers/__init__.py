@@ -46,6 +46,7 @@ from robotd.core.errors import CalibrationError, DriverError
 if TYPE_CHECKING:
     import numpy as np
 
+    from drivers.mavlink_odometry import AutopilotPose
     from robotd.core.msgs import Odometry, PoseEstimate
 
 # what AutopilotLink.set_health accepts (besides None)
@@ -69,6 +70,15 @@ class AutopilotLink(Protocol):
         ...
 
     def stats(self) -> dict[str, Any]: ...
+
+
+@runtime_checkable
+class AutopilotPoseSource(Protocol):
+    """A link that knows the autopilot's own estimate of the vehicle's pose (MAVLink's
+    LOCAL_POSITION_NED and ATTITUDE): what carries robotd's pose across its restart
+    (robotd.daemon.handover)."""
+
+    def autopilot_pose_at(self, t_ns: int) -> AutopilotPose | None: ...
 
 
 @runtime_checkable

@@ -64,7 +64,7 @@ from pymavlink import mavutil
 from drivers.base import ControlSample, QueuedVehicleLink, is_loopback
 from drivers.link_state import LOST, LinkState, LinkStateParams
 from drivers.mavlink_guard import BootClock, RateLimit
-from drivers.mavlink_odometry import OdometryDecoder
+from drivers.mavlink_odometry import AutopilotPose, OdometryDecoder
 from drivers.mavlink_options import MavlinkOptions
 from drivers.mavlink_pose import POSE_COUNTERS, MavlinkAutopilot
 from drivers.mavlink_setup import Autopilot, SetupLink, VehicleSetup
@@ -468,6 +468,11 @@ class MavlinkVehicle(QueuedVehicleLink):
 
     def latest_controls(self) -> ControlSample | None:
         return self._decoder.controls
+
+    def autopilot_pose_at(self, t_ns: int) -> AutopilotPose | None:
+        """The autopilot's own estimate of the vehicle's pose at host time ``t_ns`` (its local NED
+        frame; drivers.mavlink_odometry.OdometryDecoder.pose_at), None when it has sent none that near."""
+        return self._decoder.pose_at(t_ns)
 
     def autopilot_to_host_ns(self, t_ap_ns: int) -> int | None:
         """Autopilot boot-clock time [ns] on the host monotonic clock, once TIMESYNC has a sample."""

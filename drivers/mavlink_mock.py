@@ -75,6 +75,7 @@ class MockAutopilot:
         self._s_l = self.wheel_start_m
         self._s_r = self.wheel_start_m
         self._yaw = 0.0
+        self._north = self._east = 0.0  # the position LOCAL_POSITION_NED reports [m]
         self._last_motion_ns = self.boot_ns
         self._ts_sent: dict[int, int] = {}
         if self.attitude_hz is None:
@@ -108,6 +109,15 @@ class MockAutopilot:
         half = 0.5 * self.yaw_rate_radps * self.track_width_m
         self._s_l = self._wrap(self._s_l + (self.speed_mps + half) * dt)
         self._s_r = self._wrap(self._s_r + (self.speed_mps - half) * dt)
+        # the position along the arc (exact for a constant speed and turn rate over dt)
+        w, y0 = self.yaw_rate_radps, self._yaw
+        if abs(w * dt) > 1e-9:
+            dn = self.speed_mps / w * (math.sin(y0 + w * dt) - math.sin(y0))
+            de = self.speed_mps / w * (math.cos(y0) - math.cos(y0 + w * dt))
+        else:
+            dn, de = self.speed_mps * dt * math.cos(y0), self.speed_mps * dt * math.sin(y0)
+        self._north += dn
+        self._east += de
         self._yaw = (self._yaw + self.yaw_rate_radps * dt + math.pi) % (2 * math.pi) - math.pi
 
     @staticmethod
@@ -135,7 +145,8 @@ class MockAutopilot:
         self._advance(t_ns)
         vn = self.speed_mps * math.cos(self._yaw)
         ve = self.speed_mps * math.sin(self._yaw)
-        self.conn.mav.local_position_ned_send(self.boot_time_ns(t_ns) // 1_000_000, 0.0, 0.0, 0.0, vn, ve, 0.0)
+        ms = self.boot_time_ns(t_ns) // 1_000_000
+        self.conn.mav.local_position_ned_send(ms, self._north, self._east, 0.0, vn, ve, 0.0)
 
     def _send_slow(self, t_ns: int) -> None:
         m = mavlink_module()

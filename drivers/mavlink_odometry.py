@@ -21,6 +21,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -28,7 +29,7 @@ import numpy as np
 from drivers.base import ControlSample
 from drivers.mavlink_options import MavlinkOptions
 from drivers.serial_protocol import diff_drive
-from robotd.core.geometry import euler_to_R
+from robotd.core.geometry import euler_to_R, pose6_to_T
 from robotd.core.msgs import Odometry
 
 WHEEL_WRAP_M = 100_000.0  # WHEEL_DISTANCE wraps at ±100 000 m (mavlink PR 1032)
@@ -39,6 +40,20 @@ PWM_MIN_US, PWM_MAX_US = 800, 2200  # servo/RC pulse widths a real channel can c
 # ``attitude_extrapolated``; beyond it the sample is dropped, counted in ``no_attitude``.
 ATTITUDE_FRESH_NS = 200_000_000
 ATTITUDE_MAX_AGE_NS = 1_000_000_000
+# the autopilot's own pose (:meth:`OdometryDecoder.pose_at`): LOCAL_POSITION_NED comes at 10 Hz, so
+# the sample nearest a time is within 50 ms of it; one further than this is no pose for that time
+POSE_MAX_AGE_NS = 300_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class AutopilotPose:
+    """The autopilot's estimate of the vehicle's pose at one host time: ``T`` (4, 4) maps the
+    body (FRD) frame into the autopilot's local NED frame; ``boot_ms`` is the autopilot's boot
+    clock at that time (a reboot restarts it, and its local frame with it)."""
+
+    t_ns: int
+    T: np.ndarray
+    boot_ms: int
 
 
 class OdometryDecoder:
@@ -64,6 +79,8 @@ class OdometryDecoder:
         # recent ATTITUDEs (t_ns, rpy, body rates), the newest last: at 25 Hz, 2.5 s of them
         self._attitudes: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=64)
         self._wheels: tuple[int, float, float] | None = None  # (t_ap_us, s_left, s_right)
+        # recent LOCAL_POSITION_NEDs (host t_ns, time_boot_ms, position, velocity), the newest last
+        self._positions: deque[tuple[int, int, np.ndarray, np.ndarray]] = deque(maxlen=64)
         self._last_wheel_mono = -math.inf
         self.controls: ControlSample | None = None  # the newest throttle/steering
 
@@ -164,13 +181,38 @@ class OdometryDecoder:
             return d + 2 * WHEEL_WRAP_M
         return d
 
+    def pose_at(self, t_ns: int) -> AutopilotPose | None:
+        """The autopilot's pose at host time ``t_ns``: the LOCAL_POSITION_NED nearest in time (within
+        :data:`POSE_MAX_AGE_NS`) carried to ``t_ns`` by its velocity, with the attitude at ``t_ns``
+        (:meth:`attitude_at`, within the same age). None when either is missing. What a restarted
+        robotd continues from (robotd.daemon.handover)."""
+        best: tuple[int, int, int, np.ndarray, np.ndarray] | None = None
+        for t_p, boot_ms, p, v in reversed(self._positions):
+            d = abs(t_ns - t_p)
+            if best is None or d < best[0]:
+                best = (d, t_p, boot_ms, p, v)
+            if t_p <= t_ns:
+                break
+        if best is None or best[0] > POSE_MAX_AGE_NS:
+            return None
+        att = self.attitude_at(t_ns, POSE_MAX_AGE_NS)
+        if att is None:
+            return None
+        _, t_p, boot_ms, p, v = best
+        dt = (t_ns - t_p) * 1e-9
+        T = pose6_to_T(np.r_[p + v * dt, att[0]])
+        return AutopilotPose(int(t_ns), T, boot_ms + round(dt * 1000))
+
     def on_local_position_ned(self, msg: Any, t_ns: int) -> None:
-        if time.monotonic() - self._last_wheel_mono < 1.0:
-            return  # wheel odometry flows: it is the better velocity source
         t = self.to_host(int(msg.time_boot_ms) * 1_000_000, t_ns)
         v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         if not np.all(np.isfinite(v_ned)):
             raise ValueError(f"LOCAL_POSITION_NED velocity not finite: {v_ned}")
+        p_ned = np.array([msg.x, msg.y, msg.z], dtype=float)
+        if np.all(np.isfinite(p_ned)):
+            self._positions.append((t, int(msg.time_boot_ms), p_ned, v_ned))
+        if time.monotonic() - self._last_wheel_mono < 1.0:
+            return  # wheel odometry flows: it is the better velocity source
         a = self.attitude_at(t, ATTITUDE_MAX_AGE_NS)
         if a is None:
             self.c["no_attitude"] += 1  # cannot rotate NED into the body frame without an attitude

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 import drivers
+from drivers.mavlink_odometry import AutopilotPose
 from robotd.config import Config
 from robotd.config.params import odometry_limits_from_config
 from robotd.core import jit
@@ -42,6 +43,8 @@ from robotd.core.msgs import Odometry, StereoFrame
 from robotd.daemon.budget import LatencyBudget, StageTimer, budget_for
 from robotd.daemon.device_urls import check_device_urls
 from robotd.daemon.devices import open_devices
+from robotd.daemon.handover import Handover, handover_from
+from robotd.daemon.handover import record as handover_record
 from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, DaemonStats, HealthMonitor
 from robotd.daemon.inputs import pump_frames, pump_odometry
 from robotd.daemon.publisher import Publisher
@@ -55,7 +58,7 @@ from robotd.formats.autopilot import ResetCounterPolicy, ResetEvent
 from robotd.formats.persist import CounterFile, StateDirLock, default_state_dir
 from robotd.formats.queues import DropOldestQueue
 from robotd.outputs import Output, OutputContext, OutputRunner, build_outputs
-from robotd.outputs.mapfile import MapFileOutput
+from robotd.outputs.mapfile import HANDOVER_KEY, MapFileOutput
 from robotd.outputs.recorder import RecorderOutput
 from robotd.pipeline.feed import Feed
 from robotd.pipeline.odometry import OdometryGate, OdometryIntegrator
@@ -119,6 +122,9 @@ class Daemon:
         self.counter_file: CounterFile | None = None
         self._pending_event: str | None = None  # a discontinuity before the first step (map load)
         self.pipeline: Pipeline | None = None
+        self.autopilot_pose_at: Callable[[int], AutopilotPose | None] | None = None
+        self.handover: Handover | None = None  # a resumed pose carried by the autopilot's motion
+        self._slam: SlamThread | None = None
         self.feed: Feed | None = None  # the per-frame loop the SLAM thread runs (robotd.pipeline.feed)
         self.budget: LatencyBudget | None = None
         self.maps: MapFileOutput | None = None
@@ -178,6 +184,12 @@ class Daemon:
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
         dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
+        # the autopilot's own pose, where a link carries it: recorded with each map save, and what
+        # carries the pose across a restart (robotd.daemon.handover)
+        for link in (dev.autopilot_link, dev.vehicle):
+            if isinstance(link, drivers.AutopilotPoseSource):
+                self.autopilot_pose_at = link.autopilot_pose_at
+                break
         rig = dev.camera.rectified_model()
         logger.info("rig: f %.1f px, baseline %.4f m, %dx%d", rig.f_px, rig.baseline_m, rig.width, rig.height)
         self.pipeline = Pipeline(cfg, rig, np.random.default_rng(cfg.robot.seed))
@@ -201,6 +213,8 @@ class Daemon:
                 # run's, the first pose is a new segment without it, and a second bump one frame on
                 # (the relocalisation's) is what the autopilot should see next
                 self._pending_event = ResetEvent.MAP_LOAD
+            if self.resumed and self.maps is not None:
+                self.handover = handover_from(self.maps.saved_handover, self.pipeline, self.autopilot_pose_at)
         else:
             logger.info("state: none (no map, no reset counter file; the state directory is not touched)")
         meta = {"robot": cfg.robot.id, "camera": cfg.camera.url, "vehicle": cfg.vehicle.url, "seed": cfg.robot.seed}
@@ -249,6 +263,11 @@ class Daemon:
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
             # map fixes the prediction could not explain, refused (robotd.pipeline.stages.motion)
             doc["implausible_fixes"] = c.implausible_fixes
+        # the run's reset_counter bumps and why (the autopilot resets its position at each)
+        doc["reset_bumps"] = [[c, why] for c, why in list(self.reset_policy.history)]
+        if self.handover is not None:
+            # a resume carried by the autopilot's motion (robotd.daemon.handover): what happened
+            doc["handover"] = self.handover.outcome or "waiting for the autopilot's pose"
         doc.update(self.output_runner.health())  # every output's counters and stats
         return self.health.assess(doc, needs_vehicle=self._needs_vehicle)
 
@@ -297,7 +316,10 @@ class Daemon:
             self.host_clock,
             self._deliveries,
             self._frame_period_s,
+            self.handover,
+            self.autopilot_pose_at,
         )
+        self._slam = slam
         publisher = Publisher(
             self.cfg,
             self.pub_q,
@@ -382,7 +404,10 @@ class Daemon:
         if any(t.name == "robotd-slam" and t.is_alive() for t in self.threads):
             logger.error("map not saved at shutdown: the SLAM thread is still running")
             return None
-        return self.pipeline.state_dict()
+        state = self.pipeline.state_dict()
+        last_t_ns = self._slam.last_t_ns if self._slam is not None else None
+        handover = handover_record(self.autopilot_pose_at, last_t_ns)
+        return state if handover is None else {**state, HANDOVER_KEY: handover}
 
     def _shutdown(self) -> None:
         t0 = time.monotonic()

@@ -14,16 +14,21 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.mavlink_odometry import AutopilotPose
 from robotd.core.msgs import LandmarkMap, MotionIncrement, Odometry, StepResult, StereoFrame
 from robotd.daemon.budget import LatencyBudget
+from robotd.daemon.handover import Handover
+from robotd.daemon.handover import record as record_handover
 from robotd.daemon.health import STALL_MIN_S, STALL_PERIODS, HealthMonitor
 from robotd.formats.autopilot import ResetEvent
 from robotd.formats.queues import DropOldestQueue
 from robotd.outputs import OutputRunner
 from robotd.outputs.base import shortest_period
+from robotd.outputs.mapfile import HANDOVER_KEY
 from robotd.pipeline.feed import Feed
 
 logger = logging.getLogger("robotd.daemon")
@@ -83,6 +88,8 @@ class SlamThread:
         host_clock: bool,
         deliveries: Deliveries,
         frame_period_s: float,
+        handover: Handover | None = None,
+        autopilot_pose_at: Callable[[int], AutopilotPose | None] | None = None,
     ) -> None:
         self.feed, self.budget, self.health = feed, budget, health
         self.frame_q, self.odo_q, self.pub_q = queues
@@ -93,6 +100,10 @@ class SlamThread:
         self.map_period = shortest_period(runner.outputs, "map_period_s")
         self.state_period = shortest_period(runner.outputs, "state_period_s")
         self.next_map, self.next_state = 0.0, time.monotonic() + self.state_period
+        self.handover = handover  # the first frames after a resume: the autopilot carries the pose
+        self.autopilot_pose_at = autopilot_pose_at  # recorded with each state snapshot
+        self.last_t_ns: int | None = None  # the last stepped frame's (the state's pose is at it)
+        self.stepped = 0
 
     def run(self, stop: threading.Event) -> None:
         """Until ``stop`` or the frame queue closes (the camera ended); then closes the publish queue."""
@@ -115,6 +126,9 @@ class SlamThread:
         t_ref_ns = frame.t_ns if self.host_clock else self.deliveries.take(frame.seq) or time.monotonic_ns()
         now_ns = time.monotonic_ns() if self.host_clock else None
         budget = self.budget
+        handed_over = False
+        if self.handover is not None and self.handover.pending:
+            handed_over = self.handover.on_frame(frame.t_ns)
         fed = self.feed.process(frame, odometry, now_ns, admit=budget.should_process, gap=self._check_gap)
         if fed is None:
             return None
@@ -131,9 +145,16 @@ class SlamThread:
         landmarks = snapshot = None
         if now >= self.next_map:
             self.next_map, landmarks = now + self.map_period, pipeline.estimator.landmarks()
+        self.last_t_ns = frame.t_ns
         if now >= self.next_state:
             self.next_state, snapshot = now + self.state_period, pipeline.state_dict()
+            handover = record_handover(self.autopilot_pose_at, frame.t_ns)
+            if handover is not None:
+                snapshot[HANDOVER_KEY] = handover
         event = ResetEvent.RELOCALISATION if result.relocalised else None
+        if handed_over and self.stepped > 0:
+            event = ResetEvent.RELOCALISATION  # the pose jumps to the carried one mid-run
+        self.stepped += 1
         if result.attitude_reset:
             # the pose jumped to level: the autopilot must not take the jump as motion
             self.health.on_attitude_reset()

@@ -348,6 +348,8 @@ class ResetCounterPolicy:
     counter: int = 0
     bumps: int = 0
     last_reason: str = ""  # why the last bump happened (an event's name, or "jump 0.42 m")
+    # the run's last bumps, (counter, reason), oldest first: the health topic's ``reset_bumps``
+    history: deque[tuple[int, str]] = field(default_factory=lambda: deque(maxlen=16))
     _seg: deque[PoseEstimate] = field(default_factory=lambda: deque(maxlen=64))
     _v_R: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _w_R: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -396,6 +398,7 @@ class ResetCounterPolicy:
             self.counter = (self.counter + 1) & 0xFF
             self.bumps += 1
             self.last_reason = reason
+            self.history.append((self.counter, reason))
             self._seg.clear()  # a new segment: never fit a twist across the discontinuity
         self._seg.append(pose)
         self._fit_twist()

@@ -173,17 +173,20 @@ class MapStore:
                 "so it is not written over"
             )
 
-    def save(self, state: dict[str, Any], t_ns: int) -> Path:
+    def save(self, state: dict[str, Any], t_ns: int, handover: dict[str, Any] | None = None) -> Path:
+        """Write ``state`` atomically; ``handover``: the autopilot's pose at the saved pose's frame
+        (robotd.daemon.handover), kept beside the state when given."""
         self._refuse_if_protected()
-        payload = cbor2.dumps(
-            {
-                "schema": STATE_SCHEMA,
-                "robot": self.robot_id,
-                "saved_unix_s": time.time(),
-                "t_ns": int(t_ns),
-                "state": pack_tree(state),
-            }
-        )
+        doc: dict[str, Any] = {
+            "schema": STATE_SCHEMA,
+            "robot": self.robot_id,
+            "saved_unix_s": time.time(),
+            "t_ns": int(t_ns),
+            "state": pack_tree(state),
+        }
+        if handover is not None:
+            doc["handover"] = pack_tree(handover)
+        payload = cbor2.dumps(doc)
         blob = MAGIC + struct.pack("<Q", len(payload)) + payload + struct.pack("<I", zlib.crc32(payload))
         tmp = self.path.with_name(f".{MAP_FILENAME}.{os.getpid()}.tmp")
         try:
@@ -311,7 +314,18 @@ class MapStore:
         state = unpack_tree(msg["state"])  # cbor2 refuses nesting deeper than 400 levels
         if not isinstance(state, dict):
             raise PersistenceError(f"{self.path}: state is not a table")
-        return {"t_ns": msg.get("t_ns", 0), "saved_unix_s": msg.get("saved_unix_s"), "state": state}
+        handover = None
+        if "handover" in msg:  # optional: a bad one costs the handover, never the map
+            try:
+                handover = unpack_tree(msg["handover"], "handover")
+            except (PersistenceError, ValueError, TypeError) as exc:
+                logger.warning("%s: the autopilot handover is unreadable and ignored: %s", self.path, exc)
+        return {
+            "t_ns": msg.get("t_ns", 0),
+            "saved_unix_s": msg.get("saved_unix_s"),
+            "state": state,
+            "handover": handover,
+        }
 
     def set_aside(self, reason: str) -> str:
         """A map that cannot be resumed (``reason``, one line): moved aside to

@@ -24,6 +24,8 @@ from robotd.pipeline.step import Pipeline
 
 logger = logging.getLogger(__name__)
 
+HANDOVER_KEY = "handover"  # a state snapshot's entry that goes beside the state in the file
+
 
 class MapFileOutput(Output):
     """Saves the map under ``persistence.state_dir`` (or $STATE_DIRECTORY, or ~/.local/state/robotd)."""
@@ -37,6 +39,7 @@ class MapFileOutput(Output):
             self.store.remove_orphans()
         self.keep_maps = cfg.keep_maps
         self.resumed = False
+        self.saved_handover: object = None  # the resumed map's ``handover`` table, unchecked (robotd.daemon.handover)
         self._first_save = True
         # failed saves, for the health document: how many, the last error and when (monotonic)
         self.failures = 0
@@ -74,6 +77,7 @@ class MapFileOutput(Output):
             return False
         n = int(pipeline.estimator.landmark_ids().shape[0])
         logger.info("resumed from saved map %s: %d landmarks", self.store.path, n)
+        self.saved_handover = saved.get("handover")
         self.resumed = True
         return True
 
@@ -88,13 +92,17 @@ class MapFileOutput(Output):
             self.save(state, t_ns)
 
     def save(self, state: Mapping[str, Any], t_ns: int) -> bool:
-        """Write ``state``. The first save of a run that did not resume from the saved map keeps
-        that map under a new name first (``persistence.keep_maps``): a map is never lost silently."""
+        """Write ``state``; its ``handover`` entry, when there is one (the autopilot's pose at the
+        state's frame, robotd.daemon.handover), is kept beside it in the file. The first save of a
+        run that did not resume from the saved map keeps that map under a new name first
+        (``persistence.keep_maps``): a map is never lost silently."""
+        state = dict(state)
+        handover = state.pop(HANDOVER_KEY, None)
         try:
             if self._first_save and not self.resumed:
                 self.store.keep_previous(self.keep_maps)
             self._first_save = False
-            path = self.store.save(dict(state), t_ns)
+            path = self.store.save(state, t_ns, handover)
         except (PersistenceError, OSError) as exc:
             logger.error("map not saved: %s", exc)
             self.failures += 1

@@ -44,6 +44,12 @@ SEARCH_FRAMES = 900
 SEARCH_EVERY = 5
 AGREE_M = 0.5
 AGREE_DEG = 5.0
+# a find this close to the tracked pose confirms it (no reset): it is no better than the pose
+# (a find of a dozen inliers is good to 0.1-0.2 m). Not wider: a pose handed over 0.5° off and
+# carried over 150 frames of new ground was 0.2-0.25 m off when the map was found, and tracking
+# does not correct that against a first lap it rarely re-observes (docs/slam.md)
+CONFIRM_M = 0.1
+CONFIRM_DEG = 1.0
 # the covariance a relocalised pose starts from: 5 cm, 0.02 rad (1.1°)
 RESET_COV = np.diag([0.05**2] * 3 + [0.02**2] * 3)
 
@@ -96,10 +102,30 @@ class Relocaliser:
         logger.debug("search: two finds differ from the tracked motion by %.2f m, %.1f deg", dist, ang)
         return bool(dist <= AGREE_M and ang <= AGREE_DEG)
 
+    @staticmethod
+    def confirms(T_found: np.ndarray, T_tracked: np.ndarray) -> bool:
+        """The find and the tracked pose of the same frame are within CONFIRM_M and CONFIRM_DEG."""
+        D = se3_inverse(T_found) @ T_tracked
+        return bool(np.linalg.norm(D[:3, 3]) <= CONFIRM_M and np.degrees(rotation_angle(D[:3, :3])) <= CONFIRM_DEG)
+
     def found(self) -> None:
         """The search ended with a find."""
         self.search_left = 0
         self._find = None
+
+    def _count_down(self, n_in: int = 0) -> bool:
+        """A frame of the window without a fix (``n_in`` inliers); after the last, the search."""
+        self.frames_left -= 1
+        if self.frames_left == 0:
+            self.search_left = SEARCH_FRAMES if self.loaded_ids.size else 0
+            logger.warning(
+                "relocalisation against the loaded map failed for %d frames (last: %d inliers); "
+                "continuing from the saved pose%s",
+                MAX_FRAMES,
+                n_in,
+                ", still searching the map" if self.search_left else "",
+            )
+        return False
 
     def attempt(self, outliers: OutlierResult | None, similarity: np.ndarray | None, estimator: Estimator) -> bool:
         """Reset ``estimator``'s pose from the frame's outlier result when it is good enough.
@@ -110,17 +136,7 @@ class Relocaliser:
         n_in = 0 if outliers is None or similarity is None else int(outliers.n_inliers)
         fix = pose_from_similarity(outliers) if outliers is not None and n_in >= MIN_INLIERS else None
         if fix is None:
-            self.frames_left -= 1
-            if self.frames_left == 0:
-                self.search_left = SEARCH_FRAMES if self.loaded_ids.size else 0
-                logger.warning(
-                    "relocalisation against the loaded map failed for %d frames (last: %d inliers); "
-                    "continuing from the saved pose%s",
-                    MAX_FRAMES,
-                    n_in,
-                    ", still searching the map" if self.search_left else "",
-                )
-            return False
+            return self._count_down(n_in)
         estimator.reset_pose(fix, RESET_COV)
         self.frames_left = 0
         logger.info(

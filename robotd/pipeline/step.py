@@ -235,6 +235,13 @@ class Pipeline:
         outliers.warmup()
         return time.perf_counter() - t0
 
+    def hand_over(self, x: np.ndarray, cov: np.ndarray) -> None:
+        """After a resume, the filter's pose reset to ``x`` (dx,) with covariance ``cov``, a pose
+        carried across robotd's downtime by the autopilot's motion (robotd.daemon.handover); the
+        loaded map is tracked from it at once (robotd.pipeline.stages.relocalising)."""
+        self.estimator.reset_pose(x, cov)
+        self.relocalising.handed_over()
+
     def state_dict(self) -> dict[str, Any]:
         descriptors = self.frontend.descriptors
         return {

@@ -19,7 +19,14 @@ from robotd.core.msgs import LandmarkMap, PoseEstimate
 from robotd.core.timing import StageClock, stage
 from robotd.frontend.frontend import Frontend, Identification, Screening
 from robotd.frontend.stereo_match import StereoMatches
-from robotd.pipeline.relocalise import MIN_INLIERS, RESET_COV, SEARCH_FRAMES, Relocaliser, pose_from_similarity
+from robotd.pipeline.relocalise import (
+    CONFIRM_M,
+    MIN_INLIERS,
+    RESET_COV,
+    SEARCH_FRAMES,
+    Relocaliser,
+    pose_from_similarity,
+)
 from robotd.pipeline.stages.motion import MotionModel
 from robotd.pipeline.stages.tracking import PipelineCounters, TrackingMonitor
 from robotd.slam.estimator import Estimator
@@ -66,6 +73,15 @@ class Relocalising:
             self.counters.relocalisation_failures += 1
         return fixed
 
+    def handed_over(self) -> None:
+        """The pose came from elsewhere (robotd.daemon.handover: the autopilot's motion across a
+        restart): no relocalising window, the map tracked from that pose at once; the loaded map
+        is still searched for, as after a window that found nothing."""
+        r = self.relocaliser
+        r.frames_left = 0
+        r.search_left = SEARCH_FRAMES if r.loaded_ids.size and self.estimator.dim == 3 else 0  # as arm()
+        self.motion.forget()
+
     def tracked(self, landmarks: LandmarkMap) -> LandmarkMap:
         """The landmarks the step tracks with (all of them); while the search goes on, the filter
         holds the loaded map's (Estimator.hold_landmarks). The pose is then a guess in the loaded
@@ -99,10 +115,21 @@ class Relocalising:
         n_in = 0 if screen.result is None or screen.similarity is None else int(screen.result.n_inliers)
         fix = pose_from_similarity(screen.result) if screen.result is not None and n_in >= MIN_INLIERS else None
         logger.debug("search: %d inliers against %d landmarks of the loaded map", n_in, loaded.n)
-        if fix is None or not r.agrees(pose6_to_T(fix), self.estimator.estimate().T_world_robot):
+        T_tracked = self.estimator.estimate().T_world_robot
+        if fix is None or not r.agrees(pose6_to_T(fix), T_tracked):
             return False
         left = r.search_left
         r.found()
+        if r.confirms(pose6_to_T(fix), T_tracked):
+            # the tracked pose is in the loaded map already (a pose handed over, robotd.daemon.handover):
+            # tracking corrects the rest, and a jump would cost the autopilot a reset for nothing
+            logger.info(
+                "the loaded map confirms the tracked pose %d frames after the window (%d inliers, within %.2f m)",
+                SEARCH_FRAMES - left,
+                n_in,
+                CONFIRM_M,
+            )
+            return False
         self.estimator.reset_pose(fix, RESET_COV)
         self.motion.forget()
         self.counters.relocalisations += 1

@@ -219,6 +219,11 @@ def test_reset_counter_events_yaw_jumps_and_wrap(rng: np.random.Generator) -> No
     assert "deg" in pol.last_reason
     pol.counter = 255
     assert pol.update(pose(t_ns=t + 4 * step), ResetEvent.FILTER_RESTART) == 0  # uint8 wraps
+    # every bump with its reason, for the health topic's reset_bumps
+    hist = list(pol.history)
+    assert [c for c, _ in hist] == [1, 2, 3, 0]
+    assert [why for _, why in hist][:2] == [ResetEvent.RELOCALISATION, ResetEvent.MAP_LOAD]
+    assert "deg" in hist[2][1] and hist[3][1] == ResetEvent.FILTER_RESTART
 
 
 def test_a_gap_in_the_poses_starts_a_new_segment(rng: np.random.Generator) -> None:
