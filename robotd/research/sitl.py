@@ -536,6 +536,11 @@ class HealthWatch:
             if not self.counters or self.counters[-1] != c:
                 self.counters.append(c)
 
+    def all(self) -> list[dict[str, Any]]:
+        """Every health document received so far."""
+        with self._lock:
+            return list(self.health)
+
     def last(self) -> dict[str, Any]:
         with self._lock:
             return dict(self.health[-1]) if self.health else {}
@@ -742,6 +747,8 @@ def _robotd_figures(watch: HealthWatch) -> dict[str, Any]:
     return {
         "poses": watch.poses,
         "reset_counters": watch.counters,
+        # every bump robotd's runs reported, with its reason (a run's start is not a bump)
+        "reset_bumps": sorted({(int(c), str(why)) for doc in watch.all() for c, why in doc.get("reset_bumps") or []}),
         "frames_at_level": at,
         "l0_fraction": (at[0] / sum(at)) if at and sum(at) else float("nan"),
         "frames_without_odometry": h.get("frames_without_odometry"),
