@@ -147,7 +147,9 @@ def drive(speed_mps: float, hz: float, seconds: float, rng: np.random.Generator,
         if t >= t_pub - 1e-9:
             e = rng.normal(0.0, 0.01, 3) if noise else np.zeros(3)
             eyaw = float(rng.normal(0.0, math.radians(0.1))) if noise else 0.0
-            poses.append(pose((x + e[0], y + e[1], e[2]), (0.0, 0.0, yaw + eyaw), t_ns=round(t * 1e9) + 10**9))
+            # reported with the σ of the noise added (1 cm, 0.1°): a tracked pose's
+            cov = np.diag([1e-4] * 3 + [math.radians(0.1) ** 2] * 3)
+            poses.append(pose((x + e[0], y + e[1], e[2]), (0.0, 0.0, yaw + eyaw), t_ns=round(t * 1e9) + 10**9, cov=cov))
             vels.append(np.array([v, 0.0, 0.0]))
             t_pub += 1.0 / hz
         x += v * math.cos(yaw) * dt_sim
@@ -157,7 +159,24 @@ def drive(speed_mps: float, hz: float, seconds: float, rng: np.random.Generator,
 
 
 def shifted(p: PoseEstimate, dxyz: np.ndarray, dyaw: float = 0.0) -> PoseEstimate:
-    return pose(p.xyz_W_m + dxyz, p.rpy_rad + np.array([0.0, 0.0, dyaw]), t_ns=p.t_ns)
+    return pose(p.xyz_W_m + dxyz, p.rpy_rad + np.array([0.0, 0.0, dyaw]), t_ns=p.t_ns, cov=p.cov)
+
+
+@pytest.mark.parametrize("sigma_m", [0.05, 0.3])
+def test_a_correction_within_the_last_poses_reported_sigma_is_no_jump(sigma_m: float, rng) -> None:
+    # a pose sent with a wide covariance (one handed over after a restart: σ 0.29 m for a 4.8 s
+    # gap) then converging 0.26 m in one step: the autopilot fused the wide pose with that σ and
+    # takes the correction inside its innovation gate, so it is no discontinuity; the same 0.26 m
+    # after a pose that claimed 5 cm is one
+    poses, _ = drive(2.0, 30.0, 4.0, rng)
+    k = 60
+    wide = np.diag([sigma_m**2 / 3] * 3 + [math.radians(0.1) ** 2] * 3)  # trace: σ²
+    stream = [*poses[: k - 1], pose(poses[k - 1].xyz_W_m, poses[k - 1].rpy_rad, poses[k - 1].t_ns, wide)]
+    stream += [shifted(p, np.array([0.0, 0.26, 0.0])) for p in poses[k:]]
+    pol = ResetCounterPolicy()
+    counters = [pol.update(p) for p in stream]
+    assert pol.bumps == (1 if sigma_m < 0.1 else 0), pol.last_reason
+    assert counters[-1] == pol.bumps
 
 
 SPEEDS = (0.5, 2.0, 5.0, 10.0)
