@@ -19,7 +19,7 @@ frame and the autopilot's body frame are the same rigid body with the same origi
 It is refused (the resume then relocalises against the map as before) when the autopilot's boot
 clock went backwards or did not advance with the host's (it rebooted: its frame started again),
 when the gap is longer than :data:`MAX_GAP_S` (dead reckoning without aiding for that long is no
-longer centimetres), or when no autopilot pose is known within the first :data:`WAIT_FRAMES` frames.
+longer centimetres), or when no autopilot pose is known within :data:`WAIT_S` of the first frame.
 """
 
 from __future__ import annotations
@@ -44,7 +44,10 @@ logger = logging.getLogger("robotd.relocalise")
 
 MAX_GAP_S = 10.0  # longer downtimes are dead reckoning the autopilot cannot vouch for
 CLOCK_SLACK_S = 1.0  # the autopilot's boot clock and the host's may differ by this across the gap
-WAIT_FRAMES = 30  # frames the first pose waits for an autopilot pose before the map alone decides
+# how long (frame time) the first frames wait for an autopilot pose before the map alone decides:
+# ArduPilot's heartbeat comes at 1 Hz and the link takes nothing from it before, so the first
+# LOCAL_POSITION_NED reached robotd 1.0 s after its first frame in SITL on a slow VM
+WAIT_S = 3.0
 # the prior's standard deviations: a base for the two poses' own errors, and a growth per second of
 # gap for the autopilot's dead reckoning (SITL: 2 s gaps came out at centimetres; these are wider)
 SIGMA_POS_M = 0.05
@@ -133,7 +136,7 @@ class Handover:
     """The SLAM thread's side: before each of the first frames after a resume, :meth:`on_frame`
     asks the autopilot for its pose at the frame's time and, once it has one, resets the filter's
     pose to the carried one (``reset(x, cov)``, robotd.pipeline.step.Pipeline.hand_over). Done
-    after one try that decides, or after WAIT_FRAMES frames without an autopilot pose."""
+    after one try that decides, or WAIT_S after the first frame without an autopilot pose."""
 
     def __init__(
         self,
@@ -150,32 +153,35 @@ class Handover:
         self.pose_at = pose_at
         self.reset = reset
         self.map_found = map_found
-        self.frames_left = WAIT_FRAMES
+        self.done = False
+        self.first_t_ns: int | None = None
         self.outcome: str | None = None  # what happened, for the health document
 
     @property
     def pending(self) -> bool:
-        return self.frames_left > 0
+        return not self.done
 
     def on_frame(self, t_ns: int) -> bool:
         """True when this frame's pose was carried over (the filter reset)."""
-        if self.frames_left <= 0:
+        if self.done:
             return False
         if self.map_found():
             # the relocalising window found the pose in the map before the autopilot's was known:
             # a fix from the map's own landmarks beats any dead reckoning
-            self.frames_left = 0
+            self.done = True
             self.outcome = "not needed: the map fixed the pose first"
             logger.info("handover: %s", self.outcome)
             return False
-        self.frames_left -= 1
+        if self.first_t_ns is None:
+            self.first_t_ns = int(t_ns)
         now = self.pose_at(int(t_ns))
         if now is None:
-            if self.frames_left == 0:
-                self.outcome = f"no autopilot pose in the first {WAIT_FRAMES} frames"
+            if (t_ns - self.first_t_ns) * 1e-9 >= WAIT_S:
+                self.done = True
+                self.outcome = f"no autopilot pose within {WAIT_S:g} s of the first frame"
                 logger.warning("handover: %s; relocalising against the map alone", self.outcome)
             return False
-        self.frames_left = 0
+        self.done = True
         carried = carried_pose(self.saved, self.T_saved_robot, now, unix_of(t_ns))
         if isinstance(carried, str):
             self.outcome = f"refused: {carried}"

@@ -100,8 +100,11 @@ def test_handover_waits_for_an_autopilot_pose_then_resets_the_filter_once() -> N
 def test_handover_gives_up_without_an_autopilot_pose(caplog: pytest.LogCaptureFixture) -> None:
     saved = ho.SavedHandover(np.eye(4), 0, 0.0)
     h = ho.Handover(saved, np.eye(4), 2, lambda t: None, lambda x, c: pytest.fail("reset without a pose"))
-    assert not any(h.on_frame(k) for k in range(ho.WAIT_FRAMES + 5))
-    assert not h.pending and h.outcome == f"no autopilot pose in the first {ho.WAIT_FRAMES} frames"
+    frames = [10 * S + k * S // 30 for k in range(int(30 * ho.WAIT_S) + 5)]  # 30 Hz from t = 10 s
+    assert not any(h.on_frame(t) for t in frames[: int(30 * ho.WAIT_S)])
+    assert h.pending  # still within WAIT_S of the first frame
+    assert not any(h.on_frame(t) for t in frames[int(30 * ho.WAIT_S) :])
+    assert not h.pending and h.outcome == f"no autopilot pose within {ho.WAIT_S:g} s of the first frame"
     assert "relocalising against the map alone" in caplog.text
 
 
