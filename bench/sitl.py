@@ -22,6 +22,7 @@ Scenarios:
 - ``restart_new_ground``: the restart a quarter of the way in, the rover facing ground its map
   does not hold yet: the relocalising window cannot find the map, and the pose comes from the
   autopilot's motion across the restart (robotd/daemon/handover.py);
+- ``restart_new_ground_wheels``: the same, EKF3 fusing the rover's wheel encoders beside robotd;
 - ``mavlink``: robotd's odometry from the autopilot's own link (simulated wheel encoders'
   WHEEL_DISTANCE, ATTITUDE);
 - ``compass``: the compass is the heading source (EK3_SRC1_YAW 1, VISO_TYPE 2), the yard turned
@@ -48,12 +49,28 @@ if str(REPO) not in sys.path:
 
 from robotd.research.sitl import LoopOptions, LoopResult, SitlError, find_sitl, run_loop  # noqa: E402
 
+# wheel encoders on the simulated rover, and EKF3 fusing their velocity beside ExternalNav's
+# (source set 2's VELXY, with EK3_SRC_OPTIONS bit 0: fuse every velocity source of the sets)
+WHEELS_IN_EKF3: dict[str, float] = {
+    "WENC_TYPE": 10,
+    "WENC2_TYPE": 10,
+    "WENC_POS_Y": -0.15,
+    "WENC2_POS_Y": 0.15,
+    "WENC_RADIUS": 0.05,
+    "WENC2_RADIUS": 0.05,
+    "EK3_SRC2_VELXY": 7,
+    "EK3_SRC_OPTIONS": 1,
+}
+
 SCENARIOS: dict[str, LoopOptions] = {
     "main": LoopOptions(),
     "restart": LoopOptions(restart_at=0.5),
     "restart_hold": LoopOptions(restart_at=0.5, hold_for_restart=True),
     # a quarter in: the first lap not done, the rover comes up facing ground the map does not hold
     "restart_new_ground": LoopOptions(restart_at=0.25),
+    # the same with the rover's wheel encoders fused by EKF3 beside robotd (docs/mavlink.md §9):
+    # the autopilot then dead-reckons through robotd's downtime on its wheels, not its IMU alone
+    "restart_new_ground_wheels": LoopOptions(restart_at=0.25, extra_params=tuple(WHEELS_IN_EKF3.items())),
     "mavlink": LoopOptions(vehicle="mavlink"),
     "compass": LoopOptions(yaw_source="compass", yaw0_deg=30.0),
 }
