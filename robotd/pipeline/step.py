@@ -238,8 +238,29 @@ class Pipeline:
     def hand_over(self, x: np.ndarray, cov: np.ndarray) -> None:
         """After a resume, the filter's pose reset to ``x`` (dx,) with covariance ``cov``, a pose
         carried across robotd's downtime by the autopilot's motion (robotd.daemon.handover); the
-        loaded map is tracked from it at once (robotd.pipeline.stages.relocalising)."""
-        self.estimator.reset_pose(x, cov)
+        loaded map is tracked from it at once (robotd.pipeline.stages.relocalising).
+
+        A particle filter's particles all start at ``x``, and ``cov`` goes to the reported
+        covariance's anchors instead. The error of a carried pose is absolute: no landmark of new
+        ground can tell the particles apart (each maps the ground from its own pose), so a spread
+        never collapses there, and it cost the tracking. Spread by the whole carried uncertainty
+        (decimetres, degrees), no landmark was ever re-identified (the pose was odometry alone)
+        while the reported covariance summed the spread again every frame (4 m after 7 m); spread
+        by a relocalisation's 5 cm and 1°, the best particle, whose map is the one identified
+        against, mapped the ground up to 0.25 m away from where the mean pose predicts it, and
+        tracking stopped after 20 frames. The loaded map, when it is found, fixes the absolute
+        error (docs/slam.md "Relocalisation in a loaded map"). The EKF's joint covariance carries
+        it, so the EKF is reset with ``cov``.
+        """
+        cov = np.asarray(cov, dtype=float)
+        if self.covariance.anchors is None:
+            self.estimator.reset_pose(x, cov)
+        else:
+            self.estimator.reset_pose(x, None)
+            k = np.arange(6) if cov.shape[0] == 6 else np.array([0, 1, 5])
+            carried = np.zeros((6, 6))
+            carried[np.ix_(k, k)] = cov
+            self.covariance.add_uncertainty(carried)
         self.relocalising.handed_over()
 
     def state_dict(self) -> dict[str, Any]:

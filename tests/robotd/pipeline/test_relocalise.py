@@ -163,25 +163,37 @@ def test_finds_the_loaded_map_after_the_relocalising_window(laps):
 
 def test_a_handed_over_pose_is_tracked_from_at_once_and_the_map_found_later(laps):
     # The same restart into ground the map does not hold, 2.8 m on, but the pose handed over (the
-    # saved one moved by the autopilot's motion, robotd.daemon.handover), here the truth 5 cm and
-    # 0.5° off: no window, no frame metres off (without it: > 1 m until the map is found), and
-    # when the rover reaches the first lap's ground the search finds the map: it resets the pose
-    # at most once (a find within 0.1 m and 1° only confirms it) and the error stays small.
+    # saved one moved by the autopilot's motion, robotd.daemon.handover), here the truth 0.2 m and
+    # 0.5° off with the uncertainty of a 5 s downtime (σ 0.3 m, 3.5°): no window, no frame metres
+    # off (without it: > 1 m until the map is found), and when the rover reaches the first lap's
+    # ground the search finds the map: it resets the pose at most once (a find within 0.1 m and
+    # 1° only confirms it) and the error stays small.
+    # Before the filter took the carried uncertainty as the particles' spread, no landmark of the
+    # new ground was ever re-identified (0 a frame: the pose was odometry alone), the reported σ
+    # grew to 4 m, and the first loaded landmarks matched pulled the pose 1.2 m off (seed 4).
     from robotd.daemon.handover import filter_pose, prior_cov
 
     frames, cfg, rig, states = laps
     truth0 = se3_inverse(frames[0].truth_T_world_robot)
     b = Pipeline(cfg, rig, np.random.default_rng(4))
     b.load_state_dict(states[180])
-    x = filter_pose(truth0 @ frames[208].truth_T_world_robot, 3) + np.r_[0.05, 0, 0, 0, 0, np.radians(0.5)]
-    b.hand_over(x, prior_cov(2.0, 3))
-    errs, jumps = [], []
+    x = filter_pose(truth0 @ frames[208].truth_T_world_robot, 3) + np.r_[0.2, 0, 0, 0, 0, np.radians(0.5)]
+    b.hand_over(x, prior_cov(5.0, 3))
+    errs, sig, ident, jumps = [], [], [], []
     for k, f in enumerate(frames[i] for i in range(208, 358)):
         r = b.step(f, None)
         errs.append(float(np.linalg.norm(r.pose.T_world_robot[:3, 3] - (truth0 @ f.truth_T_world_robot)[:3, 3])))
+        sig.append(float(np.sqrt(np.trace(r.pose.cov[:3, :3]))))
+        ident.append(r.counts["identified"])
         if r.relocalised:
             jumps.append(k)
     assert r.tracking and b.counters.relocalisation_failures == 0
-    assert len(jumps) <= 1 and not b.relocaliser.searching  # found (and reset, or confirmed)
-    assert max(errs) < 0.3, np.round(errs, 3)
-    assert max(errs[jumps[0] if jumps else 0 :][-50:]) < 0.15, np.round(errs, 3)
+    assert len(jumps) == 1 and not b.relocaliser.searching, jumps  # the carried pose is 0.2 m off: reset
+    errs_a, sig_a = np.array(errs), np.array(sig)
+    assert max(errs) < 0.45, np.round(errs, 3)
+    assert max(errs[jumps[0] :][-50:]) < 0.15, np.round(errs, 3)
+    # the new ground is mapped and tracked, not odometry alone
+    assert np.median(ident[: jumps[0]]) >= 5, ident[: jumps[0]]
+    # until the map fixes it the reported covariance covers the carried error, and stays bounded
+    before = slice(0, jumps[0])
+    assert np.all(sig_a[before] >= errs_a[before]) and np.all(sig_a[before] < 1.5), np.round(sig_a[before], 2)
