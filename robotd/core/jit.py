@@ -102,3 +102,43 @@ class CompileWatch(numba_event.Listener):
         if self._installed:
             numba_event.unregister("numba:compile", self)
             self._installed = False
+
+
+KERNEL_MODULES = (
+    "robotd.slam._kernels",
+    "robotd.core._outlier_kernels",
+    "robotd.frontend._detect_kernels",
+    "robotd.frontend._pnp_kernels",
+    "robotd.frontend._stereo_kernels",
+)
+
+
+def kernels_cached(modules: tuple[str, ...] = KERNEL_MODULES) -> bool:
+    """Whether numba's disk cache holds kernels of every module of ``modules``: a start will then
+    most likely load them rather than compile them. A hint, not a promise: numba indexes only the
+    kernels called from Python (helpers called from other kernels are compiled into them and have
+    no entry), and an index written for an older source still compiles; this only reads that index
+    files are there, one at least per module. False when it cannot tell (a kernel without a disk
+    cache, numba's cache internals not as expected). The daemon loads the kernels while it opens
+    the devices only when this is True: a compile takes tens of seconds, and the devices would
+    stream meanwhile."""
+    import importlib
+    from pathlib import Path
+
+    try:
+        for name in modules:
+            mod = importlib.import_module(name)
+            found = False
+            for value in vars(mod).values():
+                cache = getattr(value, "_cache", None)
+                if cache is None or not hasattr(value, "py_func"):
+                    continue
+                index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
+                if isinstance(index, str) and Path(index).is_file():
+                    found = True
+                    break
+            if not found:
+                return False
+    except Exception:  # numba's internals differ: say "do not know"
+        return False
+    return not UNCACHED

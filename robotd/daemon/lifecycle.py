@@ -176,13 +176,21 @@ class Daemon:
         check_device_urls(cfg)
         if self.keep_state:  # one robotd per state directory, before anything slow (robotd.formats.persist)
             stack.enter_context(StateDirLock(default_state_dir(cfg.persistence.state_dir), cfg.robot.id))
-        # the kernels first: compiling them (a cold numba cache) takes a while, and the devices are
-        # opened only then, so no camera streams into a queue nobody reads (and sim:// starts its
-        # path when the daemon can follow it). The compile is announced only when numba finds no
-        # cached kernel (robotd.core.jit.CompileWatch), never on a warm start.
-        _load_kernels(cfg)
+        # The kernels and the devices. With the kernels in numba's cache, loading them (0.7 s on
+        # the 2-core VM) runs while the devices open (a sim world's build, an OAK-D's boot, a
+        # MAVLink heartbeat): a restarted robotd's first pose comes that much sooner, and the
+        # autopilot dead-reckons that much less (docs/mavlink.md §9). Without them, the kernels
+        # first: compiling takes tens of seconds, and the devices are opened only then, so no
+        # camera streams into a queue nobody reads (and sim:// starts its path when the daemon
+        # can follow it). The compile is announced only when numba finds no cached kernel
+        # (robotd.core.jit.CompileWatch), never on a warm start.
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
-        dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
+        if jit.kernels_cached():
+            with _KernelLoader(cfg):
+                dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
+        else:
+            _load_kernels(cfg)
+            dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         self.camera, self.vehicle, self.autopilot_link = dev.camera, dev.vehicle, dev.autopilot_link
         # the autopilot's own pose, where a link carries it: recorded with each map save, and what
         # carries the pose across a restart (robotd.daemon.handover)
@@ -449,6 +457,31 @@ def _load_kernels(cfg: Config) -> None:
     if watch.compiled:
         how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")
     logger.info("filter and matcher kernels ready in %.1f s (%s)", seconds, how)
+
+
+class _KernelLoader:
+    """:func:`_load_kernels` in a thread while the ``with`` block runs; leaving the block waits for
+    it and raises what it raised (the block's own exception wins)."""
+
+    def __init__(self, cfg: Config) -> None:
+        self._cfg = cfg
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="robotd-kernels", daemon=True)
+
+    def _run(self) -> None:
+        try:
+            _load_kernels(self._cfg)
+        except BaseException as exc:  # handed to the main thread on exit
+            self._error = exc
+
+    def __enter__(self) -> _KernelLoader:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._thread.join()
+        if self._error is not None and exc[0] is None:
+            raise self._error
 
 
 def _plain_stats(dev: Any) -> dict[str, Any]:

@@ -102,3 +102,53 @@ def test_a_cold_start_says_so_before_the_compile(
     ready = [k for k, x in enumerate(lines) if x.startswith("filter and matcher kernels ready in")]
     assert len(said) == 1 and len(ready) == 1 and said[0] < ready[0], lines
     assert "1 compiled, now cached" in lines[ready[0]]
+
+
+def test_kernels_cached_reads_the_disk_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+    import subprocess
+    import sys
+
+    Pipeline.warmup()  # compiled or loaded: the cache holds them now
+    monkeypatch.setattr(robotd_jit, "UNCACHED", [])
+    assert robotd_jit.kernels_cached()
+    # a process whose numba cache is an empty directory: nothing there
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "empty"))
+    code = "from robotd.core.jit import kernels_cached; print(kernels_cached())"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out
+    # kernels without a disk cache compile in every process: not cached
+    monkeypatch.setattr(robotd_jit, "UNCACHED", ["kern.plus_one"])
+    assert not robotd_jit.kernels_cached()
+
+
+def test_the_kernels_load_while_the_block_runs_and_their_error_is_raised(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import threading
+
+    from robotd.core.errors import RobotdError
+
+    cfg = load_config(None, {"zenoh": {"enabled": False}})
+    started, block_ran = threading.Event(), threading.Event()
+    seen: list[bool] = []
+
+    def load(_: object) -> None:
+        started.set()
+        seen.append(block_ran.wait(60.0))  # the block runs meanwhile (a sequential load would time out)
+
+    monkeypatch.setattr(lifecycle, "_load_kernels", load)
+    with lifecycle._KernelLoader(cfg):
+        assert started.wait(60.0)
+        block_ran.set()
+    assert seen == [True]  # and the block's end waited for the load
+
+    def fails(_: object) -> None:
+        raise RobotdError("no kernels today")
+
+    monkeypatch.setattr(lifecycle, "_load_kernels", fails)
+    with pytest.raises(RobotdError, match="no kernels today"), lifecycle._KernelLoader(cfg):
+        pass
+    # the block's own error wins (a device that failed to open says so, not the kernels)
+    with pytest.raises(ValueError, match="the camera"), lifecycle._KernelLoader(cfg):
+        raise ValueError("the camera")
