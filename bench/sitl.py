@@ -174,7 +174,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=None, help="camera rate [Hz] (default 30)")
     ap.add_argument("--speedup", type=float, default=None, help="SITL's --speedup (default 1)")
     ap.add_argument("--laps", type=float, default=None, help="laps of the yard's 28.5 m loop (default 2.2)")
-    ap.add_argument("--keep", metavar="DIR", help="keep each run's files (SITL log, robotd log) under DIR/<scenario>")
+    ap.add_argument(
+        "--keep",
+        metavar="DIR",
+        help="keep each run's files (SITL log, robotd log) under DIR/<scenario> (DIR/<scenario>-2 … when taken)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="log the loop's progress and the SITL's texts")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(asctime)s %(message)s")
@@ -196,7 +200,13 @@ def main(argv: list[str] | None = None) -> int:
             if getattr(args, key) is not None:
                 over[key] = getattr(args, key)
         if args.keep:
-            over["workdir"] = str(Path(args.keep) / name)
+            # a directory of its own per run: a state directory left by an earlier run of the same
+            # scenario would be resumed by this one's robotd (its map, its reset counter)
+            workdir, k = Path(args.keep) / name, 1
+            while workdir.exists():
+                k += 1
+                workdir = Path(args.keep) / f"{name}-{k}"
+            over["workdir"] = str(workdir)
         opts = replace(opts, **over)
         print(f"{name}: running ({opts.laps} laps at {opts.speed_mps} m/s, camera {opts.fps:g} Hz)", file=sys.stderr)
         try:
