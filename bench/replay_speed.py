@@ -35,6 +35,7 @@ from robotd.tools.replay import replay  # noqa: E402
 
 DEFAULT_DATA = Path(os.environ.get("ROBOTD_SHARED_DATA", REPO.parent / "shared" / "data"))
 STAGES = (
+    "offset",
     "detect",
     "stereo",
     "motion",

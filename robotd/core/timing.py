@@ -33,9 +33,11 @@ class StageClock:
         self._t0 = time.perf_counter()
 
     def finish(self) -> dict[str, float]:
-        """The stage timings with ``total`` (since the clock was made or started) added."""
+        """The stage timings with ``total`` (since the clock was made or started) added: a copy,
+        so a stage timed after the step (``Pipeline.after_step``, on the SLAM thread while the
+        publisher reads the result) never changes a result already handed on."""
         self.ms["total"] = (time.perf_counter() - self._t0) * 1e3
-        return self.ms
+        return dict(self.ms)
 
 
 class Timed(Protocol):

@@ -116,6 +116,12 @@ class HealthMonitor:
         self.stats.steps += 1
         self.stats.last_step_ns = time.monotonic_ns()
 
+    def on_deferred(self, ms: float) -> None:
+        """SLAM thread: the step's deferred work (``Pipeline.after_step``) took ``ms`` once the pose
+        was queued: timed as the stage ``offset``, outside the capture-to-publish latency."""
+        if ms > 0:
+            self.timer.add("offset", ms)
+
     def on_attitude_reset(self) -> None:
         """SLAM thread: the step reset an implausible attitude to level (StepResult.attitude_reset)."""
         self.stats.attitude_resets += 1

@@ -182,6 +182,8 @@ def replay(
             prog.update(1)
             if max_frames and len(results) >= max_frames:
                 break
+        # the last step's deferred work (each earlier one ran, and was timed, in the next step)
+        pipeline.after_step()
     recording = driver.status(camera)
     if not results:
         why = f": {recording['stopped']}" if recording and recording.get("stopped") else ""

@@ -41,6 +41,16 @@ class Measure:
         self.rng = rng
         self.registry = registry
         self.clock = clock
+        self.pending_offset: np.ndarray | None = None  # the last committed pose, for :meth:`offset`
+
+    @stage("offset")
+    def offset(self) -> None:
+        """The disparity offset's measurement from the last step's committed pose (robotd.frontend
+        .disparity_bias, through ``Frontend.observe_pose``), deferred past that step's result
+        (``Pipeline.after_step``); nothing when none is pending."""
+        T, self.pending_offset = self.pending_offset, None
+        if T is not None:
+            self.frontend.observe_pose(T)
 
     @stage("detect")
     def detect(self, frame: StereoFrame) -> FeaturePair:

@@ -71,6 +71,7 @@ def test_step_times_every_stage_in_data_flow_order(sim_frames):
     p.step(frames[0], None)
     r = p.step(frames[1], None)
     assert list(r.timings_ms) == [
+        "offset",
         "detect",
         "stereo",
         "motion",

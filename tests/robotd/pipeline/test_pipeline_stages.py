@@ -267,3 +267,28 @@ def test_a_map_fix_beyond_the_predictions_uncertainty_and_the_updates_reach_is_r
     assert MotionModel.fix_is_plausible(me, similarity_of(slow), view, None, False, 5 * dt_ns)  # type: ignore[arg-type]
     loose = MotionIncrement(0, 100_000_000, np.array([1.0, 0, 0]), np.zeros(3), np.diag([1.0] * 3 + [0.01] * 3))
     assert ok(view @ se3(rot_z(20.0), np.array([3.0, 0, 0])), loose, True)  # a loose odometry prior allows more
+
+
+def test_the_deferred_offset_measurement_gives_the_same_run_whoever_runs_it(shared_data) -> None:
+    """``Pipeline.after_step`` (the daemon, after queueing the pose) or the next step's ``offset``
+    stage (a replay): the same offset, the same poses, bit for bit; only where it is timed moves."""
+    root = shared_data("kitti-seq1")
+    with drivers.open_camera(f"kitti://{root}") as cam:
+        it = cam.frames()
+        frames = [next(it) for _ in range(12)]
+        rig = cam.rectified_model()
+    cfg = load_config(None, {"slam": {"n_particles": 30}})
+    a = Pipeline(cfg, rig, np.random.default_rng(1))
+    b = Pipeline(cfg, rig, np.random.default_rng(1))
+    after_ms = []
+    for f in frames:
+        ra, rb = a.step(f, None), b.step(f, None)
+        after_ms.append(b.after_step())
+        np.testing.assert_array_equal(ra.pose.T_world_robot, rb.pose.T_world_robot)
+        np.testing.assert_array_equal(ra.pose.cov, rb.pose.cov)  # the offsets each step used: equal
+        assert ("offset" in ra.timings_ms) and ("offset" in rb.timings_ms)
+    a.after_step()
+    assert a.frontend.disparity_bias.value_px == b.frontend.disparity_bias.value_px
+    assert b.frontend.disparity_bias.fused >= 2  # the offset was measured (every 2 m of KITTI's 1.2 m frames)
+    assert all(ms > 0 for ms in after_ms)  # a pose was pending after every tracked step
+    assert b.after_step() == 0.0  # and nothing once it ran
