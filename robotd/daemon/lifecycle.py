@@ -23,11 +23,13 @@ Threads:
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -185,7 +187,7 @@ class Daemon:
         # can follow it). The compile is announced only when numba finds no cached kernel
         # (robotd.core.jit.CompileWatch), never on a warm start.
         give_up_at = self._t_created + self.duration_s if self.duration_s > 0 else math.inf
-        if jit.kernels_cached():
+        if kernels_cached():
             with _KernelLoader(cfg):
                 dev = open_devices(cfg, stack, self.stop_event, self.notifier, give_up_at)
         else:
@@ -457,6 +459,43 @@ def _load_kernels(cfg: Config) -> None:
     if watch.compiled:
         how = f"{watch.compiled} compiled" + ("" if jit.UNCACHED else ", now cached")
     logger.info("filter and matcher kernels ready in %.1f s (%s)", seconds, how)
+
+
+KERNEL_MODULES = (
+    "robotd.slam._kernels",
+    "robotd.core._outlier_kernels",
+    "robotd.frontend._detect_kernels",
+    "robotd.frontend._pnp_kernels",
+    "robotd.frontend._stereo_kernels",
+)
+
+
+def kernels_cached(modules: tuple[str, ...] = KERNEL_MODULES) -> bool:
+    """Whether numba's disk cache holds kernels of every module of ``modules``: a start will then
+    most likely load them rather than compile them. A hint, not a promise: numba indexes only the
+    kernels called from Python (helpers called from other kernels are compiled into them and have
+    no entry), and an index written for an older source still compiles; this only reads that index
+    files are there, one at least per module. False when it cannot tell (a kernel without a disk
+    cache, numba's cache internals not as expected). The daemon loads the kernels while it opens
+    the devices only when this is True: a compile takes tens of seconds, and the devices would
+    stream meanwhile."""
+    try:
+        for name in modules:
+            mod = importlib.import_module(name)
+            found = False
+            for value in vars(mod).values():
+                cache = getattr(value, "_cache", None)
+                if cache is None or not hasattr(value, "py_func"):
+                    continue
+                index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
+                if isinstance(index, str) and Path(index).is_file():
+                    found = True
+                    break
+            if not found:
+                return False
+    except Exception:  # numba's internals differ: say "do not know"
+        return False
+    return not jit.UNCACHED
 
 
 class _KernelLoader:

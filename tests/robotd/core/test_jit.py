@@ -111,15 +111,15 @@ def test_kernels_cached_reads_the_disk_cache(tmp_path: Path, monkeypatch: pytest
 
     Pipeline.warmup()  # compiled or loaded: the cache holds them now
     monkeypatch.setattr(robotd_jit, "UNCACHED", [])
-    assert robotd_jit.kernels_cached()
+    assert lifecycle.kernels_cached()
     # a process whose numba cache is an empty directory: nothing there
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "empty"))
-    code = "from robotd.core.jit import kernels_cached; print(kernels_cached())"
+    code = "from robotd.daemon.lifecycle import kernels_cached; print(kernels_cached())"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "False", out
     # kernels without a disk cache compile in every process: not cached
     monkeypatch.setattr(robotd_jit, "UNCACHED", ["kern.plus_one"])
-    assert not robotd_jit.kernels_cached()
+    assert not lifecycle.kernels_cached()
 
 
 def test_the_kernels_load_while_the_block_runs_and_their_error_is_raised(
