@@ -62,6 +62,16 @@ ROVER_AUTO, ROVER_HOLD, ROVER_MANUAL = 10, 4, 0  # Rover's custom modes
 WHEEL_TRACK_M = 0.3  # the simulated wheel encoders' spacing (WENC_POS_Y = ∓ half of it)
 
 
+def dcm_fallbacks(texts: list[str]) -> int:
+    """How often the AHRS left EKF3 for DCM once EKF3 navigated on external nav (the SITL's
+    STATUSTEXTs in order). Before that, ArduPilot's own start-up can switch EKF3 → DCM → EKF3 in
+    tens of milliseconds: EKF3 reports active on its tilt alignment, falls back until its yaw
+    aligns on the first vision message, and "is using external nav data" comes with it (seen in
+    SITL on a slow VM: 60 ms of DCM 18 s before arming). That is no fallback from robotd's poses."""
+    start = next((i for i, t in enumerate(texts) if "is using external nav data" in t), len(texts))
+    return sum("AHRS: DCM active" in t for t in texts[start:])
+
+
 class SitlError(RobotdError):
     """The loop could not run (SITL missing, a process died, a step timed out)."""
 
@@ -806,9 +816,7 @@ def analyse_log(workdir: Path, waypoints: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {"log": str(logs[-1].name), "visp_messages": visp_n, "visp_ignored": visp_ign}
     out["visp_reset_counters"] = sorted(set(visp_rst))
     out["texts"] = texts
-    # the AHRS left EKF3 for DCM (after it had been on EKF3), or EKF3 stopped aiding
-    after_ekf = texts[next((i for i, t in enumerate(texts) if "AHRS: EKF3 active" in t), len(texts)) :]
-    out["dcm_fallbacks"] = sum("AHRS: DCM active" in t for t in after_ekf)
+    out["dcm_fallbacks"] = dcm_fallbacks(texts)
     out["stopped_aiding"] = sum("stopped aiding" in t for t in texts)
     if not (sim or sim2) or not ekf:
         return out

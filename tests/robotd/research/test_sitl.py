@@ -46,3 +46,13 @@ def test_geometry_helpers_agree_with_ardupilot_scaling() -> None:
     pts = np.array([[5.0, 1.0], [11.0, 5.0], [-1.0, 0.0], [10.0, 12.0]])
     assert cross_track_m(pts, path) == pytest.approx([1.0, 1.0, 1.0, 2.0])
     assert math.isfinite(float(cross_track_m(pts, path).max()))
+
+
+def test_a_dcm_episode_before_external_nav_is_no_fallback() -> None:
+    from robotd.research.sitl import dcm_fallbacks
+
+    start = ["EKF3 IMU0 tilt alignment complete", "AHRS: EKF3 active", "AHRS: DCM active", "EKF3 IMU0 yaw aligned"]
+    nav = ["EKF3 IMU0 is using external nav data", "AHRS: EKF3 active", "Throttle armed", "Reached waypoint #1"]
+    assert dcm_fallbacks(start + nav) == 0  # ArduPilot's start-up (SITL, 2026-12-02)
+    assert dcm_fallbacks(start + nav + ["AHRS: DCM active", "Mission Complete"]) == 1  # a real fallback
+    assert dcm_fallbacks(["AHRS: EKF3 active", "AHRS: DCM active"]) == 0  # never on external nav: other checks say so
