@@ -398,7 +398,9 @@ class Daemon:
             self._needs_vehicle,
         )
         why = self._supervisor.run()
-        if why:
+        if self.failed:
+            pass  # the failure's reason (``_fail``) is why it stopped, whatever else came true then
+        elif why:
             self.stop_reason = why
         elif self.stop_event.is_set() and not self.stop_reason:
             self.stop_reason = "stop requested"

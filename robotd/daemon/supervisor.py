@@ -71,7 +71,9 @@ class Supervisor:
             if self.duration_s and now - t_start >= self.duration_s:
                 return "duration reached"
             if not self.slam_alive():
-                return "source ended"
+                # the thread may have ended by failing (``fail`` set the flag after the wait above
+                # timed out): the flag's reason stands, the source did not end
+                return "" if self.stop_event.is_set() else "source ended"
             if self.recorder is not None and self.recorder.error is not None:
                 self.fail("recorder", f"recording failed: {self.recorder.error}")
                 break

@@ -4,6 +4,7 @@ crashed mid-step does not overwrite the saved map with its half-updated state.""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -96,3 +97,20 @@ def test_a_camera_that_fails_mid_stream_exits_1(tmp_path, monkeypatch, err) -> N
     assert d.run() == 1
     assert d.failed == ["camera"]
     assert (tmp_path / "map.robotd").exists()
+
+
+def test_a_thread_that_fails_just_before_the_supervisor_looks_keeps_its_reason(tmp_path) -> None:
+    """The interleaving CI once hit on a busy machine: the supervisor's wait timed out, then the
+    SLAM thread crashed (``_fail`` set the reason and the flag) and ended before the supervisor
+    asked whether it was alive; the daemon reported "source ended" with exit status 1."""
+    d = _daemon(tmp_path)
+
+    class EndsByFailing:
+        def is_alive(self) -> bool:
+            d._fail("slam", "slam thread crashed: ZeroDivisionError: a bug in a stage")
+            return False
+
+    d.threads = [threading.Thread(), threading.Thread(), EndsByFailing()]  # type: ignore[list-item]
+    d._supervise()
+    assert d.failed == ["slam"] and d.exit_code == 1
+    assert d.stop_reason == "slam thread crashed: ZeroDivisionError: a bug in a stage"
