@@ -166,7 +166,7 @@ class SlamThread:
         stepped = Stepped(frame, result, event, inc, landmarks, snapshot, t_ref_ns)
         self.pub_q.put(stepped)
         # the step's work its result does not wait for, now that the pose is on its way
-        self.health.on_deferred(pipeline.after_step())
+        self.health.on_deferred(self.feed.after_step())
         return stepped
 
     def _check_gap(self, gap_ns: int, covered: bool) -> bool:

@@ -122,6 +122,19 @@ class Feed:
         self.integrator.prune_before(frame.t_ns)
         return Fed(result, inc, step_ms, stalled)
 
+    def after_step(self) -> float:
+        """The last step's deferred work (``Pipeline.after_step``), under the step's error policy:
+        a RobotdError there is logged and counted in ``step_errors`` like a failed step (the pose
+        it followed is already out; the measurement it would have made is lost) and the feed goes
+        on. Returns the milliseconds it took (0 when nothing waited or it failed)."""
+        try:
+            return self.pipeline.after_step()
+        except RobotdError as exc:
+            self.counters.step_errors += 1
+            self.counters.last_step_error_ns = time.monotonic_ns()
+            self.log.error("frame %s: deferred work failed: %s", self._last_seq, exc)
+            return 0.0
+
     def motion(self, t_ns: int) -> MotionIncrement | None:
         """The vehicle's motion from the last stepped frame to ``t_ns``; None for the first frame
         and when no odometry covers the interval (counted)."""

@@ -86,6 +86,30 @@ def test_a_failed_step_is_skipped_logged_and_counted(caplog: pytest.LogCaptureFi
     assert feed.last_t == 300 * MS
 
 
+def test_deferred_work_that_fails_is_logged_and_counted_and_the_feed_goes_on(caplog: pytest.LogCaptureFixture) -> None:
+    """``Feed.after_step`` (the daemon calls it once the pose is queued) holds the step's error
+    policy: before, a RobotdError there ended the SLAM thread and the daemon."""
+    feed, p = _feed()
+    calls = {"n": 0}
+
+    def after_step() -> float:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RobotdError("offset solve made to fail")
+        return 1.5
+
+    p.after_step = after_step  # type: ignore[attr-defined]
+    odo = [_odo(t * 10 * MS) for t in range(0, 40)]
+    spent = []
+    with caplog.at_level(logging.ERROR):
+        for seq, t in enumerate((0, 100 * MS, 200 * MS, 300 * MS)):
+            assert feed.process(_frame(seq, t), [o for o in odo if t - 100 * MS < o.t_ns <= t]) is not None
+            spent.append(feed.after_step())
+    assert spent == [1.5, 0.0, 1.5, 1.5]
+    assert feed.counters.step_errors == 1 and feed.counters.last_step_error_ns > 0
+    assert "frame 1: deferred work failed: offset solve made to fail" in caplog.text
+
+
 def test_a_failed_step_keeps_the_samples_its_interval_needs() -> None:
     """The integrator forgets samples only past a stepped frame: after a failure the increment
     from the last stepped frame is still whole (a pruned one would not be covered)."""
