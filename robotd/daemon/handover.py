@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from drivers.mavlink_odometry import AutopilotPose
-from robotd.core.errors import PersistenceError
+from robotd.core.errors import PersistenceError, RobotdError
 from robotd.core.geometry import T_to_pose6, se3_inverse
 
 if TYPE_CHECKING:
@@ -189,7 +189,12 @@ class Handover:
             return False
         T, gap_s = carried
         moved = float(np.linalg.norm(T[:3, 3] - self.T_saved_robot[:3, 3]))
-        self.reset(filter_pose(T, self.dim), prior_cov(gap_s, self.dim))
+        try:
+            self.reset(filter_pose(T, self.dim), prior_cov(gap_s, self.dim))
+        except RobotdError as exc:
+            self.outcome = f"refused: {exc}"
+            logger.warning("handover: the autopilot's motion not used: %s", exc)
+            return False
         self.outcome = f"carried {moved:.2f} m over a {gap_s:.1f} s gap"
         logger.info("handover: the pose carried by the autopilot's motion, %s", self.outcome)
         return True

@@ -29,7 +29,7 @@ import numpy as np
 from robotd.config import Config
 from robotd.config.params import frontend_params_from_config, slam_params_from_config
 from robotd.core.choices import MEASUREMENTS
-from robotd.core.errors import MapMismatchError, PersistenceError
+from robotd.core.errors import InputError, MapMismatchError, PersistenceError
 from robotd.core.msgs import (
     LandmarkMap,
     MotionIncrement,
@@ -268,15 +268,23 @@ class Pipeline:
         against, mapped the ground up to 0.25 m away from where the mean pose predicts it, and
         tracking stopped after 20 frames. The loaded map, when it is found, fixes the absolute
         error (docs/slam.md "Relocalisation in a loaded map"). The EKF's joint covariance carries
-        it, so the EKF is reset with ``cov``.
+        it, so the EKF is reset with ``cov``. Raises InputError, the filter untouched, on a pose or
+        covariance of the wrong shape, not finite, or not symmetric positive semi-definite.
         """
+        x, cov = np.asarray(x, dtype=float), np.asarray(cov, dtype=float)
+        dx = 6 if self.estimator.dim == 3 else 3
+        if x.shape != (dx,) or not np.all(np.isfinite(x)):
+            raise InputError(f"handover: expected a finite pose of {dx} values, got {x.shape} {x}")
+        if cov.shape != (dx, dx) or not np.all(np.isfinite(cov)):
+            raise InputError(f"handover: expected a finite ({dx}, {dx}) covariance, got shape {cov.shape}")
+        if not np.allclose(cov, cov.T, rtol=0.0, atol=1e-12) or np.linalg.eigvalsh(cov).min() < 0.0:
+            raise InputError("handover: the covariance is not symmetric positive semi-definite")
         self.after_step()  # the last step's deferred work first, as if it had run in that step
-        cov = np.asarray(cov, dtype=float)
         if self.covariance.anchors is None:
             self.estimator.reset_pose(x, cov)
         else:
             self.estimator.reset_pose(x, None)
-            k = np.arange(6) if cov.shape[0] == 6 else np.array([0, 1, 5])
+            k = np.arange(6) if dx == 6 else np.array([0, 1, 5])
             carried = np.zeros((6, 6))
             carried[np.ix_(k, k)] = cov
             self.covariance.add_uncertainty(carried)

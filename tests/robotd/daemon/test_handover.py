@@ -5,6 +5,7 @@ rebooted or the gap is too long; recorded with the map and read back."""
 from __future__ import annotations
 
 import math
+import re
 import time
 from pathlib import Path
 
@@ -12,10 +13,13 @@ import numpy as np
 import pytest
 
 from drivers.mavlink_odometry import AutopilotPose
-from robotd.core.errors import PersistenceError
+from robotd.config import load_config
+from robotd.core.errors import InputError, PersistenceError
 from robotd.core.geometry import T_to_pose6, pose6_to_T, se3_inverse
+from robotd.core.stereo import RectifiedStereo
 from robotd.daemon import handover as ho
 from robotd.formats.persist import MapStore
+from robotd.pipeline.step import Pipeline
 
 S = 1_000_000_000
 
@@ -188,3 +192,30 @@ def test_a_restarted_daemon_continues_from_the_pose_the_autopilots_motion_carrie
     assert words[0] == "carried", d2.handover.outcome
     moved_m, gap_s = float(words[1]), float(words[5])
     assert moved_m == pytest.approx(0.5 * gap_s, abs=0.06), d2.handover.outcome
+
+
+@pytest.mark.parametrize(
+    ("x", "cov", "why"),
+    [
+        (np.zeros(6), np.full((6, 6), np.nan), "finite (6, 6) covariance"),
+        (np.zeros(6), np.eye(3), "finite (6, 6) covariance"),
+        (np.r_[np.zeros(5), np.inf], np.eye(6), "finite pose of 6 values"),
+        (np.zeros(6), np.diag([1.0, 1, 1, 1, 1, -1]), "not symmetric positive semi-definite"),
+    ],
+)
+def test_a_bad_carried_pose_is_refused_and_the_filter_kept(x: np.ndarray, cov: np.ndarray, why: str) -> None:
+    """``Pipeline.hand_over`` checks what it is handed before touching the filter, and the handover
+    reports the refusal in its outcome instead of ending the SLAM thread."""
+    cfg = load_config(None)
+    p = Pipeline(cfg, RectifiedStereo(700.0, 320.0, 200.0, 0.12, 640, 400), np.random.default_rng(0))
+    before = p.estimator.estimate()
+    with pytest.raises(InputError, match=re.escape(why)):
+        p.hand_over(x, cov)
+    after = p.estimator.estimate()
+    np.testing.assert_array_equal(after.T_world_robot, before.T_world_robot)
+    np.testing.assert_array_equal(after.cov, before.cov)
+
+    saved = ho.SavedHandover(np.eye(4), 50_000, ho.unix_of(time.monotonic_ns()))
+    h = ho.Handover(saved, np.eye(4), 3, lambda t: AutopilotPose(t, np.eye(4), 50_000), lambda *_: p.hand_over(x, cov))
+    assert h.on_frame(time.monotonic_ns()) is False and not h.pending
+    assert h.outcome is not None and h.outcome.startswith("refused: handover:") and why in h.outcome
