@@ -106,15 +106,19 @@ class SlamThread:
         self.stepped = 0
 
     def run(self, stop: threading.Event) -> None:
-        """Until ``stop`` or the frame queue closes (the camera ended); then closes the publish queue."""
-        while not stop.is_set():
-            frame = self.frame_q.get(timeout=0.2)
-            if frame is None:
-                if self.frame_q.closed:
-                    break
-                continue
-            self.on_frame(frame, self.odo_q.drain())
-        self.pub_q.close()
+        """Until ``stop`` or the frame queue closes (the camera ended); then closes the publish
+        queue, also when a step raised (the publisher then ends with it instead of waiting on a
+        queue nobody closes until the shutdown's join gives up on it)."""
+        try:
+            while not stop.is_set():
+                frame = self.frame_q.get(timeout=0.2)
+                if frame is None:
+                    if self.frame_q.closed:
+                        break
+                    continue
+                self.on_frame(frame, self.odo_q.drain())
+        finally:
+            self.pub_q.close()
 
     def on_frame(self, frame: StereoFrame, odometry: list[Odometry]) -> Stepped | None:
         """One frame with the odometry that came since the last: stepped (and queued for the

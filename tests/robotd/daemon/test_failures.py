@@ -48,6 +48,7 @@ def test_a_crash_in_the_slam_step_exits_1_and_keeps_the_saved_map(tmp_path, monk
     assert d.run() == 1
     assert d.failed == ["slam"] and "slam thread crashed: ZeroDivisionError" in d.stop_reason
     assert "map not saved at shutdown: the SLAM thread crashed" in caplog.text
+    assert "did not stop" not in caplog.text  # the publisher ends with the SLAM thread it serves
     assert not (tmp_path / "map.robotd").exists()
 
 
