@@ -277,7 +277,8 @@ class Pipeline:
             raise InputError(f"handover: expected a finite pose of {dx} values, got {x.shape} {x}")
         if cov.shape != (dx, dx) or not np.all(np.isfinite(cov)):
             raise InputError(f"handover: expected a finite ({dx}, {dx}) covariance, got shape {cov.shape}")
-        if not np.allclose(cov, cov.T, rtol=0.0, atol=1e-12) or np.linalg.eigvalsh(cov).min() < 0.0:
+        scale = max(1.0, float(np.abs(cov).max()))
+        if not np.allclose(cov, cov.T, rtol=0.0, atol=1e-12 * scale) or np.linalg.eigvalsh(cov).min() < -1e-12 * scale:
             raise InputError("handover: the covariance is not symmetric positive semi-definite")
         self.after_step()  # the last step's deferred work first, as if it had run in that step
         if self.covariance.anchors is None:

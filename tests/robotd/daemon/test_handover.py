@@ -219,3 +219,17 @@ def test_a_bad_carried_pose_is_refused_and_the_filter_kept(x: np.ndarray, cov: n
     h = ho.Handover(saved, np.eye(4), 3, lambda t: AutopilotPose(t, np.eye(4), 50_000), lambda *_: p.hand_over(x, cov))
     assert h.on_frame(time.monotonic_ns()) is False and not h.pending
     assert h.outcome is not None and h.outcome.startswith("refused: handover:") and why in h.outcome
+
+
+def test_a_carried_covariance_with_rounding_in_it_is_taken() -> None:
+    """A covariance turned into another frame (R D Rᵀ, one variance 0) carries rounding: a few
+    1e-17 off symmetric and an eigenvalue just below 0. The check must not refuse it."""
+    cfg = load_config(None)
+    p = Pipeline(cfg, RectifiedStereo(700.0, 320.0, 200.0, 0.12, 640, 400), np.random.default_rng(0))
+    R = pose6_to_T(np.array([0, 0, 0, -0.72, -0.6, 0.94]))[:3, :3]
+    block = R @ np.diag([0.04, 0.09, 0.0]) @ R.T
+    cov = np.zeros((6, 6))
+    cov[:3, :3], cov[3:, 3:] = block, np.diag([1e-4, 1e-4, 1e-3])
+    assert np.linalg.eigvalsh(cov).min() < 0.0  # the rounding this test is about
+    p.hand_over(np.r_[1.0, 2.0, 0.0, 0.0, 0.0, 0.5], cov)
+    np.testing.assert_allclose(p.estimator.estimate().xyz_W_m[:2], [1.0, 2.0], atol=1e-9)
