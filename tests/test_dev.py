@@ -89,3 +89,34 @@ def test_a_signal_to_dev_py_alone_stops_robotd_cleanly(clone: Path, tmp_path: Pa
     assert took < STOP_WITHIN_S, f"stop took {took:.1f} s"
     assert f"shutting down ({sig.name})" in out and "map saved to" in out, out[-2000:]
     assert (tmp_path / "state" / "map.robotd").exists()
+
+
+def _dev_module():  # dev.py is a script at the repository's root, not a package module
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("robotd_dev_script", REPO / "dev.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize(
+    ("args", "cpus", "expected"),
+    [
+        ([], 2, ["-n", "2"]),
+        ([], 16, ["-n", "2"]),  # two: the concurrency the suite is checked at
+        ([], 1, []),  # one CPU: one process
+        (["-n", "0"], 2, []),  # the caller's choice wins
+        (["-n4", "tests/test_docs.py"], 2, []),
+        (["--numprocesses=3"], 2, []),
+        (["-p", "no:xdist"], 2, []),
+        (["-k", "not slow", "--durations=20"], 2, ["-n", "2"]),
+    ],
+)
+def test_dev_py_test_runs_two_workers_unless_told_or_on_one_cpu(
+    monkeypatch: pytest.MonkeyPatch, args: list[str], cpus: int, expected: list[str]
+) -> None:
+    dev = _dev_module()
+    monkeypatch.setattr(dev.os, "sched_getaffinity", lambda _pid: set(range(cpus)))
+    assert dev._workers(args) == expected
