@@ -221,3 +221,163 @@ def gauss_newton_kernel(
     idx = np.flatnonzero(inl)
     H, _, rss, count = normal_equations_kernel(R, t, P, z, Q, zp, idx, f, px, py, hb)
     return R, t, inl, H, rss, count
+
+
+@jit(inline="always")
+def _inv33_into(out: np.ndarray, A: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """out = A⁻¹ for a (3, 3) A by cofactors; False (out untouched) when A is singular."""
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
+    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
+    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    if not abs(det) > 1e-300:
+        return False
+    inv = 1.0 / det
+    out[0, 0] = c00 * inv
+    out[1, 0] = c01 * inv
+    out[2, 0] = c02 * inv
+    out[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) * inv
+    out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) * inv
+    out[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * inv
+    out[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) * inv
+    out[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) * inv
+    out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * inv
+    return True
+
+
+@jit
+def two_view_kernel(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    zp: np.ndarray,
+    idx: np.ndarray,
+    f: float,
+    px: float,
+    py: float,
+    hb: float,
+    iterations: int,
+) -> tuple:  # pragma: no cover - compiled
+    """The two-view adjustment of pnp.two_view: Gauss–Newton over the motion (right perturbation
+    δp, δθ) and the position X_i of every point ``idx`` in the previous frame, on the residuals
+    zp_i − π(X_i) and z_i − π(Rᵀ(X_i − t)); the points are eliminated per point (Schur complement
+    of their 3×3 blocks), so a pass is linear in the points. X_i starts at P_i. Returns R, t and
+    the final pass's reduced information S (6, 6) over (δp, δθ), Σ|r|² and the residual count.
+    Every product is written out over preallocated scratch: no allocation per point."""
+    R = R.copy()
+    t = t.copy()
+    n = idx.shape[0]
+    X = np.empty((n, 3))
+    for k in range(n):
+        X[k] = P[idx[k]]
+    Jx = np.empty((3, 3))
+    Jy = np.empty((3, 3))
+    W = np.empty((3, 3))
+    J2X = np.empty((3, 3))
+    J2e = np.empty((3, 6))
+    HXX = np.empty((3, 3))
+    A = np.empty((6, 3))
+    r1 = np.empty(3)
+    r2 = np.empty(3)
+    HXXi = np.empty((n, 3, 3))
+    HeX = np.empty((n, 6, 3))
+    gX = np.empty((n, 3))
+    S = np.zeros((6, 6))
+    b = np.zeros(6)
+    Sr = np.empty((6, 6))
+    rss = 0.0
+    for it in range(iterations + 1):
+        S[:] = 0.0
+        b[:] = 0.0
+        rss = 0.0
+        ok = True
+        for k in range(n):
+            i = idx[k]
+            d0, d1, d2 = X[k, 0] - t[0], X[k, 1] - t[1], X[k, 2] - t[2]
+            y0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+            y1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+            y2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+            if not (X[k, 0] > 1e-6 and y0 > 1e-6):
+                ok = False
+                break
+            a0, a1, a2 = _project(X[k, 0], X[k, 1], X[k, 2], f, px, py, hb)
+            c0, c1, c2 = _project(y0, y1, y2, f, px, py, hb)
+            r1[0], r1[1], r1[2] = zp[i, 0] - a0, zp[i, 1] - a1, zp[i, 2] - a2
+            r2[0], r2[1], r2[2] = z[i, 0] - c0, z[i, 1] - c1, z[i, 2] - c2
+            for r in range(3):
+                rss += r1[r] * r1[r] + r2[r] * r2[r]
+            _jac_into(Jx, X[k, 0], X[k, 1], X[k, 2], f, hb)
+            _jac_into(Jy, y0, y1, y2, f, hb)
+            # ∂y/∂X = Rᵀ, ∂y/∂δp = −I, ∂y/∂δθ = [y]×
+            _times_skew_into(W, Jy, y0, y1, y2)
+            for r in range(3):
+                for c in range(3):
+                    J2X[r, c] = Jy[r, 0] * R[c, 0] + Jy[r, 1] * R[c, 1] + Jy[r, 2] * R[c, 2]
+                    J2e[r, c] = -Jy[r, c]
+                    J2e[r, 3 + c] = W[r, c]
+            for r in range(3):
+                for c in range(3):
+                    HXX[r, c] = (
+                        Jx[0, r] * Jx[0, c]
+                        + Jx[1, r] * Jx[1, c]
+                        + Jx[2, r] * Jx[2, c]
+                        + J2X[0, r] * J2X[0, c]
+                        + J2X[1, r] * J2X[1, c]
+                        + J2X[2, r] * J2X[2, c]
+                    )
+                gX[k, r] = (
+                    Jx[0, r] * r1[0]
+                    + Jx[1, r] * r1[1]
+                    + Jx[2, r] * r1[2]
+                    + J2X[0, r] * r2[0]
+                    + J2X[1, r] * r2[1]
+                    + J2X[2, r] * r2[2]
+                )
+            if not _inv33_into(HXXi[k], HXX):
+                ok = False
+                break
+            for r in range(6):
+                for c in range(3):
+                    HeX[k, r, c] = J2e[0, r] * J2X[0, c] + J2e[1, r] * J2X[1, c] + J2e[2, r] * J2X[2, c]
+            for r in range(6):
+                for c in range(3):
+                    A[r, c] = HeX[k, r, 0] * HXXi[k, 0, c] + HeX[k, r, 1] * HXXi[k, 1, c] + HeX[k, r, 2] * HXXi[k, 2, c]
+            for r in range(6):
+                for c in range(6):
+                    S[r, c] += (
+                        J2e[0, r] * J2e[0, c]
+                        + J2e[1, r] * J2e[1, c]
+                        + J2e[2, r] * J2e[2, c]
+                        - A[r, 0] * HeX[k, c, 0]
+                        - A[r, 1] * HeX[k, c, 1]
+                        - A[r, 2] * HeX[k, c, 2]
+                    )
+                b[r] += (
+                    J2e[0, r] * r2[0]
+                    + J2e[1, r] * r2[1]
+                    + J2e[2, r] * r2[2]
+                    - A[r, 0] * gX[k, 0]
+                    - A[r, 1] * gX[k, 1]
+                    - A[r, 2] * gX[k, 2]
+                )
+        if not ok or it == iterations:
+            break
+        for r in range(6):
+            for c in range(6):
+                Sr[r, c] = S[r, c] + (1e-9 if r == c else 0.0)
+        if not np.all(np.isfinite(Sr)) or abs(np.linalg.det(Sr)) < 1e-300:
+            break
+        d = np.linalg.solve(Sr, b)
+        for k in range(n):
+            for r in range(3):
+                u = gX[k, r] - (HeX[k, 0, r] * d[0] + HeX[k, 1, r] * d[1] + HeX[k, 2, r] * d[2])
+                u -= HeX[k, 3, r] * d[3] + HeX[k, 4, r] * d[4] + HeX[k, 5, r] * d[5]
+                A[0, r] = u  # scratch: the point's reduced gradient
+            for r in range(3):
+                X[k, r] += HXXi[k, r, 0] * A[0, 0] + HXXi[k, r, 1] * A[0, 1] + HXXi[k, r, 2] * A[0, 2]
+        t = t + R @ d[:3]
+        R = R @ _so3_exp(d[3:])
+        if math.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2 + d[3] ** 2 + d[4] ** 2 + d[5] ** 2) < 1e-9:
+            break
+    return R, t, S, rss, 6 * n

@@ -102,3 +102,37 @@ def refine(
     A[:3, :3] = R
     A[3:, 3:] = np.eye(3)
     return R, t, inliers, A @ cov_d @ A.T, rms
+
+
+def two_view(
+    R: np.ndarray, t: np.ndarray, P: np.ndarray, z: np.ndarray, zp: np.ndarray, rig: RectifiedStereo, iterations: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two-view adjustment of robotd.frontend._pnp_kernels.two_view_kernel on all of P,
+    vectorised over the points: Gauss–Newton over the motion (δp, δθ) and every point's position
+    X, the points eliminated by their Schur complement. Returns R, t and the last pass's reduced
+    information S (6, 6)."""
+    X = np.array(P, dtype=float)
+    R, t = np.array(R, dtype=float), np.array(t, dtype=float)
+    S = np.zeros((6, 6))
+    for it in range(iterations + 1):
+        Y = (X - t) @ R  # Rᵀ(X − t) row-wise
+        r1 = zp - project_stereo(X, rig)
+        r2 = z - project_stereo(Y, rig)
+        J1X = projection_jacobian(X, rig)
+        JY = projection_jacobian(Y, rig)
+        K = np.concatenate([np.broadcast_to(-np.eye(3), (len(Y), 3, 3)), np.stack([skew(y) for y in Y])], axis=2)
+        J2e = JY @ K  # (n, 3, 6)
+        J2X = JY @ R.T  # (n, 3, 3)
+        HeX = np.einsum("nij,nik->njk", J2e, J2X)
+        HXXi = np.linalg.inv(np.einsum("nij,nik->njk", J1X, J1X) + np.einsum("nij,nik->njk", J2X, J2X))
+        gX = np.einsum("nij,ni->nj", J1X, r1) + np.einsum("nij,ni->nj", J2X, r2)
+        A = HeX @ HXXi
+        S = np.einsum("nij,nik->jk", J2e, J2e) - np.einsum("nij,nkj->ik", A, HeX)
+        b = np.einsum("nij,ni->j", J2e, r2) - np.einsum("nij,nj->i", A, gX)
+        if it == iterations:
+            break
+        d = np.linalg.solve(S + 1e-9 * np.eye(6), b)
+        X = X + np.einsum("nij,nj->ni", HXXi, gX - np.einsum("nji,j->ni", HeX, d))
+        t = t + R @ d[:3]
+        R = R @ so3_exp(d[3:])
+    return R, t, S
