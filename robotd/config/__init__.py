@@ -85,7 +85,12 @@ class FrontendConfig:
     grid_cols: int = _f(8, "grid bucketing columns", min=1, max=64)
     bucketing: bool = _f(True, "spread features evenly over the image")
     depth_min_m: float = _f(0.3, "nearest landmark depth (sets d_max = f·b / depth_min)", min=0.01)
-    disparity_min_px: float = _f(5.0, "smallest disparity accepted (far limit)", min=0.5)
+    disparity_min_px: float = _f(
+        2.0,
+        "smallest disparity accepted (far limit; far points hold the rotation, and the PnP's two-view"
+        " adjustment keeps them from shrinking the translation: docs/frontend.md)",
+        min=0.5,
+    )
     row_tolerance_px: float = _f(2.0, "|y_L - y_R| allowed in stereo matching", min=0.1, max=20.0)
     sigma_x_px: float = _f(0.5, "pixel noise of columns (measurement covariance)", min=0.01, max=10.0)
     sigma_y_px: float = _f(0.3535533905932738, "pixel noise of the mean row", min=0.01, max=10.0)
@@ -120,6 +125,13 @@ class FrontendConfig:
         choices=("pnp", "similarity"),
     )
     pnp_inlier_px: float = _f(2.0, "stereo PnP: reprojection error of an inlier", min=0.1, max=50.0)
+    pnp_two_view_iterations: int = _f(
+        3,
+        "stereo PnP: passes of the two-view adjustment (the motion with every inlier's position free: far"
+        " points then do not shrink the translation, docs/frontend.md); 0 turns it off",
+        min=0,
+        max=20,
+    )
     parallel_detect: bool = _f(
         True, "detect the left and right images on two threads (one thread: a steadier tail on a busy 2-core host)"
     )

@@ -169,7 +169,7 @@ class StereoMatchParams:
     """
 
     row_tol_px: float = 2.0
-    d_min_px: float = 5.0
+    d_min_px: float = 2.0
     depth_min_m: float = 0.3
     ratio: float | None = None
     max_single_float: float = 0.45

@@ -46,6 +46,6 @@ def test_it_prints_one_json_object_with_every_bin(capsys: pytest.CaptureFixture[
     assert res["matches"] > 50 and res["fb_px_m"] == pytest.approx(0.9 * 215.0)
     assert [b["bin_px"] for b in res["bins"]] == [[0, 3], [3, 5], [5, 10], [10, 20], [20, None]]
     assert sum(b["all"]["n"] for b in res["bins"]) == res["matches"]
-    assert [b["kept_by_default"] for b in res["bins"]] == [False, False, True, True, True]
+    assert [b["kept_by_default"] for b in res["bins"]] == [False, True, True, True, True]
     with pytest.raises(SystemExit):
         bench.main(["--url", "kitti:///nowhere"])

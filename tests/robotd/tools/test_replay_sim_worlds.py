@@ -109,9 +109,11 @@ def test_open_terrain_vision_only_through_the_long_curve_is_not_scaled():
     """open_terrain at car pace (5 m/s, 5 fps: a metre a frame), 14 s: 10 m straight, the 98°
     curve over 53 m, then the straight after it; the upper half of the image is trees and hills
     at a few pixels of disparity. At 640×400 (at 320×200 f·b halves and the far band falls behind
-    the 5 px far limit: vision alone then loses most frames). Measured: 0 lost, ATE 0.083 m,
-    drift 0.47 %, heading RMSE 0.46°, similarity scale 1.0017: the held-out sequence A's
-    too-long translation (scale 0.934) does not reproduce here (docs/sim.md)."""
+    the far limit: vision alone then loses most frames). Measured: 0 lost, ATE 0.074 m, drift
+    0.40 %, heading RMSE 0.39°, similarity scale 0.9991 (with the 5 px far limit and no two-view
+    adjustment, seeds 1-4: heading 0.61°, ATE 0.113 m; docs/frontend.md "Far points in the
+    motion"): the held-out sequence A's too-long translation (scale 0.934) does not reproduce here
+    (docs/sim.md)."""
     url = "sim://?world=open_terrain&duration=14&realtime=0&odometry=0&speed=5&fps=5"
     s = replay(load_config(None, {}), url, progress=False)
     assert s["frames"] == 70 and s["lost_frames"] == 0
@@ -129,8 +131,9 @@ def test_open_terrain_at_car_pace_with_odometry_is_as_good_as_vision_alone():
     particles spread over metres and degrees, the reported pose their mean. Before: ATE 0.78 m,
     drift 2.5 %, similarity scale 1.038 (30 s: 3.3 m, 7.8 %), where vision alone gave 0.083 m.
     Now the images' own motion over the interval is fused into the odometry's while the map does
-    not fix the pose (docs/slam.md "Odometry and the images' motion"): measured ATE 0.125 m,
-    drift 0.48 %, heading RMSE 0.61°, scale 1.0066."""
+    not fix the pose (docs/slam.md "Odometry and the images' motion"): measured ATE 0.043 m,
+    drift 0.19 %, heading RMSE 0.24°, scale 1.0006 (0.125 m, 0.48 %, 0.61°, 1.0066 with the 5 px
+    far limit)."""
     url = "sim://?world=open_terrain&duration=14&realtime=0&speed=5&fps=5"
     s = replay(load_config(None, {}), url, progress=False)
     assert s["frames"] == 70 and s["lost_frames"] == 0 and s["odometry_priors"] == 69
@@ -151,9 +154,13 @@ def test_a_biased_gyro_does_not_tilt_the_rover_when_it_measures_gravity():
     """The hard case of the soak (docs/slam.md "Gravity"): nothing in vision or the gyro holds
     the absolute roll and pitch, so a gyro bias tilts the rover and its map (an hour at the
     default 0.002 rad/s took the pitch to 90°). At 15× that bias for 30 s, measured: tilt error
-    RMSE 2.3° (max 3.5°) with the simulated IMU's gravity, 4.8° (7.2°) without it."""
+    RMSE 1.58° (max 2.66°) with the simulated IMU's gravity, 2.12° (3.72°) without it. Vision
+    slows the tilt's drift against the map, the more so since far points hold the rotation (2 px
+    disparity, docs/frontend.md "Far points in the motion"; before: 2.03° and 3.47°), so gravity's
+    margin over it is 1.3×, not 1.7×: without gravity fused the two runs would be alike."""
     with_g, without = _tilt_run(1), _tilt_run(0)
     assert with_g["gravity_fused"] == with_g["frames"] - 1 and without["gravity_fused"] == 0
     assert with_g["lost_frames"] == 0
     assert with_g["truth_tilt_rmse_deg"] < 3.0 and with_g["truth_tilt_max_deg"] < 5.0
-    assert without["truth_tilt_rmse_deg"] > 1.5 * with_g["truth_tilt_rmse_deg"]
+    assert without["truth_tilt_rmse_deg"] > 1.2 * with_g["truth_tilt_rmse_deg"]
+    assert without["truth_tilt_max_deg"] > 1.2 * with_g["truth_tilt_max_deg"]
