@@ -1,8 +1,9 @@
-"""Accuracy of the default configuration on every real KITTI folder and on the simulated rover (issue 13).
+"""Accuracy of the default configuration on every real folder and on the simulated rover (issues 13, 26).
 
-For each KITTI folder in ../shared/data (a folder with ``calib.txt`` and ``image_0/`` or ``image_l/``)
-and each ``sim://`` case, every detector × filter runs ``robotd.tools.replay.replay`` with the default
-configuration (or ``--config FILE``, loaded as ``robotd replay --config`` does) and only
+For each KITTI folder in ../shared/data (a folder with ``calib.txt`` and ``image_0/`` or ``image_l/``),
+each EuRoC folder (``mav0/cam0``, ``mav0/cam1``; reported, not judged) and each ``sim://`` case,
+every detector × filter runs ``robotd.tools.replay.replay`` with the default configuration (or
+``--config FILE``, loaded as ``robotd replay --config`` does) and only
 ``frontend.detector`` and ``slam.filter`` changed. The plain OpenCV stereo PnP odometry
 (robotd/research/pnp_baseline.py) runs on the same frames in the same invocation, as a row of its
 own per place. Per run: drift in % of the path (first pose aligned), ATE after a rigid alignment,
@@ -88,8 +89,8 @@ TARGET_DETECTORS = ("orb", "sift")
 
 
 class Place(NamedTuple):
-    name: str  # "kitti-seq1", "sim:yard"
-    kind: str  # "kitti" | "sim"
+    name: str  # "kitti-seq1", "euroc-v101-micro", "sim:yard"
+    kind: str  # "kitti" | "euroc" | "sim"
     source: str  # the URL both robotd and the baseline read
     judge_drift: bool = False  # drift judged (KITTI odometry truth) or reported only
 
@@ -110,16 +111,30 @@ def is_kitti_folder(p: Path) -> bool:
     return (p / "calib.txt").is_file() and ((p / "image_0").is_dir() or (p / "image_l").is_dir())
 
 
-def kitti_places(root: Path, names: list[str] | None) -> list[Place]:
-    """Every KITTI folder under ``root`` (sorted), or the named ones (names under root, or paths)."""
+def is_euroc_folder(p: Path) -> bool:
+    return (p / "mav0" / "cam0").is_dir() and (p / "mav0" / "cam1").is_dir()
+
+
+def real_places(root: Path, names: list[str] | None) -> list[Place]:
+    """Every real folder under ``root`` (sorted): KITTI folders, then EuRoC ones (``mav0/``,
+    reported, not judged: the targets are KITTI's); or the named ones (names under root, or paths)."""
     if names is None:
-        folders = sorted(p for p in root.iterdir() if p.is_dir() and is_kitti_folder(p)) if root.is_dir() else []
+        found = sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+        folders = [p for p in found if is_kitti_folder(p)] + [p for p in found if is_euroc_folder(p)]
     else:
         folders = [Path(n) if Path(n).is_dir() else root / n for n in names]
-        bad = [str(f) for f in folders if not is_kitti_folder(f)]
+        bad = [str(f) for f in folders if not (is_kitti_folder(f) or is_euroc_folder(f))]
         if bad:
-            raise SystemExit(f"not a KITTI folder (expected calib.txt and image_0/ or image_l/): {', '.join(bad)}")
-    return [Place(f.name, "kitti", f"kitti://{f.resolve()}", judge_drift=not (f / "raw").is_dir()) for f in folders]
+            raise SystemExit(
+                "not a KITTI folder (calib.txt and image_0/ or image_l/) or a EuRoC one (mav0/cam0, mav0/cam1): "
+                + ", ".join(bad)
+            )
+    return [
+        Place(f.name, "kitti", f"kitti://{f.resolve()}", judge_drift=not (f / "raw").is_dir())
+        if is_kitti_folder(f)
+        else Place(f.name, "euroc", f"euroc://{f.resolve()}")
+        for f in folders
+    ]
 
 
 def default_sim_items() -> list[str]:
@@ -210,7 +225,7 @@ def limit_frames(place: Place, max_frames: int) -> Place:
         return place
     base, _, query = place.source.partition("?")
     q = dict(parse_qsl(query))
-    if place.kind == "kitti":
+    if place.kind in ("kitti", "euroc"):
         start, stride = int(q.get("start", 0)), int(q.get("stride", 1))
         stop = start + max_frames * stride
         q["stop"] = str(min(stop, int(q["stop"])) if "stop" in q else stop)
@@ -399,9 +414,11 @@ def _names(text: str, known: tuple[str, ...], what: str) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding the KITTI folders (../shared/data)")
     ap.add_argument(
-        "--folders", help="comma-separated KITTI folders (names under --data, or paths); default: all found"
+        "--data", type=Path, default=DEFAULT_DATA, help="folder holding the KITTI and EuRoC folders (../shared/data)"
+    )
+    ap.add_argument(
+        "--folders", help="comma-separated KITTI or EuRoC folders (names under --data, or paths); default: all found"
     )
     ap.add_argument("--detectors", default=",".join(("orb", "sift", "surf")))
     ap.add_argument("--filters", default=",".join(("fastslam2", "fastslam1", "ekf")))
@@ -432,9 +449,11 @@ def main(argv: list[str] | None = None) -> int:
     skipped: list[str] = []
     detectors = _names(args.detectors, DETECTORS, "detectors")
     filters = _names(args.filters, tuple(ESTIMATORS), "filters")
-    places = kitti_places(args.data, args.folders.split(",") if args.folders else None)
+    places = real_places(args.data, args.folders.split(",") if args.folders else None)
     if not places:
-        skipped.append(f"KITTI: no folder with calib.txt and image_0/ or image_l/ under {args.data}")
+        skipped.append(
+            f"real data: no KITTI (calib.txt, image_0/ or image_l/) or EuRoC (mav0/) folder under {args.data}"
+        )
     sim_items = args.sim if args.sim is not None else ([] if args.quick else default_sim_items())
     if args.quick:
         seq1 = [p for p in places if p.name == "kitti-seq1"]
@@ -460,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         for p in places:
             rows.append(run_task("pnp", p, None, None, args.config, 0))
             bar.update(1)
-    kitti = [p for p in places if p.kind == "kitti"]
+    kitti = [p for p in places if p.kind != "sim"]  # the real folders, KITTI and EuRoC
     sims = [p for p in places if p.kind == "sim"]
     rows += robotd_rows([(kitti, [(d, f) for d in detectors for f in filters]), (sims, [(d0, f0)])], args.config, args)
     order = {p.name: k for k, p in enumerate(places)}

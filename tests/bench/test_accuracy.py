@@ -101,3 +101,22 @@ def test_a_summarys_segment_drift_and_positions_aligned_nees_become_the_rows_col
     f = bench._figures({k: v for k, v in s.items() if not k.startswith("truth_")})
     assert f["segment_drift_pct"] is None and f["nees_aligned_in_band_frac"] is None
     assert bench._nees_cell(f) == "–"
+
+
+def test_every_real_folder_is_a_place_kitti_judged_euroc_reported(tmp_path: Path) -> None:
+    """Issue 26 asks for the table on every shared real folder: EuRoC's too (reported, not judged)."""
+    bench = _bench()
+    (tmp_path / "k" / "image_0").mkdir(parents=True)
+    (tmp_path / "k" / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (tmp_path / "e" / "mav0" / "cam0").mkdir(parents=True)
+    (tmp_path / "e" / "mav0" / "cam1").mkdir(parents=True)
+    (tmp_path / "other").mkdir()
+    places = bench.real_places(tmp_path, None)
+    assert [(p.name, p.kind) for p in places] == [("k", "kitti"), ("e", "euroc")]
+    assert places[1].source == f"euroc://{(tmp_path / 'e').resolve()}"
+    assert bench.limit_frames(places[1], 10).source.endswith("?stop=10")
+    rows = [{"place": "e", "method": "robotd", "detector": "orb", "filter": "fastslam2", "ate_m": 0.001}]
+    bench.judge(rows, places, "fastslam2")
+    assert rows[0]["verdict"] is None and rows[0]["target"] is False
+    with pytest.raises(SystemExit, match="not a KITTI folder .* or a EuRoC one"):
+        bench.real_places(tmp_path, ["other"])
