@@ -366,7 +366,8 @@ def two_view_kernel(
         for r in range(6):
             for c in range(6):
                 Sr[r, c] = S[r, c] + (1e-9 if r == c else 0.0)
-        if not np.all(np.isfinite(Sr)) or abs(np.linalg.det(Sr)) < 1e-300:
+        # a non-finite pixel makes b non-finite (S does not see residuals): no step, motion unchanged
+        if not (np.all(np.isfinite(Sr)) and np.all(np.isfinite(b))) or abs(np.linalg.det(Sr)) < 1e-300:
             break
         d = np.linalg.solve(Sr, b)
         for k in range(n):

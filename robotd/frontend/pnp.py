@@ -314,7 +314,8 @@ def two_view(
     :func:`refine` shrink it alike, so they do not cancel it). With far points dominating, the
     shrink is about 1.5 % of the translation at 2.5-5 px (docs/frontend.md "Far points in the
     motion"). Returns R, t; the covariance stays :func:`refine`'s. Unchanged (R, t) when the
-    adjustment cannot run (fewer than 3 inliers, a point behind the rig, a singular system)."""
+    adjustment cannot run (fewer than 3 inliers, a point behind the rig or not finite, a non-finite
+    pixel, a singular system)."""
     idx = np.flatnonzero(inliers)
     if idx.size < 3 or iterations < 1:
         return R, t

@@ -255,9 +255,17 @@ def test_the_two_view_adjustment_recovers_an_exact_motion_from_a_wrong_start():
     R1, t1 = two_view(R0, t0, P, z, zp, RIG, np.ones(60, bool), 6)
     assert np.linalg.norm(so3_log(R1.T @ R)) < 1e-9 and np.linalg.norm(t1 - t) < 1e-9
     # too few points, or none asked for: the motion comes back unchanged
-    for inl, it in ((np.arange(60) < 2, 3), (np.ones(60, bool), 0)):
-        R2, t2 = two_view(R0, t0, P, z, zp, RIG, inl, it)
+    for inl, it in ((np.arange(60) < 2, 3), (np.ones(60, bool), 0), (np.zeros(0, bool), 3)):
+        n = inl.size
+        R2, t2 = two_view(R0, t0, P[:n], z[:n], zp[:n], RIG, inl, it)
         assert np.array_equal(R2, R0) and np.array_equal(t2, t0)
+    # a non-finite point or pixel among the inliers: no step and no error (the caller's inliers
+    # are finite; the function does not rely on it)
+    for arr in ("P", "z", "zp"):
+        bad = {"P": P.copy(), "z": z.copy(), "zp": zp.copy()}
+        bad[arr][7, 1] = np.nan
+        R2, t2 = two_view(R0, t0, bad["P"], bad["z"], bad["zp"], RIG, np.ones(60, bool), 3)
+        assert np.array_equal(R2, R0) and np.array_equal(t2, t0), arr
 
 
 def test_far_points_shrink_the_refined_translation_and_the_two_view_adjustment_does_not():
