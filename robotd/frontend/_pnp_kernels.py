@@ -263,7 +263,7 @@ def two_view_kernel(
     δp, δθ) and the position X_i of every point ``idx`` in the previous frame, on the residuals
     zp_i − π(X_i) and z_i − π(Rᵀ(X_i − t)); the points are eliminated per point (Schur complement
     of their 3×3 blocks), so a pass is linear in the points. X_i starts at P_i. Returns R, t and
-    the final pass's reduced information S (6, 6) over (δp, δθ), Σ|r|² and the residual count.
+    the final pass's reduced information S (6, 6) over (δp, δθ).
     Every product is written out over preallocated scratch: no allocation per point."""
     R = R.copy()
     t = t.copy()
@@ -286,11 +286,9 @@ def two_view_kernel(
     S = np.zeros((6, 6))
     b = np.zeros(6)
     Sr = np.empty((6, 6))
-    rss = 0.0
     for it in range(iterations + 1):
         S[:] = 0.0
         b[:] = 0.0
-        rss = 0.0
         ok = True
         for k in range(n):
             i = idx[k]
@@ -305,8 +303,6 @@ def two_view_kernel(
             c0, c1, c2 = _project(y0, y1, y2, f, px, py, hb)
             r1[0], r1[1], r1[2] = zp[i, 0] - a0, zp[i, 1] - a1, zp[i, 2] - a2
             r2[0], r2[1], r2[2] = z[i, 0] - c0, z[i, 1] - c1, z[i, 2] - c2
-            for r in range(3):
-                rss += r1[r] * r1[r] + r2[r] * r2[r]
             _jac_into(Jx, X[k, 0], X[k, 1], X[k, 2], f, hb)
             _jac_into(Jy, y0, y1, y2, f, hb)
             # ∂y/∂X = Rᵀ, ∂y/∂δp = −I, ∂y/∂δθ = [y]×
@@ -381,4 +377,4 @@ def two_view_kernel(
         R = R @ _so3_exp(d[3:])
         if math.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2 + d[3] ** 2 + d[4] ** 2 + d[5] ** 2) < 1e-9:
             break
-    return R, t, S, rss, 6 * n
+    return R, t, S

@@ -319,7 +319,7 @@ def two_view(
     idx = np.flatnonzero(inliers)
     if idx.size < 3 or iterations < 1:
         return R, t
-    R2, t2, S, _, _ = _k.two_view_kernel(
+    R2, t2, S = _k.two_view_kernel(
         _f64(R),
         _f64(t),
         _f64(P),

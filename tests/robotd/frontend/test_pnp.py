@@ -239,7 +239,7 @@ def test_the_two_view_kernel_is_its_numpy_twin():
     from robotd.frontend import _pnp_kernels
 
     hb = RIG.baseline_m / 2
-    Rk, tk, Sk, _, _ = _pnp_kernels.two_view_kernel(R, t, Pn, z, zp, np.arange(80), RIG.f_px, RIG.px, RIG.py, hb, 3)
+    Rk, tk, Sk = _pnp_kernels.two_view_kernel(R, t, Pn, z, zp, np.arange(80), RIG.f_px, RIG.px, RIG.py, hb, 3)
     Rn, tn, Sn = reference_pnp.two_view(R, t, Pn, z, zp, RIG, 3)
     np.testing.assert_allclose(Rk, Rn, atol=1e-12)
     np.testing.assert_allclose(tk, tn, atol=1e-12)
