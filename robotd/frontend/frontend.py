@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -56,7 +58,7 @@ from robotd.frontend.association import (
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
 from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams
 from robotd.frontend.features import Features
-from robotd.frontend.pnp import MotionPrior, PnpParams, stereo_pnp
+from robotd.frontend.pnp import MotionPrior, PnpParams, offset_sensitivity, stereo_pnp
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
@@ -155,13 +157,17 @@ class VisualMotion:
     motion_inliers (empty when the stage did not run); moving: indices of this frame's
     measurements that were matched to the previous frame but did not move with the rover (the
     outliers of its motion: a moving vehicle, or a false match), all the matched ones when the
-    images gave no motion, None when the stage did not run or found no match.
+    images gave no motion, None when the stage did not run or found no match;
+    offset_sensitivity: computes (6,) d(dp, drot)/dδ, how the motion moves per pixel of a disparity
+    offset common to both frames (robotd.frontend.pnp.offset_sensitivity; a refinement's cost,
+    so only on demand: across a gap), or None (no PnP motion).
     """
 
     T_prev_curr: np.ndarray | None
     increment: MotionIncrement | None
     counts: dict[str, int]
     moving: np.ndarray | None = None
+    offset_sensitivity: Callable[[], np.ndarray] | None = None
 
 
 NO_SCREENING = Screening(None, None)
@@ -433,14 +439,17 @@ class Frontend:
             counts["motion_inliers"] = int(pnp.inliers.sum())
             R, t, cov_tr = pnp.R, pnp.t, pnp.cov
             moving: np.ndarray | None = ic[~pnp.inliers]
+            sens: Callable[[], np.ndarray] | None = partial(
+                offset_sensitivity, R, t, z, zp, self.rig, p.pnp, pnp.inliers
+            )
         else:
             fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)
             if fit is None:
                 return VisualMotion(None, None, counts)
             R, t, cov_tr = fit
-            moving = None
+            moving = sens = None
         inc = MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr)
-        return VisualMotion(se3(R, t), inc, counts, moving)
+        return VisualMotion(se3(R, t), inc, counts, moving, sens)
 
     def _similarity_motion(
         self, meas: StereoMatches, prev: StereoMatches, ic: np.ndarray, ip: np.ndarray, counts: dict[str, int]

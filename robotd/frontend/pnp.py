@@ -46,7 +46,7 @@ import numpy as np
 from robotd.core.errors import ConfigError
 from robotd.core.geometry import so3_exp, so3_log, umeyama_batch
 from robotd.core.outliers import iteration_budget, sample_indices
-from robotd.core.stereo import RectifiedStereo
+from robotd.core.stereo import RectifiedStereo, triangulate
 from robotd.frontend import _pnp_kernels as _k
 
 
@@ -335,6 +335,41 @@ def two_view(
     if not (np.all(np.isfinite(R2)) and np.all(np.isfinite(t2)) and np.all(np.isfinite(S))):
         return R, t
     return R2, t2
+
+
+def offset_sensitivity(
+    R: np.ndarray,
+    t: np.ndarray,
+    z: np.ndarray,
+    zp: np.ndarray,
+    rig: RectifiedStereo,
+    p: PnpParams,
+    inliers: np.ndarray,
+    h_px: float = 0.1,
+) -> np.ndarray:
+    """(6,) d(t, rotation vector)/dδ [m/px, rad/px]: how the motion :func:`stereo_pnp` found from
+    the inlier pairs (z in frame t, zp in frame t−1, (N, 3) pixels) moves per pixel of a disparity
+    error δ common to both frames (every right column shifted by δ, the points triangulated
+    again, the motion refined and adjusted again from (R, t)); central differences of ±``h_px``.
+    NaN where the motion cannot be refined. A far point's depth is only as good as the rig's
+    disparity offset, so a motion measured over a long jump mostly from far points moves with it
+    (docs/frontend.md "Far points and the disparity offset")."""
+    out = np.zeros((2, 6))
+    for k, h in enumerate((h_px, -h_px)):
+        zs, zps = z.copy(), zp.copy()
+        zs[:, 1] -= h
+        zps[:, 1] -= h
+        with np.errstate(divide="ignore", invalid="ignore"):
+            P = triangulate(zps[:, 0], zps[:, 1], zps[:, 2], rig.f_px, rig.px, rig.py, rig.baseline_m)
+            Q = triangulate(zs[:, 0], zs[:, 1], zs[:, 2], rig.f_px, rig.px, rig.py, rig.baseline_m)
+        ok = inliers & np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Q), axis=1) & (P[:, 0] > 0) & (Q[:, 0] > 0)
+        if int(ok.sum()) < max(p.min_inliers, 3):
+            return np.full(6, np.nan)
+        R1, t1, inl, _, _ = refine(R, t, P, zs, Q, zps, rig, p, ok)
+        if p.two_view_iterations > 0:
+            R1, t1 = two_view(R1, t1, P, zs, zps, rig, inl, p.two_view_iterations)
+        out[k, :3], out[k, 3:] = t1, so3_log(R.T @ R1)
+    return (out[0] - out[1]) / (2.0 * h_px)
 
 
 def warmup() -> None:

@@ -25,7 +25,7 @@ from robotd.pipeline.stages.motion import MotionModel
 from robotd.pipeline.stages.tracking import PipelineCounters
 from robotd.pipeline.stall import GapDetector, Reach, blind_motion, plausible, reach
 from robotd.slam.estimator import Estimator
-from robotd.slam.uncertainty import ReportedCovariance
+from robotd.slam.uncertainty import ReportedCovariance, euler_error_jacobian
 
 logger = logging.getLogger("robotd.pipeline")  # the step's lines keep the name users filter them by
 
@@ -104,6 +104,7 @@ class Gap:
             self.counters.gaps_by_images += 1
             motion.measured = vis
             logger.info("gap of %.1f s bridged by the images: moved %.2f m", dt, float(np.linalg.norm(vis.dp_R_m)))
+            self._offset_uncertainty(visual)
             return vis
         T_last = self.estimator.estimate().T_world_robot
         T_fix = self._find_in_map(meas, landmarks) if landmarks.n else None
@@ -130,6 +131,30 @@ class Gap:
             math.degrees(r.dev_rot_rad),
         )
         return MotionIncrement(t0, t_ns, t, so3_log(R), RIGID_COV.copy())
+
+    def _offset_uncertainty(self, visual: VisualMotion) -> None:
+        """A motion across a gap is measured over metres, mostly by far points, whose depth is only
+        as good as the rig's disparity offset (its online estimate's σ, robotd.frontend.disparity_bias):
+        a constant error the motion's pixel covariance does not hold. Its effect, the motion's
+        sensitivity to the offset times that σ, is handed to the reported covariance (in the
+        world, as the other errors the filter is not told of)."""
+        if visual.offset_sensitivity is None:
+            return
+        J = visual.offset_sensitivity()
+        if not np.all(np.isfinite(J)):
+            return
+        C = np.outer(J, J) * self.frontend.disparity_bias.sigma_px**2  # over (dp in R(t−1), drot)
+        est = self.estimator.estimate()
+        R_w = est.T_world_robot[:3, :3]
+        G = np.zeros((6, 6))
+        G[:3, :3] = R_w
+        G[3:, 3:] = np.linalg.pinv(euler_error_jacobian(est.rpy_rad)) @ R_w
+        self.covariance.add_uncertainty(G @ C @ G.T)
+        logger.info(
+            "the motion across the gap moves %.2f m per pixel of disparity offset (offset known to %.2f px)",
+            float(np.linalg.norm(J[:3])),
+            self.frontend.disparity_bias.sigma_px,
+        )
 
     def _find_in_map(self, meas: StereoMatches, landmarks: LandmarkMap) -> np.ndarray | None:
         """This frame's pose T_world_robot (4, 4) from its features matched against the whole map

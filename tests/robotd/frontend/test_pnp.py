@@ -12,6 +12,7 @@ from robotd.frontend.pnp import (
     MotionPrior,
     PnpParams,
     motion_prior,
+    offset_sensitivity,
     project_stereo,
     projection_jacobian,
     refine,
@@ -289,3 +290,34 @@ def test_far_points_shrink_the_refined_translation_and_the_two_view_adjustment_d
             assert abs(np.mean(tv) - 1.0) < 0.3 * abs(np.mean(ref) - 1.0), (np.mean(ref), np.mean(tv))
         else:
             assert abs(np.mean(ref) - 1.0) < 0.002 and abs(np.mean(tv) - 1.0) < 0.002, (np.mean(ref), np.mean(tv))
+
+
+def test_the_offset_sensitivity_predicts_what_a_disparity_offset_does_to_a_long_jump():
+    """A 4 m jump (a gap the images bridge): rendered with every disparity 0.3 px too large, the
+    refined and adjusted motion moves by 0.3 px times the sensitivity found from the clean pixels.
+    Its size is physical: a point at disparity d gives depth, and so the translation, an error of
+    δ/d, so far points (3-8 px) move a 4 m jump by |t|/d ≈ 0.5-1.3 m per pixel, near ones
+    (30-60 px) by a tenth of that."""
+    rng = np.random.default_rng(8)
+    R, t = so3_exp(np.array([0.0, 0.0, 0.03])), np.array([4.0, 0.1, 0.0])
+    tri = lambda w: triangulate(w[:, 0], w[:, 1], w[:, 2], RIG.f_px, RIG.px, RIG.py, RIG.baseline_m)  # noqa: E731
+    size = {}
+    for d_lo, d_hi in ((3.0, 8.0), (30.0, 60.0)):
+        P = _far_scene(rng, 150, d_lo, d_hi)
+        P = P[((P - t) @ R)[:, 0] > 1.0]
+        zp, z = project_stereo(P, RIG), project_stereo((P - t) @ R, RIG)
+        inl = np.ones(len(P), bool)
+        J = offset_sensitivity(R, t, z, zp, RIG, PnpParams(), inl)
+        zpd, zd = zp.copy(), z.copy()
+        zpd[:, 1] -= 0.3  # every disparity reads 0.3 px too large
+        zd[:, 1] -= 0.3
+        R1, t1, inl1, _, _ = refine(R, t, tri(zpd), zd, tri(zd), zpd, RIG, PnpParams(), inl)
+        R1, t1 = two_view(R1, t1, tri(zpd), zd, zpd, RIG, inl1, 3)
+        moved = np.r_[t1 - t, so3_log(R.T @ R1)]
+        np.testing.assert_allclose(moved, 0.3 * J, atol=0.05 * np.abs(0.3 * J).max())
+        size[d_lo] = float(np.linalg.norm(J[:3]))
+    assert 4.0 / 8.0 < size[3.0] < 4.0 / 3.0, size
+    assert size[30.0] < 0.2 * size[3.0], size
+    # too few points left to refine: no sensitivity, not a wrong one
+    J = offset_sensitivity(R, t, z[:2], zp[:2], RIG, PnpParams(), np.ones(2, bool))
+    assert np.all(np.isnan(J))
