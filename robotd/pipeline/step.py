@@ -180,7 +180,7 @@ class Pipeline:
         Returns (pose, tracking, number of identified observations)."""
         if self.attitude.implausible() is not None:
             self.attitude.level(t_ns)
-        pose = self.covariance.report(self.estimator.estimate(), obs)
+        pose = self.covariance.report(self.estimator.estimate(), obs, self.estimator.spread_kept())
         n_identified = int(np.count_nonzero(~obs.is_new))
         tracking = self.tracker.update(landmarks.n > 0, n_identified > 0 or moved, pose)
         if self.attitude.reset_at == t_ns:

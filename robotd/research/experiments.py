@@ -243,7 +243,7 @@ def run_filter(
             reported.observe(est.estimate(), obs, est.landmarks())
         rep = est.update(obs)
         step_ms[k] = (time.perf_counter() - t0) * 1e3
-        e = reported.report(est.estimate(), obs)
+        e = reported.report(est.estimate(), obs, est.spread_kept())
         poses[k, :3], poses[k, 3:] = e.xyz_W_m, e.rpy_rad
         covs[k] = e.cov
         map_size[k] = len(est.landmark_ids())

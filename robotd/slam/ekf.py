@@ -280,6 +280,10 @@ class EkfSlam(UpdateEntryPoints):
         """Estimator.hold_landmarks: the book's existence rule skips the ids below ``below_id``."""
         self.book.held_below = max(0, int(below_id))
 
+    def spread_kept(self) -> float:
+        """Estimator.spread_kept: no particles (the joint covariance carries the map itself)."""
+        return 0.0
+
     def reset_pose(self, x: np.ndarray, cov: np.ndarray | None = None) -> None:
         """Relocalisation: the pose mean becomes ``x`` (dx,), its covariance ``cov`` (default: a
         1 cm / 0.1° floor) and its correlations with the landmarks zero; the landmarks are kept."""

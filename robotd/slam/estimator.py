@@ -69,6 +69,14 @@ class Estimator(Protocol):
         a loaded map while the pose is not yet found in it (robotd/pipeline/relocalise.py)."""
         ...
 
+    def spread_kept(self) -> float:
+        """The share (0–1) of the pose spread the filter had after its previous update that it
+        still carries after the last one (a particle filter: its particles' ancestors' spread
+        under the new weights, against under the old); 0 for a filter without particles, or
+        after the particles were drawn again. The reported covariance's anchors hold that part
+        already (robotd.slam.uncertainty.AnchoredCovariance.step)."""
+        ...
+
 
 @runtime_checkable
 class Persistent(Protocol):

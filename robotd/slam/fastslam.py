@@ -21,6 +21,7 @@ and the fusion of gravity in ``_fastslam_gravity.py``.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -174,6 +175,10 @@ class FastSlam(UpdateEntryPoints):
         # Rao-Blackwellised pose estimate of the last update (weights before resampling, means,
         # covariances or None): see estimate(); None after a predict or a particle-set change
         self._post: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        # the particles' poses and weights after the last update (None: drawn again since), and
+        # the share of their spread the update after it kept (spread_kept)
+        self._ancestors: tuple[np.ndarray, np.ndarray] | None = None
+        self._kept = 0.0
 
     @property
     def n_particles(self) -> int:
@@ -296,6 +301,7 @@ class FastSlam(UpdateEntryPoints):
         self.pending_S = None
 
         ln, w = normalize_log_weights(self.log_w + dlogw)
+        self._kept = self._share_kept(w)
         self.neff = effective_sample_size(w)
         self.best = int(np.argmax(w))
         if self.params.pose_estimate == "mixture":
@@ -310,6 +316,7 @@ class FastSlam(UpdateEntryPoints):
             resampled = True
         else:
             self.log_w = ln
+        self._ancestors = (self.pose.copy(), self.weights())
 
         pruned = self._prune(slots_seen, slots_new)
         return UpdateReport(
@@ -321,12 +328,32 @@ class FastSlam(UpdateEntryPoints):
             resampled=resampled,
         )
 
+    def _share_kept(self, w: np.ndarray) -> float:
+        """The share of the spread the particles had after the previous update that they keep with
+        the weights ``w`` of this one: the variance of their poses then, weighted now against
+        weighted then, per axis, averaged (1: nothing singled out; near 0: one ancestor left)."""
+        if self._ancestors is None or self._ancestors[0].shape != self.pose.shape:
+            return 0.0
+        pose, w_then = self._ancestors
+        v_then = np.diag(weighted_pose_mean(pose, w_then, self.dim)[1])
+        v_now = np.diag(weighted_pose_mean(pose, w, self.dim)[1])
+        ok = v_then > 1e-18
+        if not np.any(ok):
+            return 0.0
+        share = float(np.mean(v_now[ok] / v_then[ok]))
+        return min(1.0, max(0.0, share)) if math.isfinite(share) else 0.0
+
+    def spread_kept(self) -> float:
+        """Estimator.spread_kept (:meth:`_share_kept` at the last update)."""
+        return self._kept
+
     def _select(self, idx: np.ndarray) -> None:
         """Replace the particle set by ``particles[idx]`` (any count) with uniform weights.
 
         Landmarks are shared copy-on-write (:class:`~robotd.slam._store.LandmarkStore`): only the
         block table is gathered here.
         """
+        self._ancestors = None
         best_old = self.best
         self.store.select(idx)
         self.pose = self.pose[idx]
@@ -431,6 +458,7 @@ class FastSlam(UpdateEntryPoints):
         self.neff = float(P)
         self.pending_S = None
         self._post = None
+        self._ancestors, self._kept = None, 0.0
 
     def set_particles(self, n: int) -> int:
         """Resample to ``max(n, min(n_particles_min, n_particles))`` particles (low-variance); returns the count."""
@@ -463,6 +491,7 @@ class FastSlam(UpdateEntryPoints):
     def restore(self, c: dict[str, Any]) -> None:
         """Take the values :meth:`check_state_dict` returned."""
         self._post = None
+        self._ancestors, self._kept = None, 0.0
         self.store = LandmarkStore.from_dense(c["mean"], c["cov"], self.params.landmark_block_size)
         self.pose, self.log_w, self.book = c["pose"].copy(), c["log_w"].copy(), c["book"]
         self.pending_S = c["pending_S"].copy() if c["pending_S"].shape[0] else None

@@ -79,12 +79,23 @@ def transport(C: np.ndarray, d: np.ndarray) -> np.ndarray:
     return J @ C @ np.swapaxes(J, 1, 2)
 
 
+def _psd_part(C: np.ndarray) -> np.ndarray:
+    """The positive semi-definite part of a symmetric matrix (its negative eigenvalues set to 0)."""
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    return (V * np.maximum(w, 0.0)) @ V.T
+
+
 class AnchoredCovariance:
     """The world covariance of the pose from the anchors of the landmarks it was fixed against.
 
     Each landmark keeps the position and (δp, δθ) covariance of the pose it was created at; ids
     not known here (a resumed map, or beyond ``max_landmarks``, where the lowest ids go first) are
     taken as the map's frame itself: zero covariance, the world being defined by that map.
+
+    Storage: one table, rows sorted by id. The filter's ids only grow, so a frame's new landmarks
+    are appended (capacity doubling) and a forgotten one is marked dead, the table compacted once
+    half of it is; inserting into sorted arrays copied every anchor every frame (4.7 ms a frame at
+    28 000 anchors).
     """
 
     def __init__(self, max_landmarks: int = 200_000, min_support: int = 3, drift_per_m: float = 0.0) -> None:
@@ -97,62 +108,100 @@ class AnchoredCovariance:
 
     def reset(self) -> None:
         """Forget every anchor (a new map; after relocalisation the saved map is the world)."""
-        self._ids = np.zeros(0, np.int64)
-        self._p = np.zeros((0, 3))
-        self._C = np.zeros((0, 6, 6))
+        self._size = 0  # rows in use, alive or dead, sorted by id
+        self._dead = 0
+        self._id = np.zeros(0, np.int64)
+        self._alive = np.zeros(0, bool)
+        self._p = np.zeros((0, 3))  # the pose each landmark was last fixed from
+        self._C = np.zeros((0, 6, 6))  # its reported covariance then
         self._n = np.zeros(0)  # observations fused per landmark
         self._u = np.zeros(0)  # the explored path behind each landmark's creation [m]
         self._pc = np.zeros((0, 3))  # where each landmark was created
-        self._last: tuple[np.ndarray, np.ndarray, float] | None = None  # (p, C, u) of the previous frame
+        # (p, C, u, S) of the previous frame
+        self._last: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self.explored_m = 0.0  # the explored path behind this frame's pose (:meth:`step`)
 
     @property
     def n_anchored(self) -> int:
         """Landmarks with an anchor."""
-        return int(self._ids.shape[0])
+        return self._size - self._dead
+
+    @property
+    def anchored_ids(self) -> np.ndarray:
+        """The ids of the landmarks with an anchor, ascending."""
+        return self._id[: self._size][self._alive[: self._size]].copy()
+
+    def _find(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, present): for each id, its row and whether the table holds it (alive or dead)."""
+        if not self._size or not ids.size:
+            return np.zeros(ids.size, np.int64), np.zeros(ids.size, bool)
+        table = self._id[: self._size]
+        rows = np.minimum(np.searchsorted(table, ids), self._size - 1)
+        return rows, table[rows] == ids
 
     def step(
-        self, xyz: np.ndarray, rpy: np.ndarray, cov_fix: np.ndarray, used_ids: np.ndarray, new_ids: np.ndarray
+        self,
+        xyz: np.ndarray,
+        rpy: np.ndarray,
+        cov_fix: np.ndarray,
+        used_ids: np.ndarray,
+        new_ids: np.ndarray,
+        spread_kept: float = 0.0,
     ) -> np.ndarray:
         """The reported (6, 6) covariance over (x, y, z, roll, pitch, yaw) of this frame's pose.
 
         ``xyz``, ``rpy``: the pose; ``cov_fix``: the filter's (6, 6) covariance of it given its map
         (FastSLAM: the particles' mixture), already scaled by the consistency monitor;
         ``used_ids``: the map landmarks this frame's update re-observed; ``new_ids``: the landmarks
-        it created (they anchor here).
+        it created (they anchor here); ``spread_kept``: the share of the filter's spread after its
+        previous update that it still carries (``Estimator.spread_kept``).
+
+        Where too little of the map is seen, the pose is relative to the previous frame's, and the
+        filter's covariance is not all new: a particle filter's spread is the spread its particles
+        had at the previous frame, times the share of it this update kept (``spread_kept``), plus
+        what it gained since. The previous frame's reported covariance carries the first part
+        already, so only the rest (the positive semi-definite part of the difference) is added.
+        Counting the whole spread at every frame made a drive with no landmark seen twice (nothing
+        resampled: the particles spread like a random walk) report the sum of that walk's
+        variances over every frame, 46× its variance on a 764 m lap. Against landmarks the
+        filter's whole covariance is added as before: taking the anchors' share out there too
+        (tried) made the map-rich loops of bench/consistency.py, over-confident already, more so
+        (docs/slam.md "Reported covariance").
         """
         p = np.asarray(xyz, dtype=float)
         C_fix, G = _to_world_error(np.asarray(cov_fix, dtype=float), rpy)
         used = np.asarray(used_ids, dtype=np.int64)
+        kept = min(1.0, max(float(spread_kept), 0.0)) if math.isfinite(spread_kept) else 0.0
+        k = np.zeros(0, np.int64)
         if used.size >= self.min_support or self._last is None:
             C_map = np.zeros((6, 6))
+            carried = np.zeros((6, 6))
             u = 0.0
-            k = np.zeros(0, np.int64)
-            if used.size and self._ids.size:
-                pos = np.minimum(np.searchsorted(self._ids, used), self._ids.size - 1)
-                k = pos[self._ids[pos] == used]  # the others anchor in the map's frame: zero
-                if k.size:
-                    # the convex combination, each landmark weighing 1 / (landmarks used)
-                    Ck = transport(self._C[k], p - self._p[k])
-                    C_map = Ck.sum(axis=0) / float(used.size)
-                    # the same combination of the path explored up to each landmark and on from it
-                    reach = self._u[k] + np.linalg.norm(p - self._pc[k], axis=1)
-                    u = float(reach.sum()) / float(used.size)
+            rows, present = self._find(used)
+            k = rows[present]
+            k = k[self._alive[k]]  # the others anchor in the map's frame: zero
+            if k.size:
+                # the convex combination, each landmark weighing 1 / (landmarks used)
+                Ck = transport(self._C[k], p - self._p[k])
+                C_map = Ck.sum(axis=0) / float(used.size)
+                # the same combination of the path explored up to each landmark and on from it
+                reach = self._u[k] + np.linalg.norm(p - self._pc[k], axis=1)
+                u = float(reach.sum()) / float(used.size)
         else:
             # too little of the map was seen: the fix is relative to the previous pose
-            p0, C0, u0 = self._last
+            p0, C0, u0, S0 = self._last
             C_map = transport(C0[None], (p - p0)[None])[0]
+            carried = transport(S0[None], (p - p0)[None])[0] * kept
             u = u0 + float(np.linalg.norm(p - p0))
-            k = np.zeros(0, np.int64)
-        C = C_map + C_fix
+        C = C_map + _psd_part(C_fix - carried)
         C = 0.5 * (C + C.T)
-        self._last = (p.copy(), C, u)
+        self._last = (p.copy(), C, u, C_fix)
         self.explored_m = u
         if k.size:
             # the filter moved each re-observed landmark towards where this pose sees it: its error
             # now shares this pose's, by this observation's share of its information (1/n after n)
-            a = 1.0 / (self._n[k] + 1.0)
-            self._C[k] = (1.0 - a)[:, None, None] * Ck + a[:, None, None] * C
+            a = (1.0 / (self._n[k] + 1.0))[:, None, None]
+            self._C[k] = (1.0 - a) * Ck + a * C
             self._p[k] = p
             self._n[k] += 1.0
         self._anchor(np.unique(np.asarray(new_ids, dtype=np.int64)), p, C, u)
@@ -168,36 +217,69 @@ class AnchoredCovariance:
         """Drop the anchors of landmarks the filter deleted (``UpdateReport.pruned_ids``; ids are
         never reused). Without it the anchors of every landmark ever made piled up to
         ``max_landmarks``: 66 MB, and a 40 ms copy per frame at 200 000 (found by bench/soak.py)."""
-        if len(ids) and self._ids.size:
-            keep = ~np.isin(self._ids, np.asarray(ids, dtype=np.int64))
-            self._ids, self._p, self._C, self._n = self._ids[keep], self._p[keep], self._C[keep], self._n[keep]
-            self._u, self._pc = self._u[keep], self._pc[keep]
+        ids = np.asarray(ids, dtype=np.int64)
+        if not ids.size or not self._size:
+            return
+        rows, present = self._find(ids)
+        rows = np.unique(rows[present])
+        rows = rows[self._alive[rows]]
+        self._alive[rows] = False
+        self._dead += int(rows.size)
+        if self._dead > max(1024, self._size // 2):
+            self._compact()
+
+    def _compact(self) -> None:
+        keep = np.flatnonzero(self._alive[: self._size])
+        m = keep.size
+        for name in ("_id", "_alive", "_p", "_C", "_n", "_u", "_pc"):
+            arr = getattr(self, name)
+            arr[:m] = arr[keep]
+        self._size, self._dead = m, 0
+
+    def _reserve(self, rows: int) -> None:
+        cap = self._id.shape[0]
+        if rows <= cap:
+            return
+        cap = max(1024, 2 * rows)
+        for name in ("_id", "_alive", "_p", "_C", "_n", "_u", "_pc"):
+            arr = getattr(self, name)
+            grown = np.zeros((cap, *arr.shape[1:]), arr.dtype)
+            grown[: self._size] = arr[: self._size]
+            setattr(self, name, grown)
 
     def _anchor(self, new: np.ndarray, p: np.ndarray, C: np.ndarray, u: float) -> None:
+        """Anchor the landmarks ``new`` (unique ids) at the pose ``p`` with reported covariance ``C``
+        and explored path ``u``; an id held already is anchored again."""
         if not new.size:
             return
-        pos = np.searchsorted(self._ids, new)
-        have = np.zeros(new.size, bool)
-        if self._ids.size:
-            have = self._ids[np.minimum(pos, self._ids.size - 1)] == new
-        if np.any(have):  # an id created again: its anchor is this pose
-            self._p[pos[have]] = p
-            self._C[pos[have]] = C
-            self._n[pos[have]] = 1.0
-            self._u[pos[have]] = u
-            self._pc[pos[have]] = p
-        add, at = new[~have], pos[~have]
-        self._ids = np.insert(self._ids, at, add)
-        self._p = np.insert(self._p, at, p, axis=0)
-        self._C = np.insert(self._C, at, C, axis=0)
-        self._n = np.insert(self._n, at, 1.0)
-        self._u = np.insert(self._u, at, u)
-        self._pc = np.insert(self._pc, at, p, axis=0)
-        extra = self._ids.size - self.max_landmarks
-        if extra > 0:
-            self._ids, self._p = self._ids[extra:], self._p[extra:]
-            self._C, self._n = self._C[extra:], self._n[extra:]
-            self._u, self._pc = self._u[extra:], self._pc[extra:]
+        rows, present = self._find(new)
+        again = rows[present]  # an id created again (or forgotten, then created): its anchor is this pose
+        if again.size:
+            self._dead -= int(np.count_nonzero(~self._alive[again]))
+            self._alive[again] = True
+            self._p[again], self._C[again] = p, C
+            self._n[again], self._u[again], self._pc[again] = 1.0, u, p
+        add = new[~present]
+        if add.size:
+            in_order = self._size == 0 or add[0] > self._id[self._size - 1]
+            a, b = self._size, self._size + add.size
+            self._reserve(b)
+            self._id[a:b], self._alive[a:b] = add, True
+            self._p[a:b], self._C[a:b] = p, C
+            self._n[a:b], self._u[a:b], self._pc[a:b] = 1.0, u, p
+            self._size = b
+            if not in_order:  # ids below the newest: sort the rows again (not the filter's way)
+                order = np.argsort(self._id[:b], kind="stable")
+                for name in ("_id", "_alive", "_p", "_C", "_n", "_u", "_pc"):
+                    arr = getattr(self, name)
+                    arr[:b] = arr[order]
+        extra = self.n_anchored - self.max_landmarks
+        if extra > 0:  # the lowest ids go first
+            alive = np.flatnonzero(self._alive[: self._size])[:extra]
+            self._alive[alive] = False
+            self._dead += int(alive.size)
+            if self._dead > max(1024, self._size // 2):
+                self._compact()
 
 
 @dataclass
@@ -357,9 +439,10 @@ class ReportedCovariance:
         through the anchors to every pose fixed against the landmarks mapped after it."""
         self._extra = self._extra + np.asarray(cov6, dtype=float)
 
-    def report(self, pose: PoseEstimate, obs: Observations) -> PoseEstimate:
+    def report(self, pose: PoseEstimate, obs: Observations, spread_kept: float = 0.0) -> PoseEstimate:
         """After the update: ``pose`` with the reported covariance; ``obs`` the frame's fused
-        observations (identified ones re-observed map landmarks, new ones were created)."""
+        observations (identified ones re-observed map landmarks, new ones were created);
+        ``spread_kept``: the estimator's ``spread_kept()`` (:meth:`AnchoredCovariance.step`)."""
         extra, self._extra = self._extra, np.zeros((6, 6))
         if not self.enabled:
             if not np.any(extra):
@@ -367,7 +450,9 @@ class ReportedCovariance:
             return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, pose.cov + extra, pose.neff, pose.n_particles)
         cov = pose.cov * self.monitor.scale + extra
         if self.anchors is not None:
-            cov = self.anchors.step(pose.xyz_W_m, pose.rpy_rad, cov, obs.ids[~obs.is_new], obs.ids[obs.is_new])
+            cov = self.anchors.step(
+                pose.xyz_W_m, pose.rpy_rad, cov, obs.ids[~obs.is_new], obs.ids[obs.is_new], spread_kept
+            )
             if not np.all(np.isfinite(cov)):
                 # never let one bad value live on in the anchors (every later covariance would be
                 # non-finite, which a PoseEstimate refuses: every step would fail): start them again

@@ -71,8 +71,12 @@ def test_a_4s_stall_while_driving_leaves_the_daemon_on_track(tmp_path: Path, mon
     # and health says how uncertain the pose is: the error lies within the 95 % bound its sigma
     # implies. pose_sigma_m is √trace of the position covariance, at least each axis's σ, so 2σ
     # bounds any one axis at 95 % (1.96σ). Blind, the guess's bound (metres) covers it easily;
-    # since far points count (2 px disparity), the images bridge this gap (40 inliers across 4 m):
-    # the error is 0.3 m against a sigma of 0.25 m, most of it height, which 40 inliers fix worst.
+    # since far points count (2 px disparity), the images bridge this gap (40 inliers across 4 m),
+    # mostly through far points, whose depth is only as good as the rig's disparity offset: known to
+    # 0.25 px here, which moves the jump by 0.28 m (its sensitivity, 1.1 m per pixel, handed to the
+    # reported covariance). Measured: errors 0.12-0.41 m against a sigma of 0.34-0.49 m; without
+    # the offset's share, and the filter's spread counted once (docs/slam.md), 0.19-0.44 against
+    # 0.19, which this bound caught.
     assert all(h["pose_sigma_m"] is not None and 2.0 * h["pose_sigma_m"] > h["error_vs_truth_m"] for h in after), [
         (h["pose_sigma_m"], round(h["error_vs_truth_m"], 3)) for h in after
     ]

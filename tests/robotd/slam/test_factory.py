@@ -82,6 +82,9 @@ class DeadReckoning:
     def hold_landmarks(self, below_id: int) -> None:
         pass
 
+    def spread_kept(self) -> float:
+        return 0.0
+
 
 NO_PARTICLES = EstimatorKind(particles=None, anchored_covariance=False)
 # a particle filter of the fake's own costs: 2 µs per particle and observation, 1 kB per landmark

@@ -573,3 +573,43 @@ def test_a_map_made_with_one_measurement_model_resumes_with_the_other(filt: str,
         e = b.estimate()
         x = np.r_[e.xyz_W_m[:2], e.rpy_rad[2]] if dim == 2 else np.r_[e.xyz_W_m, e.rpy_rad]
         assert np.abs(x - world.pose()).max() < 0.05
+
+
+@pytest.mark.parametrize("filt", ["fastslam1", "fastslam2"])
+def test_the_spread_kept_is_whole_without_re_observations_and_shrinks_when_they_single_particles_out(filt: str):
+    """Estimator.spread_kept (the reported covariance takes it out of the filter's spread,
+    robotd.slam.uncertainty): new landmarks change no weight, so the particles keep all of their
+    spread; re-observed ones weigh them, and the share their ancestors' spread keeps drops; a pose
+    drawn again keeps nothing."""
+    world = World(3, np.random.default_rng(3), sigma_odo=0.05)
+    est = make_estimator(SlamParams(filter=filt, dim=3, n_particles=50), np.random.default_rng(7))
+    assert isinstance(est, FastSlam)
+    assert est.spread_kept() == 0.0  # nothing before the first update
+    est.update(world.observe())
+    seen = []
+    for _ in range(8):
+        est.predict(world.step())
+        est.update(world.observe())
+        seen.append(est.spread_kept())
+    assert all(0.0 <= s <= 1.0 for s in seen) and min(seen) < 1.0, seen
+    # the measure itself: the ancestors' spread under the new weights against the old
+    pose = np.random.default_rng(1).normal(size=(50, 6))
+    uniform = np.full(50, 1 / 50)
+    est._ancestors = (pose, uniform)
+    assert est._share_kept(uniform) == pytest.approx(1.0)
+    one = np.zeros(50)
+    one[7] = 1.0
+    assert est._share_kept(one) == 0.0  # one ancestor left: none of the spread is carried
+    half = np.where(np.arange(50) < 25, 2 / 50, 0.0)
+    assert 0.6 < est._share_kept(half) <= 1.0  # a random half of the ancestors: about the same spread
+    fresh = []
+    for k in range(1, 6):
+        est.predict(world.step())
+        o = world.observe()
+        n = o.ids.size
+        est.update(Observations(o.t_ns, o.xyz_R_m, o.cov_R, o.ids + 10**9 * k, np.ones(n, bool), o.uv_px))  # all new
+        fresh.append(est.spread_kept())
+    # (the first follows the re-observations' last resampling, which may have left one ancestor)
+    np.testing.assert_allclose(fresh[1:], 1.0, atol=1e-9)
+    est.reset_pose(np.zeros(6), np.eye(6) * 1e-2)
+    assert est.spread_kept() == 0.0

@@ -128,7 +128,7 @@ def _check(p: Pipeline) -> None:
     assert p.registry.pending.size == 0
     anchors = p.covariance.anchors
     if anchors is not None:  # the anchors keep none for a loaded map's landmarks: a subset
-        assert set(anchors._ids.tolist()) <= set(ids.tolist())
+        assert set(anchors.anchored_ids.tolist()) <= set(ids.tolist())
 
 
 def _frame(p: Pipeline, t_ns: int, n_new: int, every: int, how: str, world: dict[int, np.ndarray]) -> None:
@@ -194,7 +194,7 @@ def test_a_replay_ends_with_as_many_descriptors_as_landmarks(monkeypatch) -> Non
 
     monkeypatch.setattr(Pipeline, "step", step)
     cfg = load_config(None, {"slam": {"n_particles": 20, "max_new_per_frame": 15}})
-    summary = replay(cfg, "sim://?fps=15&seed=4&duration=4", progress=False)
+    summary = replay(cfg, "sim://?fps=15&seed=4&duration=4&realtime=0", progress=False)
     (p,) = seen
     db = p.frontend.descriptors
     assert db is not None and summary["frames"] > 30 and sum(pruned) > 0

@@ -78,6 +78,88 @@ def test_exploring_grows_the_covariance_and_returning_to_old_landmarks_shrinks_i
     assert math.sqrt(back[0, 0] + back[1, 1]) < 0.3 * sig[-1]  # the first landmarks' anchor again
 
 
+def test_a_filter_spreading_like_a_random_walk_is_reported_once_not_summed():
+    """No landmark is seen twice (a car's metre a frame over open ground) and nothing is resampled
+    (spread kept whole): the filter's particles spread by Q a frame, so its own covariance after k
+    frames is k·Q, and so is the error. The anchors must not add that whole spread again at every
+    frame (Σ j·Q = k(k+1)/2·Q: 50× at k = 100, what a 764 m lap reported)."""
+    Q = np.diag([4e-4, 1e-4, 1e-4, 0.0, 0.0, 0.0])  # no rotation: transport leaves it as it is
+
+    def drive(kept: float) -> np.ndarray:
+        anc = AnchoredCovariance()
+        C = anc.step(np.zeros(3), np.zeros(3), np.zeros((6, 6)), np.zeros(0, np.int64), np.arange(40))
+        for k in range(1, 101):
+            new = np.arange(40 * k, 40 * k + 40)
+            C = anc.step(np.array([k * 1.0, 0, 0]), np.zeros(3), k * Q, np.zeros(0, np.int64), new, kept)
+        return C
+
+    np.testing.assert_allclose(drive(1.0), 100 * Q, atol=1e-12)
+    # a filter that says nothing of its spread (kept 0: an EKF, or particles drawn again) is
+    # taken as all new at every frame, as before: never less than the truth
+    np.testing.assert_allclose(drive(0.0), 5050 * Q, rtol=1e-9)
+
+
+def test_what_resampling_kept_of_the_spread_is_not_added_again_and_the_rest_is():
+    """Between frames with too few landmarks re-observed, the filter's spread is what it had
+    (times the share its last update kept) plus what it gained: only the gain is new. Resampled
+    down to one ancestor (kept 0) the whole spread is new: the fix's noise against that ancestor's
+    map. Against landmarks the filter's whole covariance is added, whatever was kept."""
+    big, small = np.eye(6) * 1e-2, np.eye(6) * 1e-4
+    none = np.zeros(0, np.int64)
+    for kept, expect in ((0.0, big + small), (1.0, big), (0.5, 1.5 * big)):
+        anc = AnchoredCovariance()
+        anc.step(np.zeros(3), np.zeros(3), big, none, np.arange(20))
+        C = anc.step(np.zeros(3), np.zeros(3), small if kept < 0.5 else big, none, none, kept)
+        if kept == 1.0:
+            C = anc.step(np.zeros(3), np.zeros(3), small, none, none, kept)  # smaller: nothing taken back
+        np.testing.assert_allclose(C, expect, atol=1e-15)
+    anc = AnchoredCovariance()
+    anc.step(np.zeros(3), np.zeros(3), big, none, np.arange(20))
+    C = anc.step(np.zeros(3), np.zeros(3), small, np.arange(20), none, 1.0)
+    np.testing.assert_allclose(C, big + small, atol=1e-15)
+    # a share that is not a number counts as nothing kept
+    anc = AnchoredCovariance()
+    anc.step(np.zeros(3), np.zeros(3), big, none, np.arange(20))
+    np.testing.assert_allclose(anc.step(np.zeros(3), np.zeros(3), small, none, none, math.nan), big + small)
+
+
+def test_the_anchor_table_keeps_every_landmark_s_anchor_through_forgetting_and_reanchoring():
+    """The table against a dict: random frames of new ids (ascending, as the filter makes them, and
+    now and then an old id made again or one below the newest), forgotten ids and a size cap; the
+    map's covariance read back for random re-observations is each anchor's, transported."""
+    rng = np.random.default_rng(11)
+    anc = AnchoredCovariance(max_landmarks=3000, min_support=1)
+    ref: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    next_id = 0
+    for k in range(400):
+        p = rng.normal(size=3) * 3
+        Ck = np.diag(rng.uniform(1e-4, 1e-2, 6))
+        new = list(range(next_id, next_id + int(rng.integers(0, 30))))
+        next_id += len(new)
+        if ref and rng.random() < 0.2:
+            new.append(int(rng.choice(list(ref))))  # made again: anchored here
+        if rng.random() < 0.05:
+            new.append(-1 - k)  # below every id held: out of order
+        new_a = np.unique(np.array(new, np.int64))
+        anc._anchor(new_a, p, Ck, 0.0)
+        for i in new_a.tolist():
+            ref[i] = (p, Ck)
+        while len(ref) > 3000:  # the lowest ids go first
+            ref.pop(min(ref))
+        if ref and rng.random() < 0.5:
+            gone = rng.choice(list(ref), size=min(len(ref), int(rng.integers(1, 60))), replace=False)
+            anc.forget(np.append(gone, [10**9]))  # and one id never held
+            for i in gone.tolist():
+                ref.pop(i)
+        assert anc.n_anchored == len(ref)
+        np.testing.assert_array_equal(anc.anchored_ids, np.array(sorted(ref), np.int64))
+    used = np.array([*sorted(rng.choice(list(ref), size=25, replace=False).tolist()), 10**9], np.int64)
+    at = np.array([1.0, 2.0, 0.5])
+    expect = sum(transport(ref[i][1][None], (at - ref[i][0])[None])[0] for i in used[:-1].tolist()) / used.size
+    anc._last = None  # read the map's covariance, not the previous frame's
+    np.testing.assert_allclose(anc.step(at, np.zeros(3), np.zeros((6, 6)), used, np.zeros(0, np.int64)), expect)
+
+
 def _explore(anc: AnchoredCovariance, frames: int, step_m: float, overlap: int = 1) -> list[np.ndarray]:
     """A straight drive: each frame fixes against the landmarks of the last ``overlap`` frames and
     creates 20 new ones; the reported covariances."""
