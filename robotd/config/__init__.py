@@ -168,7 +168,8 @@ class SlamConfig:
     covariance_drift: float = _f(
         0.005,
         "consistent covariance: the error no pixel model holds, as a fraction of the path explored since the"
-        " map's landmarks last fixed the pose (a standard deviation per metre, in every direction)",
+        " map's landmarks last fixed the pose (a standard deviation per metre, in every direction; every filter,"
+        " the EKF's included)",
         min=0.0,
         max=1.0,
     )

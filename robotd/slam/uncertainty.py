@@ -385,6 +385,10 @@ class ReportedCovariance:
         self.q_px = q_px
         self.monitor = ConsistencyMonitor()
         self.anchors = AnchoredCovariance(drift_per_m=drift_per_m) if anchored else None
+        # a filter whose own covariance carries the map (the EKF) still misses what no pixel model
+        # holds: the drift term, from the path explored as the anchors count it (their covariances
+        # all zero, so the term is all they add)
+        self.path = AnchoredCovariance(drift_per_m=drift_per_m) if not anchored and drift_per_m > 0 else None
         self._extra = np.zeros((6, 6))  # added to the next report (:meth:`add_uncertainty`)
 
     @property
@@ -393,8 +397,9 @@ class ReportedCovariance:
 
     def reset(self) -> None:
         """A map loaded from disk is the world: its landmarks anchor at zero covariance."""
-        if self.anchors is not None:
-            self.anchors.reset()
+        for a in (self.anchors, self.path):
+            if a is not None:
+                a.reset()
         self.monitor.reset()
 
     def observe(self, prior: PoseEstimate, obs: Observations, landmarks: LandmarkMap) -> None:
@@ -429,8 +434,9 @@ class ReportedCovariance:
         """These landmarks left the map: their anchors go too (:meth:`AnchoredCovariance.forget`). The
         pipeline subscribes the reported covariance to the landmark registry (robotd.slam.landmarks),
         which calls this."""
-        if self.anchors is not None:
-            self.anchors.forget(ids)
+        for a in (self.anchors, self.path):
+            if a is not None:
+                a.forget(ids)
 
     def add_uncertainty(self, cov6: np.ndarray) -> None:
         """An error the filter was not told of, over (x, y, z, roll, pitch, yaw) (6, 6): the motion
@@ -458,6 +464,9 @@ class ReportedCovariance:
                 # non-finite, which a PoseEstimate refuses: every step would fail): start them again
                 self.anchors.reset()
                 cov = pose.cov * self.monitor.scale + extra
+        if self.path is not None:
+            zero = np.zeros((6, 6))
+            cov = cov + self.path.step(pose.xyz_W_m, pose.rpy_rad, zero, obs.ids[~obs.is_new], obs.ids[obs.is_new])
         return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, cov, pose.neff, pose.n_particles)
 
     def health(self) -> dict[str, object]:
@@ -465,6 +474,8 @@ class ReportedCovariance:
         h: dict[str, object] = {"mode": self.mode, **self.monitor.health()}
         if self.anchors is not None:
             h["anchored_landmarks"] = self.anchors.n_anchored
-            h["explored_m"] = round(self.anchors.explored_m, 2)
-            h["drift_per_m"] = self.anchors.drift_per_m
+        track = self.anchors or self.path
+        if track is not None:
+            h["explored_m"] = round(track.explored_m, 2)
+            h["drift_per_m"] = track.drift_per_m
         return h

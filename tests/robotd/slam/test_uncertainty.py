@@ -277,6 +277,35 @@ def test_reported_covariance_filter_mode_changes_nothing_and_consistent_mode_sca
         ReportedCovariance("inflate", True, CARTESIAN_3D, None)
 
 
+def test_a_filter_that_carries_its_map_gets_the_drift_term_alone():
+    """The EKF's joint covariance carries the map (no anchors), but not the errors no pixel model
+    holds: it gets the drift term over the path explored, counted as for the particle filters,
+    and nothing else; with no drift term its covariance is reported as it is."""
+    rc = ReportedCovariance("consistent", False, CARTESIAN_3D, None, drift_per_m=0.01)
+    own = np.eye(6) * 1e-6
+    for k in range(61):  # 60 m of new ground, each frame seeing the last frame's landmarks
+        used, new = np.arange(20 * max(k - 1, 0), 20 * k), np.arange(20 * k, 20 * k + 20)
+        ids = np.r_[used, new]
+        obs = Observations(
+            k,
+            np.ones((ids.size, 3)),
+            np.broadcast_to(np.eye(3), (ids.size, 3, 3)).copy(),
+            ids,
+            np.r_[np.zeros(used.size, bool), np.ones(new.size, bool)],
+        )
+        out = rc.report(_pose([k * 1.0, 0, 0], own), obs)
+    np.testing.assert_allclose(np.diag(out.cov)[:3], 1e-6 + 0.6**2, rtol=1e-6)  # (0.01 × 60 m)²
+    np.testing.assert_allclose(out.cov[3:, 3:], own[3:, 3:])
+    assert rc.health()["explored_m"] == pytest.approx(60.0) and "anchored_landmarks" not in rc.health()
+    back = Observations(
+        99, np.ones((20, 3)), np.broadcast_to(np.eye(3), (20, 3, 3)).copy(), np.arange(20), np.zeros(20, bool)
+    )
+    out = rc.report(_pose([0.5, 0, 0], own), back)  # the first landmarks again: 0.5 m explored
+    np.testing.assert_allclose(np.diag(out.cov)[:3], 1e-6 + 0.005**2, rtol=1e-6)
+    plain = ReportedCovariance("consistent", False, CARTESIAN_3D, None, drift_per_m=0.0)
+    np.testing.assert_allclose(plain.report(_pose([3.0, 0, 0], own), back).cov, own)
+
+
 def test_observe_feeds_the_monitor_with_the_map_landmarks_it_finds():
     rc = ReportedCovariance("consistent", False, CARTESIAN_3D, None)
     rng = np.random.default_rng(2)
