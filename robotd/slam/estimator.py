@@ -73,8 +73,8 @@ class Estimator(Protocol):
         """The share (0–1) of the pose spread the filter had after its previous update that it
         still carries after the last one (a particle filter: its particles' ancestors' spread
         under the new weights, against under the old); 0 for a filter without particles, or
-        after the particles were drawn again. The reported covariance's anchors hold that part
-        already (robotd.slam.uncertainty.AnchoredCovariance.step)."""
+        after the particles were drawn again. The previous frame's reported covariance holds that
+        part already (robotd.slam.uncertainty.AnchoredCovariance.step)."""
         ...
 
 

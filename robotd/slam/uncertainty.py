@@ -147,6 +147,7 @@ class AnchoredCovariance:
         used_ids: np.ndarray,
         new_ids: np.ndarray,
         spread_kept: float = 0.0,
+        extra: np.ndarray | None = None,
     ) -> np.ndarray:
         """The reported (6, 6) covariance over (x, y, z, roll, pitch, yaw) of this frame's pose.
 
@@ -154,7 +155,10 @@ class AnchoredCovariance:
         (FastSLAM: the particles' mixture), already scaled by the consistency monitor;
         ``used_ids``: the map landmarks this frame's update re-observed; ``new_ids``: the landmarks
         it created (they anchor here); ``spread_kept``: the share of the filter's spread after its
-        previous update that it still carries (``Estimator.spread_kept``).
+        previous update that it still carries (``Estimator.spread_kept``); ``extra``: (6, 6) over
+        (x, y, z, roll, pitch, yaw), an error the filter was not told of
+        (:meth:`ReportedCovariance.add_uncertainty`): added, and never counted as the filter's
+        spread.
 
         Where too little of the map is seen, the pose is relative to the previous frame's, and the
         filter's covariance is not all new: a particle filter's spread is the spread its particles
@@ -194,6 +198,8 @@ class AnchoredCovariance:
             carried = transport(S0[None], (p - p0)[None])[0] * kept
             u = u0 + float(np.linalg.norm(p - p0))
         C = C_map + _psd_part(C_fix - carried)
+        if extra is not None:
+            C = C + _to_world_error(np.asarray(extra, dtype=float), rpy)[0]
         C = 0.5 * (C + C.T)
         self._last = (p.copy(), C, u, C_fix)
         self.explored_m = u
@@ -454,16 +460,16 @@ class ReportedCovariance:
             if not np.any(extra):
                 return pose  # (a PoseEstimate's mean and covariance are finite: robotd.core.msgs refuses others)
             return PoseEstimate(pose.t_ns, pose.xyz_W_m, pose.rpy_rad, pose.cov + extra, pose.neff, pose.n_particles)
-        cov = pose.cov * self.monitor.scale + extra
+        cov_fix = pose.cov * self.monitor.scale
+        cov = cov_fix + extra
         if self.anchors is not None:
-            cov = self.anchors.step(
-                pose.xyz_W_m, pose.rpy_rad, cov, obs.ids[~obs.is_new], obs.ids[obs.is_new], spread_kept
-            )
+            used, new = obs.ids[~obs.is_new], obs.ids[obs.is_new]
+            cov = self.anchors.step(pose.xyz_W_m, pose.rpy_rad, cov_fix, used, new, spread_kept, extra)
             if not np.all(np.isfinite(cov)):
                 # never let one bad value live on in the anchors (every later covariance would be
                 # non-finite, which a PoseEstimate refuses: every step would fail): start them again
                 self.anchors.reset()
-                cov = pose.cov * self.monitor.scale + extra
+                cov = cov_fix + extra
         if self.path is not None:
             zero = np.zeros((6, 6))
             cov = cov + self.path.step(pose.xyz_W_m, pose.rpy_rad, zero, obs.ids[~obs.is_new], obs.ids[obs.is_new])

@@ -171,6 +171,21 @@ def _explore(anc: AnchoredCovariance, frames: int, step_m: float, overlap: int =
     return out
 
 
+def test_an_error_the_filter_was_not_told_of_is_not_taken_for_its_spread():
+    """add_uncertainty (a stall's guess, the disparity offset's share of a jump) goes into the
+    report, not into the filter's particles: it must not count as spread the filter carries, or
+    the next frame's growth is taken out against it."""
+    Q, E = np.diag([4e-4, 1e-4, 1e-4, 0.0, 0.0, 0.0]), np.diag([0.09, 0.09, 0.0, 0.0, 0.0, 0.0])
+    rc = ReportedCovariance("consistent", True, CARTESIAN_3D, None)
+    for k in range(101):
+        new = np.arange(40 * k, 40 * k + 40)
+        obs = Observations(k, np.ones((40, 3)), np.broadcast_to(np.eye(3), (40, 3, 3)).copy(), new, np.ones(40, bool))
+        if k == 50:
+            rc.add_uncertainty(E)
+        out = rc.report(_pose([k * 1.0, 0, 0], k * Q), obs, 1.0)
+    np.testing.assert_allclose(out.cov, 100 * Q + E, atol=1e-12)
+
+
 @pytest.mark.parametrize("overlap", [1, 5])
 def test_the_drift_term_grows_with_the_explored_path_whatever_the_landmarks_lifetime(overlap):
     """A systematic error is a fraction of the path, not a random walk over hops: after 60 m of
