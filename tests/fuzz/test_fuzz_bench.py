@@ -96,7 +96,9 @@ def test_planted_crashes_and_hangs_are_counted_saved_and_replayed(
     hogs = kinds.count(14)  # each in another worker (a death or hang between): each raises its peak
     assert raised and died and hung and hogs  # the seed plants each kind
     out = tmp_path / "out"
-    args = ["--targets", "faulty", "--per-target", str(n), "--hang-s", "0.5", "--memory-mb", "50", "--out", str(out)]
+    # the planted hangs sleep 30 s; the limit leaves a busy machine room for the others (a clean
+    # clone's CI counted a 100 MB input as a hang against 0.5 s: 7 hangs for 6)
+    args = ["--targets", "faulty", "--per-target", str(n), "--hang-s", "2.5", "--memory-mb", "50", "--out", str(out)]
     # the bench forks its workers: run it in a process of its own (tests.fuzz.planted adds the
     # target), not in this one, whose threads left by earlier tests a fork would inherit
     p = subprocess.run(
