@@ -39,6 +39,11 @@ world      yard     yard, turn_in_place, moving_box, low_texture or open_terrain
                     host: ``sim://yard``)
 speed      1.0      mean rover speed [m/s] (0..5); turn_in_place: on the straights, and turns × speed
 tilt       0        terrain rocking amplitude, roll and pitch [deg] (0..10)
+shake      0        a hand-held camera shaken: peak rotation about every axis [deg] (0..10), with
+                    5 mm a degree of translation, at 1.7-7.3 Hz; 0 = a rover's steady mount
+shake_s    0        the shake fades out over its last 0.5 s and ends then [s]; 0 = it never ends
+exposure_ms 0       motion blur: each image is the mean of 9 renders spread over this exposure,
+                    centred on the frame's time [ms] (0..50); 0 = an instant
 duration   0        stop after this many simulated seconds; 0 = run forever
 realtime   1        1: emit at capture times on time.monotonic_ns(); 0: as fast as pulled
 noise      0.05     odometry speed noise, σ as a fraction of the speed (per sample)
@@ -130,6 +135,9 @@ class SimParams:
     world: str = "yard"
     speed: float = 1.0
     tilt: float = 0.0
+    shake: float = 0.0
+    shake_s: float = 0.0
+    exposure_ms: float = 0.0
     duration: float = 0.0
     realtime: int = 1
     noise: float = 0.05
@@ -166,9 +174,20 @@ class SimParams:
         return self.baseline if self.baseline > 0 else rig_baseline_m(self.world)
 
     @property
-    def session_key(self) -> tuple[int, str, float, float, float, float, str, float]:
+    def session_key(self) -> tuple[int, str, float, float, float, float, str, float, float, float]:
         """What camera and vehicle must agree on to share a world and a clock."""
-        return (self.seed, self.world, self.speed, self.tilt, self.stop_at, self.stop_s, self.follow, self.yaw0)
+        return (
+            self.seed,
+            self.world,
+            self.speed,
+            self.tilt,
+            self.stop_at,
+            self.stop_s,
+            self.follow,
+            self.yaw0,
+            self.shake,
+            self.shake_s,
+        )
 
 
 # key -> (parser, lower bound, upper bound); bounds inclusive, None = open
@@ -182,6 +201,9 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "world": (str, None, None),
     "speed": (float, 0.0, 5.0),
     "tilt": (float, 0.0, 10.0),
+    "shake": (float, 0.0, 10.0),
+    "shake_s": (float, 0.0, 1e9),
+    "exposure_ms": (float, 0.0, 50.0),
     "duration": (float, 0.0, 1e9),
     "realtime": (int, 0, 1),
     "noise": (float, 0.0, 1.0),
@@ -259,6 +281,8 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
     params = replace(SimParams(), **values)
     if params.follow and params.stop_s > 0:
         raise DriverError(f"{url!r}: follow and stop_s: a followed rover stops when its physics stops it")
+    if params.follow and params.shake > 0:
+        raise DriverError(f"{url!r}: follow and shake: a followed rover moves as its physics moves it")
     if params.prerender and (params.duration <= 0 or params.follow):
         raise DriverError(f"{url!r}: prerender needs a duration (the frames to render) and no follow")
     return params
@@ -271,7 +295,13 @@ def parse_sim_url(url: str, **options: Any) -> SimParams:
 class _Session:
     def __init__(self, params: SimParams, t0_ns: int | None) -> None:
         self.world: World = build_world(
-            params.seed, params.world, params.speed, params.tilt, (params.stop_at, params.stop_s)
+            params.seed,
+            params.world,
+            params.speed,
+            params.tilt,
+            (params.stop_at, params.stop_s),
+            params.shake,
+            params.shake_s,
         )
         # prerender: the whole drive rendered now, before the clock starts
         self.prerendered: list[StereoFrame] | None = None
@@ -305,7 +335,7 @@ class _Session:
         return sigma * self._gravity_bias_unit
 
 
-_SESSIONS: dict[tuple[int, str, float, float, float, float, str, float], _Session] = {}
+_SESSIONS: dict[tuple[int, str, float, float, float, float, str, float, float, float], _Session] = {}
 _SESSIONS_LOCK = threading.Lock()
 
 
@@ -404,6 +434,29 @@ class SimRig:
         cv2.subtract(img, self._noise_neg[i][dy : dy + h, dx : dx + w], dst=img)
         return img
 
+    EXPOSURE_SAMPLES = 9
+
+    def _blurred(self, t_s: float, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Motion blur: the pair averaged over ``EXPOSURE_SAMPLES`` instants spread evenly over the
+        exposure, centred on ``t_s`` (whose renders ``left``, ``right`` are; the depth buffer and the
+        truth stay the centre's). Both cameras expose together, as a synchronised rig does."""
+        n = self.EXPOSURE_SAMPLES
+        acc_l = left.astype(np.float32)
+        acc_r = right.astype(np.float32)
+        e = self.params.exposure_ms * 1e-3
+        for j in range(n):
+            dt = (j / (n - 1) - 0.5) * e
+            if j == (n - 1) // 2:
+                continue  # the centre: already rendered
+            T = self.world.trajectory.state(t_s + dt).T_world_robot
+            moving = self.world.moving_surfaces(t_s + dt)
+            acc_l += self._renderer.render(T @ self.T_robot_left, moving)[0]
+            acc_r += self._renderer_right.render(T @ self.T_robot_right, moving)[0]
+        return (
+            np.clip(np.rint(acc_l / n), 0, 255).astype(np.uint8),
+            np.clip(np.rint(acc_r / n), 0, 255).astype(np.uint8),
+        )
+
     def render(self, k: int, t_ns: int, depth: bool = True) -> tuple[StereoFrame, np.ndarray | None]:
         """Frame ``k`` stamped ``t_ns``, and the left camera's depth buffer (H, W) float32 [m]
         (Z along the optical axis = X_r depth; +inf where nothing was hit; None when ``depth`` is
@@ -413,6 +466,8 @@ class SimRig:
         moving = self.world.moving_surfaces(t_s)  # one instant for both views: a synchronised pair
         left, iz = self._renderer.render(T_world_robot @ self.T_robot_left, moving)
         right, _ = self._renderer_right.render(T_world_robot @ self.T_robot_right, moving)
+        if self.params.exposure_ms > 0.0:
+            left, right = self._blurred(t_s, left, right)
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)

@@ -33,7 +33,7 @@ from drivers.simbase import (
 )
 from drivers.simterrain import BASELINE_M, RoadLoop, terrain_surfaces
 from robotd.core.errors import DriverError
-from robotd.core.geometry import euler_to_R, se3, se3_inverse
+from robotd.core.geometry import euler_rate_matrix, euler_to_R, se3, se3_inverse
 
 # --------------------------------------------------------------------------------------------
 # Procedural textures of the yard (value noise: drivers/simbase.py)
@@ -272,6 +272,61 @@ class StoppingTrajectory:
         tau, k = self.warp(t_s)
         st = self.base.state(tau)
         return TruthState(st.T_world_robot, st.vel_R_mps * k, st.rate_R_radps * k)
+
+    def path_points_yard(self, n: int = 720) -> np.ndarray:
+        return self.base.path_points_yard(n)
+
+
+class ShakingTrajectory:
+    """Another trajectory carried by a shaking hand: the camera turns about every axis by a sum
+    of three sinusoids (1.7, 3.9 and 7.3 Hz, phases drawn from the seed, amplitudes 1/2, 1/3 and
+    1/6 of ``amp_deg`` so the peak is about ``amp_deg``) and moves by ``amp_deg`` × 5 mm a degree
+    along every axis at the same frequencies. The shake is a pose in the base robot frame,
+    ΔT(t) = (R_s, p_s), zero at t = 0 (the world stays the robot at t = 0), so
+    T = T_base · ΔT; the body rate is R_sᵀ ω_base + ω_s and the body velocity
+    R_sᵀ (v_base + ω_base × p_s + ṗ_s). At 5° the peak rate is about 150 °/s: a hand-held
+    camera shaken hard (issue 26's held-out sequence D). ``until_s`` > 0: the shake fades out
+    (cos², over ``ramp_s``) and ends then, the camera held where the fade left it."""
+
+    FREQ_HZ = (1.7, 3.9, 7.3)
+    WEIGHT = (1.0 / 2.0, 1.0 / 3.0, 1.0 / 6.0)
+    M_PER_DEG = 0.005
+
+    def __init__(self, base: Trajectory, amp_deg: float, seed: int, until_s: float = 0.0, ramp_s: float = 0.5) -> None:
+        self.base = base
+        self.until_s = float(until_s)
+        self.ramp_s = float(ramp_s)
+        self.T_world_yard = base.T_world_yard
+        rng = np.random.default_rng([seed, 314])
+        self._phase = rng.uniform(0.0, 2.0 * np.pi, size=(6, 3))  # (axis: roll pitch yaw x y z, freq)
+        a = math.radians(amp_deg) * np.asarray(self.WEIGHT)
+        self._amp = np.vstack([np.tile(a, (3, 1)), np.tile(amp_deg * self.M_PER_DEG * np.asarray(self.WEIGHT), (3, 1))])
+        self._w = 2.0 * np.pi * np.asarray(self.FREQ_HZ)
+
+    def shake(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(6,) the shake (roll, pitch, yaw [rad], x, y, z [m]) at ``t_s`` and its time derivative."""
+        arg = self._w[None, :] * t_s + self._phase
+        q = np.sum(self._amp * (np.sin(arg) - np.sin(self._phase)), axis=1)
+        dq = np.sum(self._amp * self._w[None, :] * np.cos(arg), axis=1)
+        if self.until_s > 0.0:  # the hand steadies: a cos² fade over the last ramp_s
+            u = (t_s - (self.until_s - self.ramp_s)) / self.ramp_s
+            if u >= 1.0:
+                return np.zeros(6), np.zeros(6)
+            if u > 0.0:
+                e = math.cos(0.5 * np.pi * u) ** 2
+                de = -0.5 * np.pi * math.sin(np.pi * u) / self.ramp_s
+                return e * q, e * dq + de * q
+        return q, dq
+
+    def state(self, t_s: float) -> TruthState:
+        st = self.base.state(t_s)
+        q, dq = self.shake(t_s)
+        R_s = euler_to_R(q[:3])
+        w_s = np.linalg.solve(euler_rate_matrix(q[:3]), dq[:3])
+        T = st.T_world_robot @ se3(R_s, q[3:])
+        rate = R_s.T @ st.rate_R_radps + w_s
+        vel = R_s.T @ (st.vel_R_mps + np.cross(st.rate_R_radps, q[3:]) + dq[3:])
+        return TruthState(T, vel, rate)
 
     def path_points_yard(self, n: int = 720) -> np.ndarray:
         return self.base.path_points_yard(n)
@@ -576,10 +631,13 @@ def build_world(
     speed_mps: float = 1.0,
     tilt_deg: float = 0.0,
     stop: tuple[float, float] = (0.0, 0.0),
+    shake_deg: float = 0.0,
+    shake_s: float = 0.0,
 ) -> World:
     """The textured yard ``world`` for ``seed`` with the rover driving at ``speed_mps`` (tilt in degrees).
     ``stop``: (at [s], for [s]): the rover stands still for a while (:class:`StoppingTrajectory`;
-    (0, 0) or a duration of 0: no stop).
+    (0, 0) or a duration of 0: no stop). ``shake_deg`` > 0: the camera is shaken as by a hand
+    (:class:`ShakingTrajectory`), stopped or not, for ``shake_s`` seconds (0: throughout).
 
     The surfaces and textures (about 12 Mpx, 1–2 s to generate; ``open_terrain``: see
     drivers/simterrain.py) are built once per (seed, world) and cached; speed and tilt only change
@@ -601,6 +659,8 @@ def build_world(
         movers = (Mover("van", _van_surfaces(seed, h), crossing),)
     if stop[1] > 0.0:
         traj = StoppingTrajectory(traj, stop[0], stop[1])
+    if shake_deg > 0.0:
+        traj = ShakingTrajectory(traj, shake_deg, seed, shake_s)
     return World(
         world,
         seed,

@@ -15,6 +15,7 @@ import pytest
 from drivers import open_camera, open_vehicle
 from drivers.sim import SimParams, SimRig
 from drivers.simworld import WORLDS, LaneCrossing, build_world
+from robotd.core.errors import DriverError
 from robotd.core.geometry import T_to_pose6, se3_inverse
 from robotd.core.stereo import triangulate
 from robotd.frontend.detectors import DetectorParams, make_detector
@@ -379,3 +380,80 @@ def test_open_terrain_ground_tiles_make_no_false_stereo_matches(terrain_frames):
         n += int(low.sum())
     assert n > 500
     assert gross / n < 0.05  # measured 17 of 879 (1.9 %)
+
+
+# --------------------------------------------------------------------------------------------
+# a hand-held camera shaken (shake=, shake_s=, exposure_ms=)
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * angle / (2.0 * math.sin(angle))
+
+
+@pytest.mark.parametrize("world", ["yard", "turn_in_place"])
+def test_a_shaken_cameras_rates_and_velocity_are_its_poses_derivatives(world: str):
+    """The gyro and wheel truth of a shaken camera (T_base · ΔT) match central differences of its
+    poses, while it shakes and while the shake fades out."""
+    traj = build_world(1, world, 1.0, 0.0, (0.0, 0.0), 5.0, 3.0).trajectory
+    h = 1e-5
+    for t in (0.37, 1.21, 2.6, 2.83, 2.97):
+        a, b = traj.state(t - h).T_world_robot, traj.state(t + h).T_world_robot
+        st = traj.state(t)
+        w_num = _rotvec(a[:3, :3].T @ b[:3, :3]) / (2 * h)
+        v_num = st.T_world_robot[:3, :3].T @ (b[:3, 3] - a[:3, 3]) / (2 * h)
+        np.testing.assert_allclose(st.rate_R_radps, w_num, atol=1e-4)
+        np.testing.assert_allclose(st.vel_R_mps, v_num, atol=1e-4)
+
+
+def test_the_shake_starts_at_rest_peaks_near_its_amplitude_and_ends_at_shake_s():
+    base = build_world(1, "yard").trajectory
+    shaken = build_world(1, "yard", 1.0, 0.0, (0.0, 0.0), 5.0, 6.0).trajectory
+    np.testing.assert_allclose(shaken.state(0.0).T_world_robot, np.eye(4), atol=1e-12)  # the world frame stays
+    ts = np.arange(0.0, 5.5, 0.01)
+    ang = [
+        math.degrees(
+            np.linalg.norm(_rotvec(base.state(t).T_world_robot[:3, :3].T @ shaken.state(t).T_world_robot[:3, :3]))
+        )
+        for t in ts
+    ]
+    rate = [math.degrees(np.abs(shaken.state(t).rate_R_radps - base.state(t).rate_R_radps).max()) for t in ts]
+    assert 4.0 < max(ang) < 15.0  # three axes of about 5° each
+    assert 60.0 < max(rate) < 200.0  # a hand shaken hard: tens of degrees a frame-time at 20 Hz
+    for t in (6.0, 7.5):  # faded out: the base trajectory again
+        np.testing.assert_allclose(shaken.state(t).T_world_robot, base.state(t).T_world_robot, atol=1e-12)
+        np.testing.assert_allclose(shaken.state(t).rate_R_radps, base.state(t).rate_R_radps, atol=1e-12)
+
+
+def test_an_exposure_blurs_the_pair_and_keeps_the_frames_truth():
+    sharp = SimRig(
+        build_world(1, "yard", 1.0, 0.0, (0.0, 0.0), 5.0), SimParams(realtime=0, shake=5.0, width=320, height=200)
+    )
+    blurred = SimRig(
+        build_world(1, "yard", 1.0, 0.0, (0.0, 0.0), 5.0),
+        SimParams(realtime=0, shake=5.0, exposure_ms=10.0, width=320, height=200),
+    )
+    fa, da = sharp.render(20, 0)
+    fb, db = blurred.render(20, 0)
+    np.testing.assert_array_equal(fa.truth_T_world_robot, fb.truth_T_world_robot)
+    np.testing.assert_array_equal(da, db)  # the depth buffer is the centre instant's
+
+    def sharpness(img: np.ndarray) -> float:
+        return float(cv2.Laplacian(img, cv2.CV_32F).var())
+
+    for a, b in ((fa.left, fb.left), (fa.right, fb.right)):
+        assert sharpness(b) < 0.7 * sharpness(a)
+        assert abs(float(a.mean()) - float(b.mean())) < 3.0  # blurred, not darkened
+
+
+def test_shake_and_exposure_are_url_keys_with_ranges():
+    with open_camera("sim://?realtime=0&shake=3&shake_s=2&exposure_ms=4") as cam:
+        assert (cam.params.shake, cam.params.shake_s, cam.params.exposure_ms) == (3.0, 2.0, 4.0)
+    for bad, named in (("shake=11", "shake"), ("exposure_ms=60", "exposure_ms"), ("shake=-1", "shake")):
+        with pytest.raises(DriverError, match=named):
+            open_camera(f"sim://?realtime=0&{bad}")
+    with pytest.raises(DriverError, match="follow and shake"):
+        open_camera("sim://?realtime=0&shake=2&follow=127.0.0.1:9999")
