@@ -471,7 +471,7 @@ class SimRig:
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)
-        frame = StereoFrame(t_ns, k, left, right, True, T_world_robot)
+        frame = StereoFrame(t_ns, k, left, right, True, T_world_robot, round(self.params.exposure_ms * 1e6))
         if not depth:
             return frame, None
         with np.errstate(divide="ignore"):

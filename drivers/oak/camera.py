@@ -211,7 +211,17 @@ def group_to_frame(group: Any, gate: PairGate, rectifier: Any | None) -> StereoF
     if rectifier is not None:
         img_l, img_r = rectifier.rectify(img_l, img_r)
     return StereoFrame(t_l, int(left.getSequenceNum()), np.ascontiguousarray(img_l), np.ascontiguousarray(img_r),
-                       rectified=rectified)  # fmt: skip
+                       rectified=rectified, exposure_ns=exposure_ns(left))  # fmt: skip
+
+
+def exposure_ns(img: Any) -> int:
+    """The exposure an ImgFrame reports (``getExposureTime()``, a timedelta), in nanoseconds; 0
+    when it reports none (or nonsense)."""
+    try:
+        ns = timedelta_ns(img.getExposureTime())
+    except (AttributeError, TypeError, ValueError):
+        return 0
+    return ns if 0 < ns < 10_000_000_000 else 0
 
 
 # --------------------------------------------------------------------------------------------

@@ -57,6 +57,13 @@ class CameraConfig:
         " empty: the source's own",
     )
     queue_size: int = _f(2, "frames buffered between the camera thread and SLAM (drop-oldest)", min=1, max=64)
+    exposure_ms: float = _f(
+        0.0,
+        "the exposure assumed when the source reports none (datasets; oak:// and sim:// report theirs): it"
+        " sizes the motion blur the reported covariance allows for (slam.covariance_blur_px); 0 = none",
+        min=0.0,
+        max=1000.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -172,6 +179,14 @@ class SlamConfig:
         " the EKF's included)",
         min=0.0,
         max=1.0,
+    )
+    covariance_blur_px: float = _f(
+        3.0,
+        "consistent covariance: a motion the images measured while blurred (a streak of b px: the rotation's"
+        " rate × the exposure × the focal length) adds (b / this)² times the motion's own covariance, an error"
+        " the filter is not told of (docs/slam.md); 0 = off",
+        min=0.0,
+        max=1000.0,
     )
     n_particles: int = _f(100, "FastSLAM particles (bounded by memory and deadline: docs/reliability.md)", min=1)
     resample_neff_ratio: float = _f(0.5, "resample when N_eff < ratio × N", min=0.0, max=1.0)

@@ -56,7 +56,9 @@ class StereoFrame:
 
     ``left``/``right``: (H, W) uint8 grey images; rectified when ``rectified`` is True.
     ``truth_T_world_robot``: (4, 4) ground-truth pose when a simulator or dataset knows it; it is
-    for evaluation only and never reaches the filter.
+    for evaluation only and never reaches the filter. ``exposure_ns``: how long the images were
+    exposed, when the camera says (the OAK-D's frames and the simulator's do; datasets do not); the
+    motion's blur is judged by it (docs/slam.md "Reported covariance", motion blur).
     """
 
     t_ns: int  # capture time (middle of exposure), host monotonic clock
@@ -65,9 +67,13 @@ class StereoFrame:
     right: np.ndarray  # (H, W) uint8
     rectified: bool = True
     truth_T_world_robot: np.ndarray | None = None  # (4, 4) [m], evaluation only
+    exposure_ns: int = 0  # the exposure time the camera reports; 0 = not reported
 
     def __post_init__(self) -> None:
         _check_time("StereoFrame.t_ns", self.t_ns)
+        e = self.exposure_ns
+        if isinstance(e, bool) or not isinstance(e, (int, np.integer)) or e < 0:
+            raise InputError(f"StereoFrame.exposure_ns: expected integer nanoseconds >= 0, got {self.exposure_ns!r}")
         for side in ("left", "right"):
             img = getattr(self, side)
             _check_array(f"StereoFrame.{side}", img, (None, None), finite=False)

@@ -21,7 +21,7 @@ topic                          schema                         content
 ``/truth/pose``,               ``foxglove.PoseInFrame``,      the ground truth, when the source has one
 ``/truth/trajectory``          ``foxglove.PosesInFrame``
 ``/robotd/odometry``           ``foxglove.Odometry``          the vehicle's samples (t_ns, source in metadata)
-``/robotd/frame``              ``robotd.FrameInfo`` (JSON)    t_ns, seq, rectified flag, raw truth pose
+``/robotd/frame``              ``robotd.FrameInfo`` (JSON)    t_ns, seq, rectified flag, raw truth pose, exposure
 ``/robotd/pose_estimate``      ``robotd.PoseEstimate`` (JSON) every field of :class:`robotd.core.msgs.PoseEstimate`
 ``/robotd/calibration``        ``robotd.Calibration`` (JSON)  the calibration JSON (also in metadata)
 ============================== ============================== =============================================
@@ -122,6 +122,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "seq": {"type": "integer"},
             "rectified": {"type": "boolean"},
             "truth_T_world_robot": {"type": ["array", "null"], "items": _NUMBERS},
+            "exposure_ns": {"type": "integer"},
         },
     ),
     "robotd.PoseEstimate": _schema(
@@ -493,6 +494,8 @@ class FoxgloveScene:
             out.append((side, t, self._image(img, side, wall), k))
         truth = None if frame.truth_T_world_robot is None else _floats(frame.truth_T_world_robot)
         info = {"t_ns": t, "seq": int(frame.seq), "rectified": bool(frame.rectified), "truth_T_world_robot": truth}
+        if frame.exposure_ns:
+            info["exposure_ns"] = int(frame.exposure_ns)  # absent: not reported (older files alike)
         out.append(("frame", t, info, k))
         if frame.truth_T_world_robot is not None:
             # shown from the first truth pose on, where the estimate's world frame starts
@@ -965,8 +968,11 @@ class SessionReader:
             rect, seq = d["rectified"], d["seq"]
             if not isinstance(rect, bool) or not isinstance(seq, int) or isinstance(seq, bool) or abs(seq) >= 1 << 62:
                 raise PersistenceError(f"frame info: rectified {str(rect)[:20]}, seq {str(seq)[:20]}")
-            return StereoFrame(_t_ns(d["t_ns"], "frame t_ns"), seq, imgs["left"], imgs["right"], rect, T)
-        except (KeyError, TypeError, ValueError) as exc:
+            exposure = d.get("exposure_ns", 0)
+            if not isinstance(exposure, int) or isinstance(exposure, bool) or not 0 <= exposure < 1 << 62:
+                raise PersistenceError(f"frame info: exposure_ns {str(exposure)[:20]}")
+            return StereoFrame(_t_ns(d["t_ns"], "frame t_ns"), seq, imgs["left"], imgs["right"], rect, T, exposure)
+        except (KeyError, TypeError, ValueError, InputError) as exc:
             raise PersistenceError(f"frame info: {exc!r}"[:200]) from None
 
     def status(self) -> dict[str, Any]:

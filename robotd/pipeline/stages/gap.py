@@ -25,7 +25,7 @@ from robotd.pipeline.stages.motion import MotionModel
 from robotd.pipeline.stages.tracking import PipelineCounters
 from robotd.pipeline.stall import GapDetector, Reach, blind_motion, plausible, reach
 from robotd.slam.estimator import Estimator
-from robotd.slam.uncertainty import ReportedCovariance, euler_error_jacobian
+from robotd.slam.uncertainty import ReportedCovariance
 
 logger = logging.getLogger("robotd.pipeline")  # the step's lines keep the name users filter them by
 
@@ -144,12 +144,7 @@ class Gap:
         if not np.all(np.isfinite(J)):
             return
         C = np.outer(J, J) * self.frontend.disparity_bias.sigma_px**2  # over (dp in R(t−1), drot)
-        est = self.estimator.estimate()
-        R_w = est.T_world_robot[:3, :3]
-        G = np.zeros((6, 6))
-        G[:3, :3] = R_w
-        G[3:, 3:] = np.linalg.pinv(euler_error_jacobian(est.rpy_rad)) @ R_w
-        self.covariance.add_uncertainty(G @ C @ G.T)
+        self.covariance.add_increment_uncertainty(C, self.estimator.estimate())
         logger.info(
             "the motion across the gap moves %.2f m per pixel of disparity offset (offset known to %.2f px)",
             float(np.linalg.norm(J[:3])),

@@ -155,6 +155,7 @@ def test_pairs_come_out_with_exposure_middle_stamps() -> None:
     for f, s in zip(frames, shots):
         expected = timedelta_ns(timedelta(seconds=s.t_left)) - EXPOSURE_US * 500  # end - exposure/2
         assert f.t_ns == expected and isinstance(f.t_ns, int)
+        assert f.exposure_ns == EXPOSURE_US * 1000  # the ImgFrame's own, for the blur model
         assert f.left[0, 0] == f.right[0, 0] == s.seq_left  # the two halves belong together
     st = cam.stats()
     assert st["mismatched"] == 0 and st["seq_missing"] == 0 and st["pairs"] == 12

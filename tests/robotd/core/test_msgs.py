@@ -20,6 +20,10 @@ def test_stereo_frame_validation() -> None:
         StereoFrame(1.5, 0, img, img)  # type: ignore[arg-type]
     with pytest.raises(InputError, match=r"truth_T_world_robot: expected shape \(4, 4\)"):
         StereoFrame(1, 0, img, img, truth_T_world_robot=np.eye(3))
+    assert StereoFrame(1, 0, img, img, exposure_ns=8_000_000).exposure_ns == 8_000_000
+    for bad in (-1, 2.5, True):
+        with pytest.raises(InputError, match="exposure_ns: expected integer nanoseconds >= 0"):
+            StereoFrame(1, 0, img, img, exposure_ns=bad)  # type: ignore[arg-type]
 
 
 def test_odometry_rejects_nan() -> None:

@@ -36,7 +36,8 @@ def session(rng: np.random.Generator, n: int = 6) -> list[StereoFrame | Odometry
         events.append(Odometry(t - 7, rng.normal(size=3), rng.normal(size=3), source="wheels", cov=odo_cov))
         truth = np.eye(4) if i % 2 else None
         img = lambda: rng.integers(0, 256, (40, 64), dtype=np.uint8)  # noqa: E731
-        events.append(StereoFrame(t, 100 + i, img(), img(), True, truth))
+        exposure = 0 if i % 3 == 0 else 4_000_000 + 17 * i  # some cameras report their exposure
+        events.append(StereoFrame(t, 100 + i, img(), img(), True, truth, exposure))
         cov = np.diag(rng.uniform(0.01, 1, 6))
         neff = float("nan") if i % 3 == 0 else float(rng.uniform(1, 100))
         events.append(PoseEstimate(t, rng.normal(size=3), rng.normal(size=3), cov, neff, 100))
@@ -63,7 +64,7 @@ def write(path: Path, events: list[Any], **kw: Any) -> SessionWriter:
 def assert_same(a: Any, b: Any) -> None:
     assert type(a) is type(b) and a.t_ns == b.t_ns
     if isinstance(a, StereoFrame):
-        assert a.seq == b.seq and a.rectified == b.rectified
+        assert a.seq == b.seq and a.rectified == b.rectified and a.exposure_ns == b.exposure_ns
         assert a.left.dtype == b.left.dtype == np.uint8
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)  # bit-identical
         assert (a.truth_T_world_robot is None) == (b.truth_T_world_robot is None)

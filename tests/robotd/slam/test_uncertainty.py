@@ -16,6 +16,7 @@ from robotd.slam.uncertainty import (
     AnchoredCovariance,
     ConsistencyMonitor,
     ReportedCovariance,
+    blur_share,
     euler_error_jacobian,
     innovation_nis,
     transport,
@@ -361,3 +362,29 @@ def test_on_real_kitti_drives_the_reported_covariance_covers_the_error(folder: s
     assert s["truth_aligned_nees_pos_frames"] >= 40
     assert s["truth_aligned_nees_pos_in_band_frac"] >= 0.8
     assert s["truth_aligned_nees_pos_mean"] < 9.35
+
+
+def test_blur_share_is_the_streak_over_its_scale_squared_and_zero_without_an_exposure():
+    # 0.1 rad in 50 ms is 2 rad/s; over 10 ms at f = 500 px that draws a 10 px streak
+    drot = np.array([0.0, 0.06, 0.08])
+    assert blur_share(drot, 0.05, 0.01, 500.0, 3.0) == pytest.approx((10.0 / 3.0) ** 2)
+    assert blur_share(drot, 0.05, 0.005, 500.0, 3.0) == pytest.approx((5.0 / 3.0) ** 2)
+    for args in ((0.05, 0.0, 500.0, 3.0), (0.05, 0.01, 500.0, 0.0), (0.0, 0.01, 500.0, 3.0)):
+        assert blur_share(drot, *args) == 0.0  # no exposure, off, no interval
+    assert blur_share(np.zeros(3), 0.05, 0.01, 500.0, 3.0) == 0.0  # no rotation, no streak
+    assert blur_share(np.array([np.nan, 0.0, 0.0]), 0.05, 0.01, 500.0, 3.0) == 0.0
+
+
+def test_an_increments_error_reaches_the_report_in_the_worlds_axes():
+    rep = ReportedCovariance("consistent", False, CARTESIAN_3D, None)
+    yaw = math.radians(90.0)
+    pose = PoseEstimate(0, np.array([1.0, 2.0, 0.0]), np.array([0.0, 0.0, yaw]), np.eye(6) * 1e-6, 50.0, 50)
+    C = np.zeros((6, 6))
+    C[0, 0] = 0.04  # 0.2 m along the robot's x (forward) ...
+    C[5, 5] = 1e-4  # ... and 0.01 rad about its z
+    rep.add_increment_uncertainty(C, pose)
+    out = rep.report(pose, Observations.empty(3))
+    # heading +90°: the robot's forward is the world's y; a turn about z is a change of yaw
+    assert out.cov[1, 1] == pytest.approx(1e-6 + 0.04)
+    assert out.cov[0, 0] == pytest.approx(1e-6)
+    assert out.cov[5, 5] == pytest.approx(1e-6 + 1e-4)
