@@ -58,7 +58,7 @@ from robotd.slam.common import measurement_model, pixel_noise
 from robotd.slam.estimator import Estimator, persistent
 from robotd.slam.factory import ESTIMATORS, estimator_kind, make_estimator
 from robotd.slam.landmarks import LandmarkRegistry
-from robotd.slam.uncertainty import ReportedCovariance, blur_share
+from robotd.slam.uncertainty import ReportedCovariance
 
 
 class Pipeline:
@@ -83,8 +83,6 @@ class Pipeline:
             pixel_noise(params) if model.intrinsics else None,
             cfg.slam.covariance_drift,
         )
-        self.blur_px = cfg.slam.covariance_blur_px  # the images' blur in the reported covariance
-        self.exposure_default_s = cfg.camera.exposure_ms * 1e-3
         # the map's landmark ids, and the stores that follow the filter's: the descriptors, the anchors
         self.registry = LandmarkRegistry(self.estimator)
         self.registry.subscribe(self.frontend)
@@ -130,7 +128,7 @@ class Pipeline:
         else:
             inc = motion.choose(increment, visual.increment, t_ns, relocalising)
             if inc is not None and inc is visual.increment:
-                self._blur_uncertainty(inc, frame)
+                self.fuse.blur(inc, frame.exposure_ns)  # the images' motion as the prior: its blur
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else motion.view(landmarks, inc)
         ident = fe.identify(meas, landmarks, view)
@@ -152,18 +150,6 @@ class Pipeline:
         found = self.relocalising.searching() and self.relocalising.search(meas)  # a late find
         pose, tracking, n_identified = self._after_update(t_ns, obs, landmarks, moved, relocalising or found)
         return self._result(frame, counts, report, pose, tracking, n_identified, relocalising or found, obs)
-
-    def _blur_uncertainty(self, inc: MotionIncrement, frame: StereoFrame) -> None:
-        """The images' motion, taken as the prior, was measured from images blurred by the motion
-        itself: the share of its covariance the blur adds (robotd.slam.uncertainty.blur_share) goes
-        to the reported covariance, the estimate untouched. The exposure is the frame's, else
-        ``camera.exposure_ms``."""
-        if not self.covariance.enabled:
-            return
-        exposure_s = frame.exposure_ns * 1e-9 if frame.exposure_ns else self.exposure_default_s
-        k = blur_share(inc.drot_R_rad, (inc.t1_ns - inc.t0_ns) * 1e-9, exposure_s, self.rig.f_px, self.blur_px)
-        if k > 0.0 and np.all(np.isfinite(inc.cov)):
-            self.covariance.add_increment_uncertainty(k * np.asarray(inc.cov, dtype=float), self.estimator.estimate())
 
     def after_step(self) -> float:
         """The work of the last step that its result does not wait for: the disparity offset's

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from robotd.config import Config
 from robotd.core.errors import SingularityError
 from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, UpdateReport
@@ -15,7 +17,7 @@ from robotd.pipeline.stages.attitude import Attitude
 from robotd.slam.estimator import Estimator
 from robotd.slam.landmarks import LandmarkRegistry
 from robotd.slam.measurement import covariance_at_prediction
-from robotd.slam.uncertainty import ReportedCovariance
+from robotd.slam.uncertainty import ReportedCovariance, blur_share
 
 
 class Fuse:
@@ -38,6 +40,20 @@ class Fuse:
         self.covariance = covariance
         self.attitude = attitude
         self.clock = clock
+
+    def blur(self, inc: MotionIncrement, exposure_ns: int) -> None:
+        """The images' motion ``inc``, taken as the prior, was measured from images blurred by the
+        motion itself: the share of its covariance the blur adds
+        (robotd.slam.uncertainty.blur_share, ``slam.covariance_blur_px``) goes to the reported
+        covariance, the estimate untouched. The exposure is the frame's (``exposure_ns``), else
+        ``camera.exposure_ms``. Before :meth:`predict` (the increment is in the last pose's frame)."""
+        if not self.covariance.enabled:
+            return
+        exposure_s = exposure_ns * 1e-9 if exposure_ns else self.cfg.camera.exposure_ms * 1e-3
+        dt_s = (inc.t1_ns - inc.t0_ns) * 1e-9
+        k = blur_share(inc.drot_R_rad, dt_s, exposure_s, self.rig.f_px, self.cfg.slam.covariance_blur_px)
+        if k > 0.0 and np.all(np.isfinite(inc.cov)):
+            self.covariance.add_increment_uncertainty(k * np.asarray(inc.cov, dtype=float), self.estimator.estimate())
 
     @stage("predict")
     def predict(self, inc: MotionIncrement | None) -> None:
