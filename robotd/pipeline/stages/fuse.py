@@ -40,6 +40,14 @@ class Fuse:
         self.covariance = covariance
         self.attitude = attitude
         self.clock = clock
+        # the images' blur (:meth:`blur`): the last exposure and streak, the largest streak, and
+        # how many motions widened the reported covariance
+        self.blur_stats: dict[str, float | int] = {
+            "exposure_ms": 0.0,
+            "streak_px": 0.0,
+            "streak_px_max": 0.0,
+            "widened": 0,
+        }
 
     def blur(self, inc: MotionIncrement, exposure_ns: int) -> None:
         """The images' motion ``inc``, taken as the prior, was measured from images blurred by the
@@ -51,9 +59,15 @@ class Fuse:
             return
         exposure_s = exposure_ns * 1e-9 if exposure_ns else self.cfg.camera.exposure_ms * 1e-3
         dt_s = (inc.t1_ns - inc.t0_ns) * 1e-9
-        k = blur_share(inc.drot_R_rad, dt_s, exposure_s, self.rig.f_px, self.cfg.slam.covariance_blur_px)
+        blur_px = self.cfg.slam.covariance_blur_px
+        k = blur_share(inc.drot_R_rad, dt_s, exposure_s, self.rig.f_px, blur_px)
         if k > 0.0 and np.all(np.isfinite(inc.cov)):
             self.covariance.add_increment_uncertainty(k * np.asarray(inc.cov, dtype=float), self.estimator.estimate())
+            st = self.blur_stats
+            streak = round(float(np.sqrt(k)) * blur_px, 2)
+            st["exposure_ms"], st["streak_px"] = round(exposure_s * 1e3, 3), streak
+            st["streak_px_max"] = max(float(st["streak_px_max"]), streak)
+            st["widened"] = int(st["widened"]) + 1
 
     @stage("predict")
     def predict(self, inc: MotionIncrement | None) -> None:

@@ -205,7 +205,7 @@ def test_a_hand_held_camera_shaken_hard_is_tracked_on_vision_alone():
 
 
 @functools.cache
-def _blur_run(exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float) -> tuple[Any, Any]:
+def _blur_run(exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float) -> tuple[Any, Any, dict[str, Any]]:
     """A shaken camera's poses and reported covariances (1.5 s, 320×200, vision alone)."""
     url = (
         "sim://?realtime=0&odometry=0&width=320&height=200&baseline=0.11&fps=20&shake=5&duration=1.5"
@@ -213,8 +213,8 @@ def _blur_run(exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float) ->
     )
     cfg = load_config(None, {"slam": {"covariance_blur_px": blur_px}, "camera": {"exposure_ms": exposure_cfg_ms}})
     poses: list[Any] = []
-    replay(cfg, url, progress=False, on_step=lambda r: poses.append(r.pose))
-    return [p.xyz_W_m for p in poses], [p.cov for p in poses]
+    s = replay(cfg, url, progress=False, on_step=lambda r: poses.append(r.pose))
+    return [p.xyz_W_m for p in poses], [p.cov for p in poses], s["motion_blur"]
 
 
 def test_a_blurred_motion_widens_the_reported_covariance_and_leaves_the_estimate_alone():
@@ -223,13 +223,16 @@ def test_a_blurred_motion_widens_the_reported_covariance_and_leaves_the_estimate
     to the bit. The exposure is the frame's (sim:// reports it), else camera.exposure_ms."""
     import numpy as np
 
-    xyz_off, cov_off = _blur_run(10.0, 0.0, 0.0)
-    xyz_on, cov_on = _blur_run(10.0, 3.0, 0.0)
+    xyz_off, cov_off, stats_off = _blur_run(10.0, 0.0, 0.0)
+    xyz_on, cov_on, stats_on = _blur_run(10.0, 3.0, 0.0)
+    assert stats_off["widened"] == 0 and stats_on["exposure_ms"] == 10.0
+    assert 25 <= stats_on["widened"] <= 29 and 0 < stats_on["streak_px"] <= stats_on["streak_px_max"] < 30
     assert all(np.array_equal(a, b) for a, b in zip(xyz_off, xyz_on)) and len(xyz_on) == 30
     grown = [np.trace(b[:3, :3]) / np.trace(a[:3, :3]) for a, b in zip(cov_off[5:], cov_on[5:])]
     assert min(grown) > 1.0 and float(np.median(grown)) > 1.5
     # a source that reports no exposure: the configured one stands in for it
-    xyz_cfg, cov_cfg = _blur_run(0.0, 3.0, 10.0)
-    xyz_none, cov_none = _blur_run(0.0, 3.0, 0.0)
+    xyz_cfg, cov_cfg, _ = _blur_run(0.0, 3.0, 10.0)
+    xyz_none, cov_none, stats_none = _blur_run(0.0, 3.0, 0.0)
+    assert stats_none["widened"] == 0
     assert all(np.array_equal(a, b) for a, b in zip(xyz_cfg, xyz_none))
     assert all(np.trace(b[:3, :3]) > np.trace(a[:3, :3]) for a, b in zip(cov_none[5:], cov_cfg[5:]))
