@@ -284,7 +284,7 @@ class ShakingTrajectory:
     along every axis at the same frequencies. The shake is a pose in the base robot frame,
     ΔT(t) = (R_s, p_s), zero at t = 0 (the world stays the robot at t = 0), so
     T = T_base · ΔT; the body rate is R_sᵀ ω_base + ω_s and the body velocity
-    R_sᵀ (v_base + ω_base × p_s + ṗ_s). At 5° the peak rate is about 150 °/s: a hand-held
+    R_sᵀ (v_base + ω_base × p_s + ṗ_s). At 5° the rate peaks at 100–120 °/s: a hand-held
     camera shaken hard (issue 26's held-out sequence D). ``until_s`` > 0: the shake fades out
     (cos², over ``ramp_s``) and ends then, the camera held where the fade left it."""
 
