@@ -243,8 +243,8 @@ class SerialVehicle(QueuedVehicleLink):
                     backoff = min(2 * backoff, self.opts.backoff_max_s)
                     continue
                 backoff = self.opts.backoff_min_s
-                self._counters["reconnects"] += 1
                 self._set_fault()
+                self._counters["reconnects"] += 1
                 logger.info("%s: reconnected to %s", self.url, self.path)
                 continue
             try:
@@ -253,10 +253,11 @@ class SerialVehicle(QueuedVehicleLink):
                 # TypeError: pyserial's read on a port closed under it by close()
                 if self._stop.is_set():
                     break
-                self._counters["disconnects"] += 1
                 logger.warning("%s: link lost (%s); reconnecting", self.url, exc)
                 self._close_port()
                 self._set_fault()
+                # counted last: whoever sees the count also sees the degraded state
+                self._counters["disconnects"] += 1
                 continue
             if not data:
                 continue
