@@ -107,6 +107,20 @@ def _source_url(source: str, realtime: bool, driver: CameraDriver) -> str:
     return driver.paced(source) if realtime and "://" in source else source
 
 
+def _check_writable_dir(path: str | None, what: str) -> None:
+    """Refuse, before a frame is replayed, an output file whose folder is missing or not writable:
+    found at the end, it would cost the whole run."""
+    if not path:
+        return
+    if os.path.isdir(path):
+        raise RobotdError(f"replay: the {what} file {path} is a folder")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise RobotdError(f"replay: the {what} file {path}: its folder {folder} does not exist")
+    if not os.access(folder, os.W_OK):
+        raise RobotdError(f"replay: the {what} file {path}: its folder {folder} is not writable")
+
+
 def replay(
     cfg: Config,
     source: str,
@@ -132,6 +146,8 @@ def replay(
     """
     if out_format not in TRAJECTORY_FORMATS:
         raise RobotdError(f"replay: trajectory format {out_format!r}: expected one of {list(TRAJECTORY_FORMATS)}")
+    for what, path in (("trajectory", out_traj), ("truth", truth_out), ("truth", truth_out_if_any)):
+        _check_writable_dir(path, what)
     driver = camera_driver(source)  # what the source declares (drivers.cameras)
     url = _source_url(source, realtime, driver)
     rng = np.random.default_rng(cfg.robot.seed)
@@ -191,8 +207,11 @@ def replay(
     stamps = np.array([r.t_ns for r in results], dtype=np.int64)
     T = np.stack([r.pose.T_world_robot for r in results])
     if out_traj:
-        write_trajectory(out_traj, stamps / 1e9, T, out_format, rig.baseline_m)
-        write_pose_cov(cov_path_for(out_traj), stamps / 1e9, np.stack([r.pose.cov for r in results]))
+        try:
+            write_trajectory(out_traj, stamps / 1e9, T, out_format, rig.baseline_m)
+            write_pose_cov(cov_path_for(out_traj), stamps / 1e9, np.stack([r.pose.cov for r in results]))
+        except OSError as exc:  # a full disk, a folder removed meanwhile: said in one line, exit non-zero
+            raise RobotdError(f"replay: writing the trajectory {out_traj}: {exc.strerror or exc}") from exc
         logger.info(
             "trajectory written to %s (%d poses, %s; covariance in %s)",
             out_traj,

@@ -247,6 +247,9 @@ def test_echo_with_nothing_listening_is_one_line_exit_2_naming_the_endpoint_and_
         (["replay", "nosuch://x"], "unknown camera scheme 'nosuch'"),
         (["replay", "kitti:///definitely/not/here"], "/definitely/not/here"),
         (["eval", "/nonexistent/t.txt", "/nonexistent/g.txt"], "no such file"),
+        # refused before a frame is replayed, not after the run (once, a 40 s run lost to a typo)
+        (["replay", "sim://?duration=1", "--out", "/nonexistent/t.txt"], "its folder /nonexistent does not exist"),
+        (["replay", "sim://?duration=1", "--out", "t.txt", "--truth-out", "/nonexistent/g.txt"], "the truth file"),
     ],
 )
 def test_bad_input_exits_2_with_one_clear_line(argv: list[str], message: str, capsys) -> None:

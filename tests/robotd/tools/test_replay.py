@@ -141,3 +141,25 @@ def test_replay_rectifies_with_the_calibration_file_and_refuses_it_for_a_recordi
     assert any(
         f"camera.calibration: {path}: " in line and "a recording replays its rectified images" in line for line in err
     ), err
+
+
+def test_a_trajectory_that_cannot_be_written_is_one_clear_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import errno
+
+    import robotd.tools.replay as replay_mod
+
+    # a folder given as the file: refused before the replay
+    assert main(["replay", "sim://?duration=1", "--out", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    # the disk full when the run ends: one line naming the file and the cause, exit non-zero
+
+    def full(*_a: object, **_k: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(replay_mod, "write_trajectory", full)
+    out = tmp_path / "t.txt"
+    assert main(["replay", "sim://?duration=0.4&fps=5&width=160&height=100", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"writing the trajectory {out}: No space left on device" in err and "Traceback" not in err
