@@ -60,7 +60,7 @@ class CameraConfig:
     exposure_ms: float = _f(
         0.0,
         "the exposure assumed when the source reports none (datasets; oak:// and sim:// report theirs): it"
-        " sizes the motion blur the reported covariance allows for (slam.covariance_blur_px); 0 = none",
+        " sizes the motion blur the measurements' model allows for (frontend.motion_blur); 0 = none",
         min=0.0,
         max=1000.0,
     )
@@ -132,6 +132,11 @@ class FrontendConfig:
         choices=("pnp", "similarity"),
     )
     pnp_inlier_px: float = _f(2.0, "stereo PnP: reprojection error of an inlier", min=0.1, max=50.0)
+    motion_blur: bool = _f(
+        True,
+        "with a known exposure (the frame's, else camera.exposure_ms): the streak the camera's turn draws"
+        " widens the stereo points' covariance and the PnP's inlier gate (docs/frontend.md)",
+    )
     pnp_two_view_iterations: int = _f(
         3,
         "stereo PnP: passes of the two-view adjustment (the motion with every inlier's position free: far"
@@ -184,7 +189,7 @@ class SlamConfig:
         3.0,
         "consistent covariance: a motion the images measured while blurred (a streak of b px: the rotation's"
         " rate × the exposure × the focal length) adds (b / this)² times the motion's own covariance, an error"
-        " the filter is not told of (docs/slam.md); 0 = off",
+        " the filter is not told of (docs/slam.md); only with frontend.motion_blur off; 0 = off",
         min=0.0,
         max=1000.0,
     )

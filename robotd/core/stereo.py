@@ -21,6 +21,7 @@ OpenCV/Kalibr convention: a point in the left camera frame maps into the right o
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -117,6 +118,34 @@ def triangulation_covariance(
     s = np.array([sigma_x_px**2, sigma_x_px**2, sigma_y_px**2])
     Q = np.einsum("nij,j,nkj->nik", J, s, J)
     return inflation * 0.5 * (Q + np.swapaxes(Q, -1, -2))
+
+
+def streak_px(rate_radps: float, exposure_s: float, f_px: float) -> float:
+    """The streak [px] a point draws across the image while the camera turns at ``rate_radps``
+    during one exposure of ``exposure_s``: rate × exposure × f (the small-angle image motion of a
+    rotation, which dominates a translation's at the rates that blur); 0 for no exposure, NaN
+    or negative inputs."""
+    b = float(rate_radps) * float(exposure_s) * float(f_px)
+    return b if math.isfinite(b) and b > 0.0 else 0.0
+
+
+def blur_covariance(xl: np.ndarray, xr: np.ndarray, y: np.ndarray, rig: RectifiedStereo, b_px: float) -> np.ndarray:
+    """The covariance (N, 3, 3) [m²] a motion-blur streak of ``b_px`` adds to each triangulated
+    point (docs/math.md §3.4).
+
+    A blurred corner is found somewhere along its streak, uniformly: b²/12 of variance along it.
+    Both cameras expose together, so the left and right images hold the same streak and the
+    corner moves by the same amount in both: x_L and x_R fully correlated, the disparity (the
+    depth) untouched. The streak's direction differs across the frame and between frames; taken
+    as uniform, each image axis gets half: Σ_b = b²/24 [[1, 1, 0], [1, 1, 0], [0, 0, 1]] on
+    (x_L, x_R, y), mapped by the triangulation's Jacobian."""
+    n = np.shape(xl)[0]
+    if not (b_px > 0.0 and math.isfinite(b_px)) or n == 0:
+        return np.zeros((n, 3, 3))
+    J = triangulation_jacobian(xl, xr, y, rig.f_px, rig.px, rig.py, rig.baseline_m)
+    # Σ_b = b²/24 (u uᵀ + e₃ e₃ᵀ), u = (1, 1, 0): two outer products of J's columns
+    u, v = J[:, :, 0] + J[:, :, 1], J[:, :, 2]
+    return (b_px * b_px / 24.0) * (u[:, :, None] * u[:, None, :] + v[:, :, None] * v[:, None, :])
 
 
 def covariance_from_points(

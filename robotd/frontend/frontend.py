@@ -30,7 +30,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -405,12 +405,19 @@ class Frontend:
 
     @stage("motion")
     def visual_motion(
-        self, meas: StereoMatches, t_ns: int, wanted: bool = True, prior: MotionPrior | None = None
+        self,
+        meas: StereoMatches,
+        t_ns: int,
+        wanted: bool = True,
+        prior: MotionPrior | None = None,
+        inlier_px: float | None = None,
     ) -> VisualMotion:
         """Frame-to-frame motion from direct descriptor matches to the previous frame's measurements
         (skipped when not ``wanted``: the vehicle gave odometry). ``prior``: the constant-velocity
         prediction of this motion with its physical bounds (PnP only: it picks the static
-        background over a moving vehicle, robotd.frontend.pnp)."""
+        background over a moving vehicle, robotd.frontend.pnp). ``inlier_px``: the PnP's inlier
+        gate for this pair when wider than the configured one (motion blur,
+        robotd.pipeline.stages.measure)."""
         if not wanted:
             return VisualMotion(None, None, {})
         counts = {"motion_matches": 0, "motion_inliers": 0}
@@ -433,7 +440,10 @@ class Frontend:
         if p.motion_method == "pnp":
             z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
-            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, p.pnp, self.rng, prior)
+            pp = p.pnp
+            if inlier_px is not None and inlier_px > pp.inlier_px:
+                pp = replace(pp, inlier_px=inlier_px)
+            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, pp, self.rng, prior)
             if pnp is None:
                 return VisualMotion(None, None, counts, ic if ic.size else None)
             counts["motion_inliers"] = int(pnp.inliers.sum())

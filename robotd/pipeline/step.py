@@ -120,7 +120,7 @@ class Pipeline:
         meas = fe.stereo(feats, frame)
         # the images' own motion, checked against the motion prior (or across a gap no odometry covers)
         gap = self.gap.find(t_ns, increment, relocalising)
-        visual = fe.motion(meas, t_ns, increment, motion.prior(t_ns, increment, gap))
+        visual = fe.motion(meas, frame, increment, motion.prior(t_ns, increment, gap), motion.recent_rate())
         # the motion the filter predicts with: across the gap, else odometry, visual motion or constant velocity
         inc: MotionIncrement | None
         if gap is not None:
@@ -129,6 +129,7 @@ class Pipeline:
             inc = motion.choose(increment, visual.increment, t_ns, relocalising)
             if inc is not None and inc is visual.increment:
                 self.fuse.blur(inc, frame.exposure_ns)  # the images' motion as the prior: its blur
+        meas = fe.blurred(meas, inc, frame.exposure_ns)  # the streak of this motion in the points' covariance
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else motion.view(landmarks, inc)
         ident = fe.identify(meas, landmarks, view)

@@ -38,6 +38,7 @@ import numpy as np
 from scipy.special import chdtri  # chi2 quantiles; scipy.stats costs 1 s of start-up
 
 from robotd.core.msgs import LandmarkMap, Observations, PoseEstimate
+from robotd.core.stereo import streak_px
 from robotd.slam.models import MeasurementModel
 
 # The χ² medians the robust NIS ratio divides by, per measurement size.
@@ -511,6 +512,5 @@ def blur_share(drot_rad: np.ndarray, dt_s: float, exposure_s: float, f_px: float
     (docs/slam.md "Reported covariance", motion blur)."""
     if not (blur_px > 0.0 and exposure_s > 0.0 and dt_s > 0.0 and f_px > 0.0):
         return 0.0
-    rate = float(np.linalg.norm(np.asarray(drot_rad, dtype=float))) / dt_s
-    b = rate * exposure_s * f_px
-    return (b / blur_px) ** 2 if math.isfinite(b) else 0.0
+    b = streak_px(float(np.linalg.norm(np.asarray(drot_rad, dtype=float))) / dt_s, exposure_s, f_px)
+    return (b / blur_px) ** 2

@@ -11,9 +11,10 @@ import numpy as np
 from robotd.config import Config
 from robotd.core.errors import SingularityError
 from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, UpdateReport
-from robotd.core.stereo import RectifiedStereo
+from robotd.core.stereo import RectifiedStereo, streak_px
 from robotd.core.timing import StageClock, stage
 from robotd.pipeline.stages.attitude import Attitude
+from robotd.pipeline.stages.measure import exposure_s
 from robotd.slam.estimator import Estimator
 from robotd.slam.landmarks import LandmarkRegistry
 from robotd.slam.measurement import covariance_at_prediction
@@ -51,22 +52,27 @@ class Fuse:
 
     def blur(self, inc: MotionIncrement, exposure_ns: int) -> None:
         """The images' motion ``inc``, taken as the prior, was measured from images blurred by the
-        motion itself: the share of its covariance the blur adds
-        (robotd.slam.uncertainty.blur_share, ``slam.covariance_blur_px``) goes to the reported
-        covariance, the estimate untouched. The exposure is the frame's (``exposure_ns``), else
-        ``camera.exposure_ms``. Before :meth:`predict` (the increment is in the last pose's frame)."""
-        if not self.covariance.enabled:
-            return
-        exposure_s = exposure_ns * 1e-9 if exposure_ns else self.cfg.camera.exposure_ms * 1e-3
+        motion itself: its streak (rate × exposure × f) goes to ``blur_stats`` (health's
+        ``motion_blur``), and, with ``frontend.motion_blur`` off, the share of its covariance the
+        blur adds (robotd.slam.uncertainty.blur_share, ``slam.covariance_blur_px``) goes to the
+        reported covariance, the estimate untouched. With the measurements' blur model on, the
+        PnP's gate admits the streaked matches and its covariance, from their residuals, already
+        holds the blur (docs/slam.md "Reported covariance", motion blur). The exposure is the
+        frame's (``exposure_ns``), else ``camera.exposure_ms``. Before :meth:`predict` (the
+        increment is in the last pose's frame)."""
         dt_s = (inc.t1_ns - inc.t0_ns) * 1e-9
-        blur_px = self.cfg.slam.covariance_blur_px
-        k = blur_share(inc.drot_R_rad, dt_s, exposure_s, self.rig.f_px, blur_px)
-        if k > 0.0 and np.all(np.isfinite(inc.cov)):
+        if not self.covariance.enabled or dt_s <= 0.0 or not np.all(np.isfinite(inc.cov)):
+            return
+        exposure = exposure_s(self.cfg, exposure_ns)
+        b = streak_px(float(np.linalg.norm(inc.drot_R_rad)) / dt_s, exposure, self.rig.f_px)
+        if b <= 0.0:
+            return
+        st = self.blur_stats
+        st["exposure_ms"], st["streak_px"] = round(exposure * 1e3, 3), round(b, 2)
+        st["streak_px_max"] = max(float(st["streak_px_max"]), round(b, 2))
+        k = blur_share(inc.drot_R_rad, dt_s, exposure, self.rig.f_px, self.cfg.slam.covariance_blur_px)
+        if k > 0.0 and not self.cfg.frontend.motion_blur:
             self.covariance.add_increment_uncertainty(k * np.asarray(inc.cov, dtype=float), self.estimator.estimate())
-            st = self.blur_stats
-            streak = round(float(np.sqrt(k)) * blur_px, 2)
-            st["exposure_ms"], st["streak_px"] = round(exposure_s * 1e3, 3), streak
-            st["streak_px_max"] = max(float(st["streak_px_max"]), streak)
             st["widened"] = int(st["widened"]) + 1
 
     @stage("predict")

@@ -9,16 +9,26 @@ the new landmarks, which the landmark registry then holds as pending until the f
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 
 from robotd.config import Config
 from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, StereoFrame
+from robotd.core.stereo import blur_covariance, streak_px
 from robotd.core.timing import StageClock, stage
 from robotd.frontend.association import IDENTIFIED, NEW
 from robotd.frontend.frontend import FeaturePair, Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior
 from robotd.frontend.stereo_match import StereoMatches
 from robotd.slam.landmarks import LandmarkRegistry
+
+
+def exposure_s(cfg: Config, exposure_ns: int) -> float:
+    """A frame's exposure [s]: the one it reports, else ``camera.exposure_ms`` (0: unknown)."""
+    return exposure_ns * 1e-9 if exposure_ns else cfg.camera.exposure_ms * 1e-3
+
 
 # a frame that re-observed fewer map landmarks than this (the outlier stage's minimum) cannot be
 # fixed by the map: with slam.new_landmarks = "adaptive" its new landmarks are spread over depth
@@ -65,13 +75,38 @@ class Measure:
 
     @stage("motion")
     def motion(
-        self, meas: StereoMatches, t_ns: int, increment: MotionIncrement | None, prior: MotionPrior | None
+        self,
+        meas: StereoMatches,
+        frame: StereoFrame,
+        increment: MotionIncrement | None,
+        prior: MotionPrior | None,
+        rate_radps: float = 0.0,
     ) -> VisualMotion:
-        """The images' own motion since the last frame, checked against ``prior``: wanted on
+        """The images' own motion since the last ``frame``, checked against ``prior``: wanted on
         vision alone (no odometry ``increment``) and with PnP, whose outliers against the prior
-        are the points that moved."""
+        are the points that moved. With ``frontend.motion_blur`` and an exposure, the PnP's inlier
+        gate widens by half the streak b the camera's recent turn rate ``rate_radps`` draws,
+        √(gate² + (b/2)²): each of the two frames finds a corner up to b/2 from the streak's
+        centre (docs/frontend.md "Motion blur in the measurements")."""
         wanted = increment is None or self.cfg.frontend.motion == "pnp"
-        return self.frontend.visual_motion(meas, t_ns, wanted, prior)
+        gate = None
+        if self.cfg.frontend.motion_blur:
+            b = streak_px(rate_radps, exposure_s(self.cfg, frame.exposure_ns), self.frontend.rig.f_px)
+            gate = math.hypot(self.cfg.frontend.pnp_inlier_px, b / 2.0) if b > 0.0 else None
+        return self.frontend.visual_motion(meas, frame.t_ns, wanted, prior, gate)
+
+    def blurred(self, meas: StereoMatches, inc: MotionIncrement | None, exposure_ns: int) -> StereoMatches:
+        """``meas`` with the covariance the streak of this frame's motion ``inc`` adds to each
+        point (robotd.core.stereo.blur_covariance); ``meas`` itself without ``frontend.motion_blur``,
+        an exposure or a motion."""
+        if not self.cfg.frontend.motion_blur or inc is None or inc.t1_ns <= inc.t0_ns or meas.n == 0:
+            return meas
+        rate = float(np.linalg.norm(inc.drot_R_rad)) / ((inc.t1_ns - inc.t0_ns) * 1e-9)
+        rig = self.frontend.rig
+        b = streak_px(rate, exposure_s(self.cfg, exposure_ns), rig.f_px)
+        if b <= 0.0:
+            return meas
+        return replace(meas, cov_R=meas.cov_R + blur_covariance(meas.xl, meas.xr, meas.y, rig, b))
 
     @stage("identify")
     def identify(self, meas: StereoMatches, landmarks: LandmarkMap, view: np.ndarray | None) -> Identification:

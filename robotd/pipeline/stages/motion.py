@@ -82,6 +82,11 @@ class MotionModel:
         self.last_pose, self.velocity, self.rates = None, None, []
 
     # ---------------------------------------------------------------- before the images' motion
+    def recent_rate(self) -> float:
+        """The largest turn rate [rad/s] of the last measured intervals (0 before the first): what
+        blurs this frame, as far as is known before its motion is (robotd.pipeline.stages.measure)."""
+        return max((float(np.linalg.norm(r[0])) for r in self.rates), default=0.0)
+
     def prior(self, t_ns: int, increment: MotionIncrement | None, gap: Reach | None) -> MotionPrior | None:
         """The motion prior the images are checked against: at rest across a ``gap``, else the
         odometry ``increment``, else the constant-velocity prediction (None without PnP). With

@@ -1,11 +1,19 @@
-"""The first-order triangulation covariance (docs/math.md §3.1–§3.2) against simulated pixel noise."""
+"""The first-order triangulation covariance (docs/math.md §3.1–§3.2) against simulated pixel noise, and
+the motion blur's term (§3.4) against simulated streaks."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from robotd.core.stereo import project, triangulate, triangulation_covariance
+from robotd.core.stereo import (
+    RectifiedStereo,
+    blur_covariance,
+    project,
+    streak_px,
+    triangulate,
+    triangulation_covariance,
+)
 
 # The project's OAK-D at 640x400 (docs/math.md §2.2): f ≈ 430 px, b = 0.0755 m, fb ≈ 32.5 px·m.
 F, PX, PY, B = 430.0, 320.0, 200.0, 0.0755
@@ -56,3 +64,30 @@ def test_depth_sigma_grows_with_range_squared(rng: np.random.Generator) -> None:
     assert slope == pytest.approx(2.0, abs=0.06)
     # closed form σ_X = √2 X² σ_x / (f b) (docs/math.md §3.2)
     assert np.allclose(sig, np.sqrt(2) * ranges**2 * SX / (F * B), rtol=0.05)
+
+
+def test_a_streak_is_rate_times_exposure_times_focal_length_and_nothing_without_exposure() -> None:
+    assert streak_px(2.0, 0.01, 450.0) == pytest.approx(9.0)
+    assert streak_px(2.0, 0.0, 450.0) == 0.0
+    assert streak_px(float("nan"), 0.01, 450.0) == 0.0
+    assert streak_px(-1.0, 0.01, 450.0) == 0.0
+
+
+def test_the_blur_term_is_the_covariance_of_streaks_shared_by_both_views(rng: np.random.Generator) -> None:
+    # one point at a time: each measured N times, found anywhere along a streak of b pixels at a
+    # random angle, the same offset in both images (both cameras expose together)
+    rig = RectifiedStereo(F, PX, PY, B, 640, 400)
+    b = 8.0
+    for X, Y, Z in [(3.0, 0.4, -0.2), (6.0, -1.0, 0.5), (12.0, 2.0, 1.0)]:
+        xl, xr, y = project(np.array([[X, Y, Z]]), F, PX, PY, B)
+        s = rng.uniform(-b / 2, b / 2, N)
+        a = rng.uniform(0.0, 2.0 * np.pi, N)
+        est = triangulate(xl + s * np.cos(a), xr + s * np.cos(a), y + s * np.sin(a), F, PX, PY, B)
+        emp = np.cov((est - [X, Y, Z]).T)
+        Q = blur_covariance(xl, xr, y, rig, b)[0]
+        # the disparity is untouched: no depth error at all
+        assert Q[0, 0] == pytest.approx(0.0, abs=1e-15) and emp[0, 0] < 1e-20
+        # across the ray: the first-order term holds the streaks' spread (to the sampling's 3 %)
+        np.testing.assert_allclose(Q[1:, 1:], emp[1:, 1:], rtol=0.05, atol=0.05 * np.trace(Q))
+    assert np.all(blur_covariance(xl, xr, y, rig, 0.0) == 0.0)
+    assert np.all(blur_covariance(xl, xr, y, rig, float("nan")) == 0.0)

@@ -191,27 +191,37 @@ def test_a_biased_gyro_does_not_tilt_the_rover_when_it_measures_gravity():
     assert without["truth_tilt_max_deg"] > 1.2 * with_g["truth_tilt_max_deg"]
 
 
-def test_a_hand_held_camera_shaken_hard_is_tracked_on_vision_alone():
+def test_a_hand_held_camera_shaken_hard_is_tracked_on_vision_alone_through_its_blur():
     """The hand-held case (issue 26's held-out D; docs/sim.md "Worlds", shake): the yard walked at
     1 m/s with the camera shaken by about 5° about every axis at 1.7-7.3 Hz (rates up to 110 °/s,
-    5° between frames at 20 Hz) and blurred by a 5 ms exposure, EuRoC's 11 cm baseline at half
-    its resolution (376×240), 3 s. Measured, seeds 1 and 2: 0 lost frames, ATE 5.3 / 4.5 mm,
-    heading RMSE 0.54° / 0.16°."""
-    url = "sim://?realtime=0&odometry=0&width=376&height=240&baseline=0.11&fps=20&shake=5&exposure_ms=5&duration=3"
+    5° between frames at 20 Hz) and blurred by a 20 ms exposure (streaks up to about 9 px), EuRoC's
+    11 cm baseline at half its resolution (376×240), 3 s. The blur is in the measurements' model
+    (docs/frontend.md "Motion blur in the measurements"); without it the corners found along the
+    streaks fall outside the PnP's 2 px gate and the map's tight covariances, and the heading
+    goes. Measured, seed 1: with the model 0 lost, ATE 0.062 m, heading RMSE 4.5°; without
+    0.148 m, 18.9° (seed 3: 0.034 m, 3.1° against 0.065 m, 15.3°)."""
+    url = "sim://?realtime=0&odometry=0&width=376&height=240&baseline=0.11&fps=20&shake=5&exposure_ms=20&duration=3"
     s = replay(load_config(None, {}), url, progress=False)
     assert s["frames"] == 60 and s["lost_frames"] == 0
-    assert s["truth_ate_rmse_m"] < 0.03
-    assert s["truth_heading_rmse_deg"] < 2.0
+    assert s["truth_ate_rmse_m"] < 0.1
+    assert s["truth_heading_rmse_deg"] < 8.0
+    off = replay(load_config(None, {"frontend": {"motion_blur": False}}), url, progress=False)
+    assert off["truth_heading_rmse_deg"] > 12.0  # what the model is for
 
 
 @functools.cache
-def _blur_run(exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float) -> tuple[Any, Any, dict[str, Any]]:
+def _blur_run(
+    exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float, model: bool = False
+) -> tuple[Any, Any, dict[str, Any]]:
     """A shaken camera's poses and reported covariances (1.5 s, 320×200, vision alone)."""
     url = (
         "sim://?realtime=0&odometry=0&width=320&height=200&baseline=0.11&fps=20&shake=5&duration=1.5"
         f"&exposure_ms={exposure_url_ms:g}"
     )
-    cfg = load_config(None, {"slam": {"covariance_blur_px": blur_px}, "camera": {"exposure_ms": exposure_cfg_ms}})
+    # the measurements' blur model off (unless ``model``): the estimate then depends on no
+    # exposure, only the report does
+    ov = {"slam": {"covariance_blur_px": blur_px}, "camera": {"exposure_ms": exposure_cfg_ms}}
+    cfg = load_config(None, {**ov, "frontend": {"motion_blur": model}})
     poses: list[Any] = []
     s = replay(cfg, url, progress=False, on_step=lambda r: poses.append(r.pose))
     return [p.xyz_W_m for p in poses], [p.cov for p in poses], s["motion_blur"]
@@ -220,7 +230,8 @@ def _blur_run(exposure_url_ms: float, blur_px: float, exposure_cfg_ms: float) ->
 def test_a_blurred_motion_widens_the_reported_covariance_and_leaves_the_estimate_alone():
     """docs/slam.md "Reported covariance", motion blur: with the camera's 10 ms exposure the
     reported covariance grows by the blur's share of every visual motion; the estimate is the same
-    to the bit. The exposure is the frame's (sim:// reports it), else camera.exposure_ms."""
+    to the bit. The exposure is the frame's (sim:// reports it), else camera.exposure_ms. Only with
+    the measurements' blur model (frontend.motion_blur) off."""
     import numpy as np
 
     xyz_off, cov_off, stats_off = _blur_run(10.0, 0.0, 0.0)
@@ -236,3 +247,8 @@ def test_a_blurred_motion_widens_the_reported_covariance_and_leaves_the_estimate
     assert stats_none["widened"] == 0
     assert all(np.array_equal(a, b) for a, b in zip(xyz_cfg, xyz_none))
     assert all(np.trace(b[:3, :3]) > np.trace(a[:3, :3]) for a, b in zip(cov_none[5:], cov_cfg[5:]))
+    # with the measurements' blur model (the default) the motion's covariance holds the blur: the
+    # report is not widened a second time, and health still says what blur there was
+    _, _, stats_model = _blur_run(10.0, 3.0, 0.0, model=True)
+    assert stats_model["widened"] == 0 and stats_model["exposure_ms"] == 10.0
+    assert 0 < stats_model["streak_px"] <= stats_model["streak_px_max"] < 30
