@@ -214,8 +214,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         read_trajectory,
         segment_drift,
     )
+    from robotd.tools.replay import check_output_file
 
     configure_logging(args.log_level or "WARNING")
+    for option in ("plot", "nees_plot"):
+        check_output_file(getattr(args, option), f"eval --{option.replace('_', '-')}")
     if args.no_plot:
         logger.warning("eval: --no-plot is deprecated and does nothing: no plot is written unless --plot PNG is given")
     # a KITTI poses.txt is read as the replay carries it: robot frame at the baseline centre,

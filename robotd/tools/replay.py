@@ -107,18 +107,19 @@ def _source_url(source: str, realtime: bool, driver: CameraDriver) -> str:
     return driver.paced(source) if realtime and "://" in source else source
 
 
-def _check_writable_dir(path: str | None, what: str) -> None:
-    """Refuse, before a frame is replayed, an output file whose folder is missing or not writable:
-    found at the end, it would cost the whole run."""
+def check_output_file(path: str | None, what: str) -> None:
+    """Refuse, before any work, an output file (``what``: "replay: the trajectory file", say)
+    whose folder is missing or not writable, or that is a folder: found at the end, it would cost
+    the whole run."""
     if not path:
         return
     if os.path.isdir(path):
-        raise RobotdError(f"replay: the {what} file {path} is a folder")
+        raise RobotdError(f"{what} {path} is a folder")
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
-        raise RobotdError(f"replay: the {what} file {path}: its folder {folder} does not exist")
+        raise RobotdError(f"{what} {path}: its folder {folder} does not exist")
     if not os.access(folder, os.W_OK):
-        raise RobotdError(f"replay: the {what} file {path}: its folder {folder} is not writable")
+        raise RobotdError(f"{what} {path}: its folder {folder} is not writable")
 
 
 def replay(
@@ -147,7 +148,7 @@ def replay(
     if out_format not in TRAJECTORY_FORMATS:
         raise RobotdError(f"replay: trajectory format {out_format!r}: expected one of {list(TRAJECTORY_FORMATS)}")
     for what, path in (("trajectory", out_traj), ("truth", truth_out), ("truth", truth_out_if_any)):
-        _check_writable_dir(path, what)
+        check_output_file(path, f"replay: the {what} file")
     driver = camera_driver(source)  # what the source declares (drivers.cameras)
     url = _source_url(source, realtime, driver)
     rng = np.random.default_rng(cfg.robot.seed)

@@ -248,8 +248,10 @@ def test_echo_with_nothing_listening_is_one_line_exit_2_naming_the_endpoint_and_
         (["replay", "kitti:///definitely/not/here"], "/definitely/not/here"),
         (["eval", "/nonexistent/t.txt", "/nonexistent/g.txt"], "no such file"),
         # refused before a frame is replayed, not after the run (once, a 40 s run lost to a typo)
-        (["replay", "sim://?duration=1", "--out", "/nonexistent/t.txt"], "its folder /nonexistent does not exist"),
-        (["replay", "sim://?duration=1", "--out", "t.txt", "--truth-out", "/nonexistent/g.txt"], "the truth file"),
+        # (/proc/missing: no test or tool can create it)
+        (["replay", "sim://?duration=1", "--out", "/proc/missing/t.txt"], "its folder /proc/missing does not exist"),
+        (["replay", "sim://?duration=1", "--out", "t.txt", "--truth-out", "/proc/missing/g.txt"], "the truth file"),
+        (["eval", "/nonexistent/t.txt", "/nonexistent/g.txt", "--plot", "/proc/missing/p.png"], "eval --plot"),
     ],
 )
 def test_bad_input_exits_2_with_one_clear_line(argv: list[str], message: str, capsys) -> None:
