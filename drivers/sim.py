@@ -44,6 +44,8 @@ shake      0        a hand-held camera shaken: peak rotation about every axis [d
 shake_s    0        the shake fades out over its last 0.5 s and ends then [s]; 0 = it never ends
 exposure_ms 0       motion blur: each image is the mean of 9 renders spread over this exposure,
                     centred on the frame's time [ms] (0..50); 0 = an instant
+exposure_report 1   1: each frame reports its exposure, as the OAK-D does; 0: none, as a dataset
+                    folder (robotd then estimates it: robotd.frontend.exposure)
 duration   0        stop after this many simulated seconds; 0 = run forever
 realtime   1        1: emit at capture times on time.monotonic_ns(); 0: as fast as pulled
 noise      0.05     odometry speed noise, σ as a fraction of the speed (per sample)
@@ -138,6 +140,7 @@ class SimParams:
     shake: float = 0.0
     shake_s: float = 0.0
     exposure_ms: float = 0.0
+    exposure_report: int = 1
     duration: float = 0.0
     realtime: int = 1
     noise: float = 0.05
@@ -204,6 +207,7 @@ _RANGES: dict[str, tuple[Callable[[str], Any], float | None, float | None]] = {
     "shake": (float, 0.0, 10.0),
     "shake_s": (float, 0.0, 1e9),
     "exposure_ms": (float, 0.0, 50.0),
+    "exposure_report": (int, 0, 1),
     "duration": (float, 0.0, 1e9),
     "realtime": (int, 0, 1),
     "noise": (float, 0.0, 1.0),
@@ -471,7 +475,8 @@ class SimRig:
         rng = np.random.default_rng([self.params.seed, 1, k])
         left = self._add_noise(left, rng)
         right = self._add_noise(right, rng)
-        frame = StereoFrame(t_ns, k, left, right, True, T_world_robot, round(self.params.exposure_ms * 1e6))
+        exposure_ns = round(self.params.exposure_ms * 1e6) if self.params.exposure_report else 0
+        frame = StereoFrame(t_ns, k, left, right, True, T_world_robot, exposure_ns)
         if not depth:
             return frame, None
         with np.errstate(divide="ignore"):

@@ -137,6 +137,11 @@ class FrontendConfig:
         "with a known exposure (the frame's, else camera.exposure_ms): the streak the camera's turn draws"
         " widens the stereo points' covariance and the PnP's inlier gate (docs/frontend.md)",
     )
+    exposure_estimate: bool = _f(
+        True,
+        "when the source reports no exposure and camera.exposure_ms is 0 (datasets): estimate it from how"
+        " the frame-to-frame residuals spread with the turn rate, for the blur model (docs/frontend.md)",
+    )
     pnp_two_view_iterations: int = _f(
         3,
         "stereo PnP: passes of the two-view adjustment (the motion with every inlier's position free: far"

@@ -272,7 +272,7 @@ class Daemon:
             # the rig's estimated constant disparity error (robotd.frontend.disparity_bias)
             doc["stereo"] = self.pipeline.frontend.disparity_bias.stats()
             # the images' motion blur the reported covariance allowed for (robotd.pipeline.stages.fuse)
-            doc["motion_blur"] = dict(self.pipeline.fuse.blur_stats)
+            doc["motion_blur"] = {**self.pipeline.fuse.blur_stats, **self.pipeline.measure.blur_health()}
             # map fixes the prediction could not explain, refused (robotd.pipeline.stages.motion)
             doc["implausible_fixes"] = c.implausible_fixes
         # the run's reset_counter bumps and why (the autopilot resets its position at each)

@@ -57,8 +57,9 @@ from robotd.frontend.association import (
 )
 from robotd.frontend.detectors import Detector, DetectorParams, check_image, make_detector
 from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams
+from robotd.frontend.exposure import residual_spread
 from robotd.frontend.features import Features
-from robotd.frontend.pnp import MotionPrior, PnpParams, offset_sensitivity, stereo_pnp
+from robotd.frontend.pnp import MotionPrior, PnpParams, offset_sensitivity, reprojection_residuals, stereo_pnp
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
@@ -160,7 +161,9 @@ class VisualMotion:
     images gave no motion, None when the stage did not run or found no match;
     offset_sensitivity: computes (6,) d(dp, drot)/dδ, how the motion moves per pixel of a disparity
     offset common to both frames (robotd.frontend.pnp.offset_sensitivity; a refinement's cost,
-    so only on demand: across a gap), or None (no PnP motion).
+    so only on demand: across a gap), or None (no PnP motion); spread_px2: the robust spread of
+    every match's left-image residual under the PnP's motion (robotd.frontend.exposure
+    .residual_spread), or None.
     """
 
     T_prev_curr: np.ndarray | None
@@ -168,6 +171,7 @@ class VisualMotion:
     counts: dict[str, int]
     moving: np.ndarray | None = None
     offset_sensitivity: Callable[[], np.ndarray] | None = None
+    spread_px2: float | None = None
 
 
 NO_SCREENING = Screening(None, None)
@@ -452,14 +456,16 @@ class Frontend:
             sens: Callable[[], np.ndarray] | None = partial(
                 offset_sensitivity, R, t, z, zp, self.rig, p.pnp, pnp.inliers
             )
+            res = reprojection_residuals(R[None], t[None], pv.meas.xyz_R[ip], z, self.rig)[0]
+            spread: float | None = residual_spread(res)  # the blur's evidence (robotd.frontend.exposure)
         else:
             fit = self._similarity_motion(meas, pv.meas, ic, ip, counts)
             if fit is None:
                 return VisualMotion(None, None, counts)
             R, t, cov_tr = fit
-            moving = sens = None
+            moving = sens = spread = None
         inc = MotionIncrement(pv.t_ns, int(t_ns), t.copy(), so3_log(R), cov_tr)
-        return VisualMotion(se3(R, t), inc, counts, moving, sens)
+        return VisualMotion(se3(R, t), inc, counts, moving, sens, spread)
 
     def _similarity_motion(
         self, meas: StereoMatches, prev: StereoMatches, ic: np.ndarray, ip: np.ndarray, counts: dict[str, int]

@@ -128,8 +128,8 @@ class Pipeline:
         else:
             inc = motion.choose(increment, visual.increment, t_ns, relocalising)
             if inc is not None and inc is visual.increment:
-                self.fuse.blur(inc, frame.exposure_ns)  # the images' motion as the prior: its blur
-        meas = fe.blurred(meas, inc, frame.exposure_ns)  # the streak of this motion in the points' covariance
+                self.fuse.blur(inc, fe.exposure_ns(frame))  # the images' motion as the prior: its blur
+        meas = fe.blurred(meas, inc, fe.exposure_ns(frame))  # the streak of this motion in the points' covariance
         # identify against the map (guided by the predicted pose), then screen out the outliers
         view = None if relocalising else motion.view(landmarks, inc)
         ident = fe.identify(meas, landmarks, view)

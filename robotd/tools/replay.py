@@ -265,7 +265,7 @@ def replay(
         "attitude_resets": pipeline.counters.attitude_resets,
         "implausible_fixes": pipeline.counters.implausible_fixes,
         **pipeline.frontend.disparity_bias.stats(),
-        "motion_blur": dict(pipeline.fuse.blur_stats),
+        "motion_blur": {**pipeline.fuse.blur_stats, **pipeline.measure.blur_health()},
     }
     stages = sorted({k for r in results for k in r.timings_ms})
     summary["stage_ms_p50"] = {k: float(np.nanmedian([r.timings_ms.get(k, np.nan) for r in results])) for k in stages}

@@ -452,7 +452,11 @@ def test_an_exposure_blurs_the_pair_and_keeps_the_frames_truth():
 def test_shake_and_exposure_are_url_keys_with_ranges():
     with open_camera("sim://?realtime=0&shake=3&shake_s=2&exposure_ms=4") as cam:
         assert (cam.params.shake, cam.params.shake_s, cam.params.exposure_ms) == (3.0, 2.0, 4.0)
-    for bad, named in (("shake=11", "shake"), ("exposure_ms=60", "exposure_ms"), ("shake=-1", "shake")):
+        assert next(iter(cam.frames())).exposure_ns == 4_000_000
+    with open_camera("sim://?realtime=0&exposure_ms=4&exposure_report=0") as cam:
+        assert next(iter(cam.frames())).exposure_ns == 0  # blurred, but reported as a dataset would
+    bad_keys = (("shake=11", "shake"), ("exposure_ms=60", "exposure_ms"), ("shake=-1", "shake"))
+    for bad, named in (*bad_keys, ("exposure_report=2", "exposure_report")):
         with pytest.raises(DriverError, match=named):
             open_camera(f"sim://?realtime=0&{bad}")
     with pytest.raises(DriverError, match="follow and shake"):

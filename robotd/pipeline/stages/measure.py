@@ -19,6 +19,7 @@ from robotd.core.msgs import LandmarkMap, MotionIncrement, Observations, StereoF
 from robotd.core.stereo import blur_covariance, streak_px
 from robotd.core.timing import StageClock, stage
 from robotd.frontend.association import IDENTIFIED, NEW
+from robotd.frontend.exposure import ExposureEstimate
 from robotd.frontend.frontend import FeaturePair, Frontend, Identification, Screening, VisualMotion
 from robotd.frontend.pnp import MotionPrior
 from robotd.frontend.stereo_match import StereoMatches
@@ -52,6 +53,21 @@ class Measure:
         self.registry = registry
         self.clock = clock
         self.pending_offset: np.ndarray | None = None  # the last committed pose, for :meth:`offset`
+        self.exposure = ExposureEstimate()  # for sources that report none (robotd.frontend.exposure)
+
+    def exposure_ns(self, frame: StereoFrame) -> int:
+        """The exposure the blur model takes for ``frame`` [ns]: the one it reports; else, with no
+        ``camera.exposure_ms`` set and ``frontend.exposure_estimate`` on, the one estimated from the
+        images so far (0 until the data fix it); else 0 (``exposure_s`` then falls back to the
+        configured one)."""
+        if frame.exposure_ns or self.cfg.camera.exposure_ms > 0.0 or not self.cfg.frontend.exposure_estimate:
+            return frame.exposure_ns
+        return round(self.exposure.exposure_s() * 1e9)
+
+    def blur_health(self) -> dict[str, float | int]:
+        """Health's view of the estimated exposure: its value [ms] and the frame pairs it rests on."""
+        e = self.exposure
+        return {"exposure_estimated_ms": round(e.exposure_s() * 1e3, 3), "exposure_pairs": e.frames}
 
     @stage("offset")
     def offset(self) -> None:
@@ -87,13 +103,17 @@ class Measure:
         are the points that moved. With ``frontend.motion_blur`` and an exposure, the PnP's inlier
         gate widens by half the streak b the camera's recent turn rate ``rate_radps`` draws,
         √(gate² + (b/2)²): each of the two frames finds a corner up to b/2 from the streak's
-        centre (docs/frontend.md "Motion blur in the measurements")."""
+        centre (docs/frontend.md "Motion blur in the measurements"). Each PnP motion's residual
+        spread feeds the exposure's estimate (:meth:`exposure_ns`)."""
         wanted = increment is None or self.cfg.frontend.motion == "pnp"
         gate = None
         if self.cfg.frontend.motion_blur:
-            b = streak_px(rate_radps, exposure_s(self.cfg, frame.exposure_ns), self.frontend.rig.f_px)
+            b = streak_px(rate_radps, exposure_s(self.cfg, self.exposure_ns(frame)), self.frontend.rig.f_px)
             gate = math.hypot(self.cfg.frontend.pnp_inlier_px, b / 2.0) if b > 0.0 else None
-        return self.frontend.visual_motion(meas, frame.t_ns, wanted, prior, gate)
+        visual = self.frontend.visual_motion(meas, frame.t_ns, wanted, prior, gate)
+        if self.cfg.frontend.exposure_estimate and visual.increment is not None and visual.spread_px2 is not None:
+            self.exposure.add(visual.increment, self.frontend.rig.f_px, visual.spread_px2)
+        return visual
 
     def blurred(self, meas: StereoMatches, inc: MotionIncrement | None, exposure_ns: int) -> StereoMatches:
         """``meas`` with the covariance the streak of this frame's motion ``inc`` adds to each
