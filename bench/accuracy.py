@@ -81,7 +81,8 @@ SIM_EXTRA = (
     "sim://open_terrain?speed=5&fps=5&duration=14&odometry=0&disparity_error=-0.4",
     "sim://open_terrain?speed=5&fps=5&duration=153&odometry=0",
     # a hand-held camera shaken hard (issue 26's held-out D): EuRoC's rig, blur of a 5 ms exposure
-    "sim://?shake=5&exposure_ms=5&fps=20&width=752&height=480&baseline=0.11&duration=10&odometry=0",
+    # that the frames do not report, as D's folder does not (robotd estimates it: docs/frontend.md)
+    "sim://?shake=5&exposure_ms=5&exposure_report=0&fps=20&width=752&height=480&baseline=0.11&duration=10&odometry=0",
 )
 # issue 13's targets
 MAX_ATE_M = 0.10
