@@ -222,6 +222,10 @@ def test_the_status_line_and_the_stop_summary_count_the_same_dropped_frames(tmp_
     st = doc["stereo"]
     assert st["disparity_offset_mode"] == "online" and st["disparity_offset_fused"] >= 0
     assert abs(st["disparity_offset_px"]) <= 2.0 and st["disparity_offset_sigma_px"] > 0
+    # and the images' blur: this camera reports no exposure, so health says what was estimated from
+    # its residuals and from how many frame pairs (the value is the estimator's tests')
+    blur = doc["motion_blur"]
+    assert blur["exposure_estimated_ms"] >= 0.0 and blur["exposure_pairs"] > 0
     assert all(h["frames_dropped"] == h["frame_drops"] + h["frames_missed"] for h in collect.docs)
 
 
