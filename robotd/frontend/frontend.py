@@ -176,6 +176,11 @@ class VisualMotion:
 
 NO_SCREENING = Screening(None, None)
 
+# a stereo PnP that finds no consensus inside its inlier gate tries once more with the sharp gate
+# (frontend.pnp_inlier_px) this many times wider, unless the blur allowed for had already widened
+# it as far: a frame blurred beyond what the exposure known (or estimated) allows for
+PNP_WIDE_GATE = 3.0
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class FrontendResult:
@@ -184,7 +189,8 @@ class FrontendResult:
     observations: identified and new landmark measurements (robot frame) for ``Estimator.update``.
     timings_ms: stage -> ms (detect, stereo, identify, outliers, motion, total).
     counts: features_left, features_right, stereo_matches, map_candidates, map_matches, inliers,
-      rejected, new, ransac_iterations, motion_matches, motion_inliers.
+      rejected, new, ransac_iterations, motion_matches, motion_inliers (and motion_wide_gate: 1
+      when the PnP found the motion only at its wider second gate, 0 when that failed too).
     similarity: (4, 4) [sR t; 0 1] mapping world points into the robot frame (≈ T_robot_world),
       fitted on the accepted map matches; None when the outlier stage accepted none.
     outlier_result: the map-matching OutlierResult (None when there were no map matches).
@@ -448,6 +454,13 @@ class Frontend:
             if inlier_px is not None and inlier_px > pp.inlier_px:
                 pp = replace(pp, inlier_px=inlier_px)
             pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, pp, self.rng, prior)
+            if pnp is None and ic.size >= pp.min_inliers and p.pnp.inlier_px * PNP_WIDE_GATE > pp.inlier_px:
+                # no consensus inside the gate: once more at PNP_WIDE_GATE times the sharp one, when
+                # the blur allowed for had not widened it as far (blur the exposure does not
+                # account for; docs/frontend.md "Motion blur in the measurements")
+                wide = replace(pp, inlier_px=p.pnp.inlier_px * PNP_WIDE_GATE)
+                pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, wide, self.rng, prior)
+                counts["motion_wide_gate"] = int(pnp is not None)
             if pnp is None:
                 return VisualMotion(None, None, counts, ic if ic.size else None)
             counts["motion_inliers"] = int(pnp.inliers.sum())

@@ -31,6 +31,9 @@ def exposure_s(cfg: Config, exposure_ns: int) -> float:
     return exposure_ns * 1e-9 if exposure_ns else cfg.camera.exposure_ms * 1e-3
 
 
+# the share of the streak the PnP's inlier gate allows each match beyond the sharp gate
+BLUR_GATE_SHARE = 0.5
+
 # a frame that re-observed fewer map landmarks than this (the outlier stage's minimum) cannot be
 # fixed by the map: with slam.new_landmarks = "adaptive" its new landmarks are spread over depth
 ADAPTIVE_MIN_REOBSERVED = 6
@@ -109,7 +112,7 @@ class Measure:
         gate = None
         if self.cfg.frontend.motion_blur:
             b = streak_px(rate_radps, exposure_s(self.cfg, self.exposure_ns(frame)), self.frontend.rig.f_px)
-            gate = math.hypot(self.cfg.frontend.pnp_inlier_px, b / 2.0) if b > 0.0 else None
+            gate = math.hypot(self.cfg.frontend.pnp_inlier_px, BLUR_GATE_SHARE * b) if b > 0.0 else None
         visual = self.frontend.visual_motion(meas, frame.t_ns, wanted, prior, gate)
         if self.cfg.frontend.exposure_estimate and visual.increment is not None and visual.spread_px2 is not None:
             self.exposure.add(visual.increment, self.frontend.rig.f_px, visual.spread_px2)
