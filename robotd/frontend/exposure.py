@@ -17,7 +17,8 @@ exponential forgetting (an auto-exposure camera changes its exposure with the li
 e only when the data fix it: at least ``MIN_FAST`` recent frames turned fast enough to streak by ``FAST_STREAK_PX`` at
 an exposure of the whole frame interval, and the slope is positive by two of its standard errors.
 A still camera or a car on a straight road never gets there, so the estimate is 0 (no blur
-modelled) and nothing changes for it.
+modelled) and nothing changes for it. Anything else that spreads the residuals more the faster the
+camera turns reads as exposure too (docs/frontend.md says how much on the simulator's rover).
 """
 
 from __future__ import annotations
