@@ -58,8 +58,9 @@ class Fuse:
         reported covariance, the estimate untouched. With the measurements' blur model on, the
         PnP's gate admits the streaked matches and its covariance, from their residuals, already
         holds the blur (docs/slam.md "Reported covariance", motion blur). The exposure is the
-        frame's (``exposure_ns``), else ``camera.exposure_ms``. Before :meth:`predict` (the
-        increment is in the last pose's frame)."""
+        step's (``Measure.exposure_ns``: the frame's, else the one estimated from the images),
+        else ``camera.exposure_ms``. Before :meth:`predict` (the increment is in the last pose's
+        frame)."""
         dt_s = (inc.t1_ns - inc.t0_ns) * 1e-9
         if not self.covariance.enabled or dt_s <= 0.0 or not np.all(np.isfinite(inc.cov)):
             return
