@@ -3,9 +3,7 @@ the same figures as a replay in this process, and with ``--out`` a rerun replays
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -13,16 +11,11 @@ import pytest
 
 from robotd.config import load_config
 from robotd.tools.replay import replay
-from tests.support.paths import REPO
+from tests.support.paths import load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_accuracy", REPO / "bench" / "accuracy.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("accuracy")
 
 
 def test_accuracy_runs_on_the_engine_with_the_figures_of_a_replay(

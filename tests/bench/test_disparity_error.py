@@ -3,24 +3,17 @@ plane, and one JSON object with the table's bins."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from types import ModuleType
 
 import numpy as np
 import pytest
 
-from tests.support.paths import REPO
+from tests.support.paths import load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_disparity_error", REPO / "bench" / "disparity_error.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("disparity_error")
 
 
 def test_true_disparity_is_exact_on_a_plane_and_edges_are_told_apart() -> None:

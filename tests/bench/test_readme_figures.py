@@ -4,20 +4,13 @@ figure is checked: the kitti-seq1 replay and its evaluation (51 frames)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from types import ModuleType
 
-from tests.support.paths import REPO
+from tests.support.paths import REPO, load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_readme_figures", REPO / "bench" / "readme_figures.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("readme_figures")
 
 
 def test_the_readme_quotes_the_replay_figures_the_script_produces(shared_data) -> None:

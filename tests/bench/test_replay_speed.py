@@ -2,23 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from types import ModuleType
 
 import pytest
 
-from tests.support.paths import REPO
+from tests.support.paths import load_bench
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_replay_speed", REPO / "bench" / "replay_speed.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_bench("replay_speed")
 
 
 def test_the_ratio_is_the_step_over_the_floor_bracketing_it(capsys: pytest.CaptureFixture[str]) -> None:
