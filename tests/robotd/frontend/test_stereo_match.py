@@ -149,6 +149,31 @@ def test_refine_disparity_recovers_subpixel_shift(rng):
         assert edge_far.mean() > 0.9 and not np.any(ok_far & edge_far)
 
 
+def test_refined_disparity_leans_to_whole_pixels_by_hundredths_that_average_out():
+    # a far point's disparity error from the parabola fit (docs/frontend.md "Short steps in open
+    # terrain"): a rendered frame's ORB corners, its right image an ideal (Fourier) shift of it
+    import drivers
+
+    with drivers.open_camera("sim://?realtime=0&fps=30&seed=3") as cam:
+        left = next(iter(cam.frames())).left
+    kp = make_detector(DetectorParams()).detect(left)
+    xl, yl = np.rint(kp.xy[:, 0]), np.rint(kp.xy[:, 1])
+    inside = (xl > 20) & (xl < left.shape[1] - 20) & (yl > 10) & (yl < left.shape[0] - 10)
+    xl, yl = xl[inside], yl[inside]
+    freq = np.fft.fftfreq(left.shape[1])[None, :]
+    spectrum = np.fft.fft(left.astype(np.float64), axis=1)
+    bias = []
+    for shift in np.arange(5.0, 5.95, 0.1):
+        right = np.clip(np.rint(np.real(np.fft.ifft(spectrum * np.exp(2j * np.pi * freq * shift), axis=1))), 0, 255)
+        d, ok, _ = refine_disparity(left, right.astype(np.uint8), xl, yl, np.full(xl.size, np.rint(shift)))
+        assert ok.mean() > 0.95
+        bias.append(float(np.mean(d[ok] - shift)))
+    b = np.array(bias)
+    assert np.abs(b).max() < 0.08  # towards whole pixels by a few hundredths at most
+    assert b[2:5].mean() < -0.01 and b[6:9].mean() > 0.01  # short past a whole pixel, long before the next
+    assert abs(b.mean()) < 0.02  # over a pixel of disparities it averages out
+
+
 def test_stereo_middlebury_rows_disparity_and_depth(shared_data):
     left, right, gt, rig = _middlebury(shared_data)
     det = make_detector(DetectorParams(name="sift", max_features=1500))
