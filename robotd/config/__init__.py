@@ -108,7 +108,11 @@ class FrontendConfig:
         " (slam.measurement = cartesian only: the pixel model's noise is constant)",
         choices=("predicted", "measured"),
     )
-    debias_depth: bool = _f(True, "remove the second-order triangulation bias (depth too far by σ_d²/d²)")
+    debias_depth: bool = _f(
+        False,
+        "remove the second-order triangulation bias (depth too far by σ_d²/d²) for the pixel model's σ_d"
+        " (off: real matches scatter a tenth of it, docs/frontend.md)",
+    )
     debias_limits: bool = _f(
         False,
         "correct disparities near the accepted limits for the gate's selection (a point near the far limit is"
@@ -148,6 +152,13 @@ class FrontendConfig:
         " points then do not shrink the translation, docs/frontend.md); 0 turns it off",
         min=0,
         max=20,
+    )
+    pnp_align_px: float = _f(
+        1.5,
+        "stereo PnP: each match's current pixels move onto the previous frame's patch (sub-pixel alignment:"
+        " detected corners stick to the pixel grid, docs/frontend.md), by at most this much; 0 turns it off",
+        min=0.0,
+        max=5.0,
     )
     parallel_detect: bool = _f(
         True, "detect the left and right images on two threads (one thread: a steadier tail on a busy 2-core host)"

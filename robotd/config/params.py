@@ -58,7 +58,12 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         outliers=outl,
         parallel_detect=f.parallel_detect,
         motion_method=f.motion,
-        pnp=PnpParams(inlier_px=f.pnp_inlier_px, sigma_px=f.sigma_x_px, two_view_iterations=f.pnp_two_view_iterations),
+        pnp=PnpParams(
+            inlier_px=f.pnp_inlier_px,
+            sigma_px=f.sigma_x_px,
+            two_view_iterations=f.pnp_two_view_iterations,
+            align_px=f.pnp_align_px,
+        ),
         guided=f.guided_matching,
         planar_map=cfg.slam.dim == 2,
         disparity_bias=DisparityBiasParams(mode=f.disparity_offset, walk_px=f.disparity_offset_walk_px),

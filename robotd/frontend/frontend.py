@@ -45,8 +45,9 @@ from robotd.core.outliers import (
     fit_similarity_mahalanobis,
     ransac_similarity,
 )
-from robotd.core.stereo import RectifiedStereo, project
+from robotd.core.stereo import RectifiedStereo, project, triangulate
 from robotd.core.timing import StageClock, stage
+from robotd.frontend.align import align_to_previous
 from robotd.frontend.association import (
     IDENTIFIED,
     NEW,
@@ -217,6 +218,7 @@ class _PrevFrame:
     t_ns: int
     meas: StereoMatches
     ids: np.ndarray  # (N,) global id per measurement, −1 if rejected
+    left: np.ndarray | None = None  # its left image (the patches the next frame's matches align to)
 
 
 def predicted_visible(
@@ -281,6 +283,7 @@ class Frontend:
         self.detector: Detector = make_detector(self.params.detector)
         self.descriptors = descriptors
         self._prev: _PrevFrame | None = None
+        self._left: np.ndarray | None = None  # the last detected left image
         self.disparity_bias = DisparityBias(self.params.disparity_bias)
         # the clock the front end's stages time themselves into (robotd.core.timing.stage), which
         # process() reads; the step times the same calls into its own clock through its stages
@@ -315,6 +318,7 @@ class Frontend:
         else:
             fl = self.detector.detect(left)
             fr = self.detector.detect(right)
+        self._left = left.copy()  # this frame's, for the next frame's alignment (robotd.frontend.align)
         if self.descriptors is None:
             dim = fl.desc.shape[1] if fl.n else (32 if self.detector.binary else fl.desc.shape[1])
             self.descriptors = LandmarkDescriptors(dim, self.detector.binary)
@@ -450,16 +454,23 @@ class Frontend:
         if p.motion_method == "pnp":
             z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
+            q = meas.xyz_R[ic]
+            if p.pnp.align_px > 0 and pv.left is not None and self._left is not None:
+                z, moved = align_to_previous(pv.left, self._left, zp, z, p.pnp.align_px)
+                q = q.copy()
+                r = self.rig
+                q[moved] = triangulate(z[moved, 0], z[moved, 1], z[moved, 2], r.f_px, r.px, r.py, r.baseline_m)
+                counts["motion_aligned"] = int(moved.sum())
             pp = p.pnp
             if inlier_px is not None and inlier_px > pp.inlier_px:
                 pp = replace(pp, inlier_px=inlier_px)
-            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, pp, self.rng, prior)
+            pnp = stereo_pnp(pv.meas.xyz_R[ip], z, q, zp, self.rig, pp, self.rng, prior)
             if pnp is None and ic.size >= pp.min_inliers and p.pnp.inlier_px * PNP_WIDE_GATE > pp.inlier_px:
                 # no consensus inside the gate: once more at PNP_WIDE_GATE times the sharp one, when
                 # the blur allowed for had not widened it as far (blur the exposure does not
                 # account for; docs/frontend.md "Motion blur in the measurements")
                 wide = replace(pp, inlier_px=p.pnp.inlier_px * PNP_WIDE_GATE)
-                pnp = stereo_pnp(pv.meas.xyz_R[ip], z, meas.xyz_R[ic], zp, self.rig, wide, self.rng, prior)
+                pnp = stereo_pnp(pv.meas.xyz_R[ip], z, q, zp, self.rig, wide, self.rng, prior)
                 counts["motion_wide_gate"] = int(pnp is not None)
             if pnp is None:
                 return VisualMotion(None, None, counts, ic if ic.size else None)
@@ -514,7 +525,7 @@ class Frontend:
         ids, and this frame becomes the previous frame."""
         assert self.descriptors is not None, "Frontend.commit before Frontend.detect"
         self.descriptors.commit(ident.corr, meas.desc, new)
-        self._prev = _PrevFrame(int(t_ns), meas, ident.corr.ids.copy())
+        self._prev = _PrevFrame(int(t_ns), meas, ident.corr.ids.copy(), self._left)
 
     def forget(self, ids: np.ndarray) -> None:
         """The landmarks ``ids`` (K,) left the map (the filter pruned them, or never took them):

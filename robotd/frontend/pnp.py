@@ -77,6 +77,8 @@ class PnpParams:
       outside them when it holds an inlier in at least this many cells and this fraction of the
       larger one's cells.
     two_view_iterations: Gauss–Newton passes of :func:`two_view` on the final inliers (0: off).
+    align_px: the current frame's pixels of each match are moved onto the previous frame's patch
+      first, by at most this much (robotd.frontend.align; 0: off, the keypoints as detected).
     """
 
     inlier_px: float = 2.0
@@ -98,6 +100,7 @@ class PnpParams:
     prior_min_cells: int = 3
     prior_cell_ratio: float = 0.25
     two_view_iterations: int = 3
+    align_px: float = 1.5
 
     def __post_init__(self) -> None:
         if not (self.inlier_px > 0 and self.sigma_px > 0 and self.cov_scale > 0):
@@ -107,6 +110,8 @@ class PnpParams:
             )
         if min(self.max_iterations, self.batch, self.min_inliers, self.grid_rows, self.grid_cols) < 1:
             raise ConfigError("pnp: expected max_iterations, batch, min_inliers, grid_rows, grid_cols >= 1")
+        if not (self.align_px >= 0 and math.isfinite(self.align_px)):
+            raise ConfigError(f"pnp: expected align_px >= 0, got {self.align_px}")
         if self.two_view_iterations < 0:
             raise ConfigError(f"pnp: expected two_view_iterations >= 0, got {self.two_view_iterations}")
         if not 0.0 < self.p_success < 1.0:

@@ -161,8 +161,10 @@ class StereoMatchParams:
     patch_half_px, search_px: patch half-size h and search radius r of the refinement.
     refine_reject_edge: drop matches whose SSD minimum lies at ±r (descriptor and photometry disagree).
     sigma_x_px, sigma_y_px, cov_inflation: pixel noise of §3.1 and the §3.3 inflation.
-    debias_depth: remove the second-order triangulation bias (robotd.core.stereo.debias_points); on
-      kitti-seq1 it takes the distance overestimate from 0.9 % to 0.7 % and the drift below 1 %.
+    debias_depth: remove the second-order triangulation bias (robotd.core.stereo.debias_points) for
+      the pixel model's σ_d² = 2σ_x². Off by default: real and rendered matches' disparity noise is
+      0.07–0.10 px, not 0.71, so it puts far points 1–3 % too near
+      (docs/frontend.md "Aligned pixels, no depth debias").
     debias_limits: correct the disparities of matches near the gate's limits for the selection the
       gate makes (robotd.core.stereo.gate_selection_shift): a point near the far limit is kept only when
       its noise made it look nearer, so it comes out too near (docs/frontend.md).
@@ -185,7 +187,7 @@ class StereoMatchParams:
     sigma_x_px: float = 0.5
     sigma_y_px: float = 0.5 / np.sqrt(2.0)
     cov_inflation: float = 1.0
-    debias_depth: bool = True
+    debias_depth: bool = False
     debias_limits: bool = False
 
     def __post_init__(self) -> None:

@@ -245,7 +245,7 @@ class Pipeline:
         import time
 
         from robotd.core import outliers
-        from robotd.frontend import detectors, pnp, stereo_match
+        from robotd.frontend import align, detectors, pnp, stereo_match
         from robotd.slam.factory import warmup as warmup_filters
 
         t0 = time.perf_counter()
@@ -253,6 +253,7 @@ class Pipeline:
         detectors.warmup()
         stereo_match.warmup()
         pnp.warmup()
+        align.warmup()
         outliers.warmup()
         return time.perf_counter() - t0
 

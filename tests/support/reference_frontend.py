@@ -178,3 +178,62 @@ def refine_disparity_numpy(
     ok[idx[good]] = True
     edge[idx[at_edge]] = True
     return d_out, ok, edge
+
+
+def _bilinear_numpy(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at (x, y) (any shape), inside the image."""
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    ax, ay = x - x0, y - y0
+    f = img.astype(np.float64)
+    top = (1.0 - ax) * f[y0, x0] + ax * f[y0, x0 + 1]
+    bottom = (1.0 - ax) * f[y0 + 1, x0] + ax * f[y0 + 1, x0 + 1]
+    return (1.0 - ay) * top + ay * bottom
+
+
+def align_numpy(
+    prev: np.ndarray,
+    curr: np.ndarray,
+    xp: np.ndarray,
+    yp: np.ndarray,
+    xc: np.ndarray,
+    yc: np.ndarray,
+    half: int,
+    iterations: int,
+    max_px: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Readable twin of ``robotd.frontend._align_kernels.align_kernel``: (dx, dy, ok) per point,
+    the inverse-compositional Gauss–Newton written with whole-patch numpy arrays.
+
+    Agreement: ``ok`` equal and shifts within 1e-9 px (the sums run in another order;
+    tests/robotd/frontend/test_align.py)."""
+    n = len(xp)
+    dx, dy, ok = np.zeros(n), np.zeros(n), np.zeros(n, bool)
+    rows, cols = prev.shape
+    u = np.arange(-half - 1, half + 2, dtype=np.float64)
+    margin = half + 2.0 + max_px
+    for i in range(n):
+        pts = ((xp[i], yp[i]), (xc[i], yc[i]))
+        if not all(
+            x - margin >= 0 and y - margin >= 0 and x + margin < cols - 1 and y + margin < rows - 1 for x, y in pts
+        ):
+            continue
+        T = _bilinear_numpy(prev, xp[i] + u[None, :], yp[i] + u[:, None])  # (m+2, m+2), row = y
+        gx = 0.5 * (T[1:-1, 2:] - T[1:-1, :-2])
+        gy = 0.5 * (T[2:, 1:-1] - T[:-2, 1:-1])
+        gx, gy = gx - gx.mean(), gy - gy.mean()
+        Tc = T[1:-1, 1:-1]
+        H = np.array([[np.sum(gx * gx), np.sum(gx * gy)], [np.sum(gx * gy), np.sum(gy * gy)]])
+        if not (np.linalg.det(H) > 0 and np.linalg.eigvalsh(H)[0] >= 1e-3 * Tc.size):
+            continue
+        s = np.zeros(2)
+        for _ in range(iterations):
+            I = _bilinear_numpy(curr, xc[i] + s[0] + u[None, 1:-1], yc[i] + s[1] + u[1:-1, None])
+            b = np.array([np.sum(gx * (I - Tc)), np.sum(gy * (I - Tc))])
+            step = np.linalg.solve(H, b)
+            s = s - step
+            if np.any(np.abs(s) > max_px):
+                break
+            if step @ step < 1e-4:
+                ok[i], dx[i], dy[i] = True, s[0], s[1]
+                break
+    return dx, dy, ok

@@ -112,7 +112,7 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
     # the daemon warms the kernels at start-up: its frames must not trigger a compile
     from robotd.config import load_config
     from robotd.core import _outlier_kernels, outliers
-    from robotd.frontend import _detect_kernels, _stereo_kernels, detectors, stereo_match
+    from robotd.frontend import _align_kernels, _detect_kernels, _stereo_kernels, align, detectors, stereo_match
     from robotd.pipeline.step import Pipeline
 
     kernels = [
@@ -120,12 +120,14 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
         _stereo_kernels.candidate_pairs_kernel,
         _stereo_kernels.ratio_cross_kernel,
         _stereo_kernels.refine_kernel,
+        _align_kernels.align_kernel,
         _outlier_kernels.similarity_d2_kernel,
         _outlier_kernels.gn_weights,
         _outlier_kernels.gn_fit,
     ]
     detectors.warmup()
     stereo_match.warmup()
+    align.warmup()
     outliers.warmup()
     before = [set(k.signatures) for k in kernels]
     cfg = load_config(None, {"camera": {"url": "sim://?realtime=0"}, "vehicle": {"url": "sim://?realtime=0"}})

@@ -87,8 +87,14 @@ def test_a_stall_while_standing_still_is_bridged_by_the_images_as_no_motion() ->
     still = f"{BASE}&odometry=0&stop_at=5&stop_s=6"  # stands still from 5.5 s to 11.5 s
     _, e_ref, _, _ = _run(still)
     t, e, pipe, failed = _run(still + STALL)
-    after = t >= 10.0
-    assert failed == 0 and float(e[after].max()) < float(e_ref.max()) + 0.02
+    before, after = t < 6.0, t >= 10.0
+    assert failed == 0
+    # the rover stood still across the gap and the images said so: the error does not move across
+    # it (measured 2–3 mm; a wrong guess over 4 s would move it by metres) ...
+    assert abs(float(e[after][0]) - float(e[before][-1])) < 0.01
+    # ... and the run after is of the undisturbed run's order (measured 0.038–0.067 m against
+    # 0.035–0.061 m: either run may drift more over the 16 s on vision alone at 320×200)
+    assert float(e[after].max()) < float(e_ref.max()) + 0.05
     assert pipe.counters.gaps == pipe.counters.gaps_by_images == 1
 
 

@@ -90,10 +90,12 @@ def test_the_anchored_covariance_holds_the_real_error_of_an_exact_rig(odometry: 
 def test_the_default_drift_term_is_conservative_on_an_exact_rig(odometry: int):
     """The default adds 0.5 % of the explored path for the errors of a real rig (chosen on KITTI,
     docs/slam.md "Reported covariance"); the simulator's rig has none, so the same run is covered
-    with room to spare: measured mean NEES 0.45 and 0.26, below the χ²(3) mean of 3, never above."""
+    with room to spare: measured mean NEES 0.30 and 0.16 (in band 0.60 and 0.20; session 20: mean
+    0.45 and 0.26), below the χ²(3) mean of 3, never above. The lower bound only says the covariance
+    is not absurdly large: the aligned pixels (session 27) shrank the error, not the covariance."""
     s = _replay("moving_box", 5.0, odometry, "width=640&height=400")
     assert s["truth_nees_pos_mean"] < 1.5
-    assert s["truth_nees_pos_in_band_frac"] > 0.2
+    assert s["truth_nees_pos_in_band_frac"] > 0.12
 
 
 def test_the_filters_own_covariance_is_overconfident():
@@ -197,16 +199,19 @@ def test_a_hand_held_camera_shaken_hard_is_tracked_on_vision_alone_through_its_b
     5° between frames at 20 Hz) and blurred by a 20 ms exposure (streaks up to about 9 px), EuRoC's
     11 cm baseline at half its resolution (376×240), 3 s. The blur is in the measurements' model
     (docs/frontend.md "Motion blur in the measurements"); without it the corners found along the
-    streaks fall outside the PnP's 2 px gate and the map's tight covariances, and the heading
-    goes. Measured, seed 1: with the model 0 lost, ATE 0.062 m, heading RMSE 4.5°; without
-    0.148 m, 18.9° (seed 3: 0.034 m, 3.1° against 0.065 m, 15.3°)."""
+    streaks fall outside the PnP's 2 px gate and the map's tight covariances. Before the PnP's
+    pixels were aligned to the previous frame's patches (session 27) the heading went without it:
+    seed 1 with the model 0 lost, ATE 0.062 m, heading RMSE 4.5°, without 0.148 m, 18.9°. The
+    alignment moves a streak's corner back onto the previous patch and takes much of that: now,
+    seed 1, with the model ATE 0.057 m, 5.6°, without 0.103 m, 6.8° (seed 3: 0.043 m, 5.3° against
+    0.069 m, 4.2°), so what the model still does is the position."""
     url = "sim://?realtime=0&odometry=0&width=376&height=240&baseline=0.11&fps=20&shake=5&exposure_ms=20&duration=3"
     s = replay(load_config(None, {}), url, progress=False)
     assert s["frames"] == 60 and s["lost_frames"] == 0
     assert s["truth_ate_rmse_m"] < 0.1
     assert s["truth_heading_rmse_deg"] < 8.0
     off = replay(load_config(None, {"frontend": {"motion_blur": False}}), url, progress=False)
-    assert off["truth_heading_rmse_deg"] > 12.0  # what the model is for
+    assert off["truth_ate_rmse_m"] > 1.4 * s["truth_ate_rmse_m"]  # what the model is for
 
 
 def test_a_source_that_reports_no_exposure_has_it_estimated_from_its_images():
