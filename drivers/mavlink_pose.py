@@ -129,7 +129,7 @@ class MavlinkAutopilot:
             dyaw = (yaw - self._last_yaw[1] + math.pi) % (2 * math.pi) - math.pi
             turn = abs(dyaw) / ((pose.t_ns - self._last_yaw[0]) * 1e-9)
         self._last_yaw = (pose.t_ns, yaw)
-        still = float(np.linalg.norm(vel)) < STILL_SPEED_MPS and turn < STILL_TURN_RADPS
+        still = math.hypot(*(float(v) for v in np.ravel(vel))) < STILL_SPEED_MPS and turn < STILL_TURN_RADPS
         if not still:
             self._still_since_ns = None
         elif self._still_since_ns is None:

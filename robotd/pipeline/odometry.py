@@ -61,6 +61,12 @@ class OdometryLimits:
     max_future_s: float = 0.5  # a sample stamped this far after "now" (the host clock) is refused
 
 
+def _norm(v: object) -> float:
+    """|v| of a 3-vector without overflow: a link may send values near float32's limit (3e38),
+    whose squares overflow in float32 (the gate then refuses them, as it should, quietly)."""
+    return math.hypot(*(float(x) for x in np.ravel(np.asarray(v))))
+
+
 class OdometryGate:
     """Refuses implausible samples (module docstring) and counts them per reason."""
 
@@ -79,13 +85,13 @@ class OdometryGate:
             now_ns is not None and odo.t_ns > now_ns + lim.max_future_s * 1e9
         ):
             return "clock"
-        if float(np.linalg.norm(odo.vel_R_mps)) > lim.max_speed_mps:
+        if _norm(odo.vel_R_mps) > lim.max_speed_mps:
             return "speed"
-        if float(np.linalg.norm(odo.rate_R_radps)) > lim.max_rate_radps:
+        if _norm(odo.rate_R_radps) > lim.max_rate_radps:
             return "rate"
         if last is not None:
             dt = (odo.t_ns - last.t_ns) * 1e-9
-            dv = float(np.linalg.norm(np.asarray(odo.vel_R_mps) - np.asarray(last.vel_R_mps)))
+            dv = _norm(np.asarray(odo.vel_R_mps, dtype=np.float64) - np.asarray(last.vel_R_mps, dtype=np.float64))
             if dt < 1.0 and dv / max(dt, MIN_ACCEL_DT_S) > lim.max_accel_mps2:
                 return "acceleration"
         return None
@@ -104,8 +110,8 @@ class OdometryGate:
                 "odometry sample refused (%s; %d so far): v %s m/s, rate %s rad/s at t %d ns (vehicle.max_*)",
                 why,
                 n,
-                np.round(odo.vel_R_mps, 3).tolist(),
-                np.round(odo.rate_R_radps, 3).tolist(),
+                np.round(np.asarray(odo.vel_R_mps, dtype=np.float64), 3).tolist(),
+                np.round(np.asarray(odo.rate_R_radps, dtype=np.float64), 3).tolist(),
                 odo.t_ns,
             )
         return False

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
+from robotd.core.errors import InputError
 from robotd.core.geometry import so3_exp, so3_log
 from robotd.core.msgs import Odometry
 from robotd.pipeline.odometry import OdometryGate, OdometryIntegrator
@@ -195,3 +198,17 @@ def test_dead_reckoning_of_a_constant_turn_follows_the_arc() -> None:
     np.testing.assert_allclose(np.arctan2(T[:, 1, 0], T[:, 0, 0]), np.angle(np.exp(1j * th)), atol=CONDITIONED_ATOL)
     with pytest.raises(InputError, match="no odometry covers"):
         dead_reckon(samples, [0, 6_000_000_000])
+
+
+def test_values_near_float32s_limit_are_refused_without_an_overflow_warning() -> None:
+    # a link's float32 fields may carry 3e38: its square overflows float32, and the gate (and the
+    # gravity check) must refuse it quietly rather than print a RuntimeWarning per sample
+    big = np.array([3.0e38, 3.0e38, 0.0], dtype=np.float32)
+    gate = OdometryGate()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not gate.accept(Odometry(10**9, big, np.zeros(3)))
+        assert not gate.accept(Odometry(2 * 10**9, np.zeros(3), big))
+        with pytest.raises(InputError, match="gravity_R: expected a direction"):
+            Odometry(3 * 10**9, np.zeros(3), np.zeros(3), gravity_R=big)
+    assert gate.rejected["speed"] == 1 and gate.rejected["rate"] == 1
