@@ -57,7 +57,8 @@ def test_time_and_memory_limits_and_a_dead_worker_are_rows_and_the_rest_go_on() 
     engine.run(jobs, lambda row: rows.__setitem__(row["key"], row))
     killer.join()
     assert set(rows) == {"slow", "hungry", "dies", "fine"}
-    assert rows["slow"]["status"] == TIMEOUT and "after 2 s" in rows["slow"]["error"], rows["slow"]
+    slow = rows["slow"]
+    assert slow["status"] == TIMEOUT and "after 2 s" in slow["error"], (slow.get("error"), slow.get("traceback"))
     assert rows["hungry"]["status"] == MEMORY and "above the limit of 50 MB" in rows["hungry"]["error"], rows["hungry"]
     assert killed and rows["dies"]["status"] == DIED, rows["dies"]
     assert rows["dies"]["error"] == "worker process died: killed by signal 9"
