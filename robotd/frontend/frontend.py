@@ -318,7 +318,8 @@ class Frontend:
         else:
             fl = self.detector.detect(left)
             fr = self.detector.detect(right)
-        self._left = left.copy()  # this frame's, for the next frame's alignment (robotd.frontend.align)
+        # this frame's left image, for the next frame's alignment (robotd.frontend.align); none kept when off
+        self._left = left.copy() if self.params.pnp.align_px > 0 else None
         if self.descriptors is None:
             dim = fl.desc.shape[1] if fl.n else (32 if self.detector.binary else fl.desc.shape[1])
             self.descriptors = LandmarkDescriptors(dim, self.detector.binary)
@@ -455,7 +456,12 @@ class Frontend:
             z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]
             zp = np.c_[pv.meas.xl[ip], pv.meas.xr[ip], pv.meas.y[ip]]
             q = meas.xyz_R[ic]
-            if p.pnp.align_px > 0 and pv.left is not None and self._left is not None:
+            if (
+                p.pnp.align_px > 0
+                and pv.left is not None
+                and self._left is not None
+                and pv.left.shape == self._left.shape  # a camera reconfigured mid-run: the keypoints stay
+            ):
                 z, moved = align_to_previous(pv.left, self._left, zp, z, p.pnp.align_px)
                 q = q.copy()
                 r = self.rig

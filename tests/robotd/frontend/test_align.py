@@ -99,3 +99,5 @@ def test_bad_input_is_refused_with_what_is_wrong():
     zn[0, 0] = np.nan
     out, ok = align_to_previous(img, img, z, zn, 1.5)  # NaN pixels: left alone, never read
     assert not ok.any() and np.isnan(out[0, 0])
+    out, ok = align_to_previous(img, img, np.zeros((0, 3)), np.zeros((0, 3)), 1.5)  # no matches: nothing to do
+    assert out.shape == (0, 3) and ok.shape == (0,)
