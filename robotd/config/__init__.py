@@ -172,6 +172,13 @@ class FrontendConfig:
     disparity_offset_walk_px: float = _f(
         0.01, "online disparity offset: random walk per estimated frame [px]", min=0.0, max=1.0
     )
+    disparity_offset_max_sigma_px: float = _f(
+        0.12,
+        "online disparity offset: only matches whose disparity the sub-pixel refinement places this"
+        " precisely take part [px] (docs/frontend.md)",
+        min=0.01,
+        max=10.0,
+    )
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,9 @@ def frontend_params_from_config(cfg: Config, max_features: int | None = None) ->
         ),
         guided=f.guided_matching,
         planar_map=cfg.slam.dim == 2,
-        disparity_bias=DisparityBiasParams(mode=f.disparity_offset, walk_px=f.disparity_offset_walk_px),
+        disparity_bias=DisparityBiasParams(
+            mode=f.disparity_offset, walk_px=f.disparity_offset_walk_px, max_sigma_px=f.disparity_offset_max_sigma_px
+        ),
     )
 
 

@@ -14,6 +14,8 @@ Compiled by :func:`robotd.core.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for rea
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from robotd.core.jit import jit
@@ -135,6 +137,7 @@ def refine_kernel(
     d_out: np.ndarray,
     ok: np.ndarray,
     edge: np.ndarray,
+    sigma: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Sub-pixel disparity of keypoint (u, v) [px, integers] around integer disparity ``di``.
 
@@ -143,7 +146,11 @@ def refine_kernel(
     P·Σe² − (Σe)² (P × the ZSSD: the same minimum and parabola, and ties go to the first k rather
     than to rounding). Minimum on the window's border: ``edge``; else the parabola through the
     minimum and its neighbours, when it curves up, gives d_out = di + k + δ (|δ| ≤ 0.5) and
-    ``ok``. Patches that leave either image are skipped.
+    ``ok``, and ``sigma`` the fit's own precision √(2 (c_min + 1) / (P · curvature)) [px]: near its
+    minimum the cost is c_min + ½·curvature·(k − k*)², and with a residual of s² per pixel
+    c_min ≈ P² s², curvature ≈ 2 P Σ g_x², so var k* = s² / Σ g_x² (g_x: the patch's column
+    gradient). A flat cost valley (little texture along the row, or a residual as large as the
+    texture) gives a large σ. Patches that leave either image are skipped (``sigma`` untouched).
     """
     h, w = left.shape
     k_n = 2 * search + 1
@@ -178,3 +185,4 @@ def refine_kernel(
             delta = min(max(0.5 * (c_m - c_p) / den, -0.5), 0.5)
             d_out[m] = dd + (kmin - search) + delta
             ok[m] = True
+            sigma[m] = math.sqrt(2.0 * (c_0 + 1.0) / (npx * den))

@@ -71,6 +71,11 @@ class DisparityBiasParams:
       segment the point's ray is carried onto, which a wrong offset cannot leave, let in too many
       wrong matches: tried, worse everywhere.)
     huber_px: robust weight threshold of a residual norm.
+    max_sigma_px: only stereo matches whose disparity the sub-pixel refinement places to this
+      precision or better take part (``StereoMatches.sigma_d``; all do when no refinement ran). A
+      flat cost valley leaves a disparity that is mostly right but now and then off by a pixel or
+      more, mostly too large, and the same error in both frames of a far point is exactly what an
+      offset looks like (docs/frontend.md "Which matches measure the offset").
     """
 
     mode: str = "online"
@@ -86,12 +91,15 @@ class DisparityBiasParams:
     min_baseline_m: float = 2.0
     max_baseline_m: float = 8.0
     gate_px: float = 4.0
+    max_sigma_px: float = 0.12
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ConfigError(f"frontend.disparity_offset: expected one of {MODES}, got {self.mode!r}")
-        if not (self.prior_sigma_px > 0 and self.walk_px >= 0 and self.max_abs_px > 0):
-            raise ConfigError("DisparityBiasParams: prior_sigma_px and max_abs_px must be > 0, walk_px >= 0")
+        if not (self.prior_sigma_px > 0 and self.walk_px >= 0 and self.max_abs_px > 0 and self.max_sigma_px > 0):
+            raise ConfigError(
+                "DisparityBiasParams: prior_sigma_px, max_abs_px and max_sigma_px must be > 0, walk_px >= 0"
+            )
 
 
 def _triangulate(z: np.ndarray, rig: RectifiedStereo) -> np.ndarray:
@@ -208,9 +216,12 @@ class DisparityBias:
         sigma_px: float,
         max_dist: float,
         ratio: float,
+        sigma_d: np.ndarray | None = None,
     ) -> bool:
         """One frame's stereo measurements (``z`` (N, 3) pixels corrected with the current estimate,
-        ``desc`` their normalised descriptors) and the filter's pose of the frame. Once the pose is
+        ``desc`` their normalised descriptors, ``sigma_d`` (N,) [px] their disparities' precision
+        from the refinement or None) and the filter's pose of the frame; only measurements with
+        ``sigma_d ≤ max_sigma_px`` take part. Once the pose is
         ``min_baseline_m`` from the anchor frame's, the measurements of both frames are matched by
         descriptor (ratio test and cross-check, ``max_dist`` and ``ratio`` as the frame-to-frame
         motion's), pairs that the filter's motion does not carry within ``gate_px`` are dropped, and
@@ -222,6 +233,9 @@ class DisparityBias:
             return False
         T = np.asarray(T_world_robot, dtype=float)
         z = np.asarray(z, dtype=float)
+        if sigma_d is not None:
+            sharp = np.asarray(sigma_d, dtype=float) <= p.max_sigma_px
+            z, desc = z[sharp], desc[sharp]
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             self.reset_tracks()  # no usable pose: nothing to measure against, start again
             return False

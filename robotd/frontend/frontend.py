@@ -550,7 +550,9 @@ class Frontend:
         max_d = p.association.max_dist_binary if m.binary else p.association.max_dist_float
         ratio = p.association.ratio if p.association.ratio is not None else (0.75 if m.binary else 0.8)
         z = np.c_[m.xl, m.xr, m.y]
-        return self.disparity_bias.observe(z, m.desc, m.binary, T_world_robot, self.rig, p.pnp.sigma_px, max_d, ratio)
+        return self.disparity_bias.observe(
+            z, m.desc, m.binary, T_world_robot, self.rig, p.pnp.sigma_px, max_d, ratio, m.sigma_d
+        )
 
     # ---------------------------------------------------------------------------- outputs
     @staticmethod

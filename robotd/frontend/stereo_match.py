@@ -215,6 +215,8 @@ class StereoMatches:
     covariance (§3.1); desc: (N, D) left descriptors (normalised as in :func:`normalise_descriptors`);
     left_idx / right_idx: (N,) indices into the left / right Features; dist: (N,) descriptor
     distance of the stereo match; refined: (N,) True where the sub-pixel patch refinement applied.
+    sigma_d: (N,) [px] the refinement's own precision of each disparity (:func:`refine_disparity`;
+    inf where it did not apply), or None when no refinement ran.
     """
 
     xl: np.ndarray
@@ -229,6 +231,7 @@ class StereoMatches:
     refined: np.ndarray
     binary: bool = False
     stats: dict[str, int] = field(default_factory=dict)
+    sigma_d: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -249,6 +252,7 @@ class StereoMatches:
             self.refined[idx],
             self.binary,
             dict(self.stats),
+            None if self.sigma_d is None else self.sigma_d[idx],
         )
 
     @staticmethod
@@ -331,12 +335,13 @@ def refine_disparity(
     d0: np.ndarray,
     half: int = 3,
     search: int = 2,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel disparity by ZSSD patch cost and a parabola fit along the row (module doc).
 
     ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
     (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum
-    on the search border). Where ``ok`` is False, ``d`` is ``d0``. The cost is measured at the
+    on the search border, sigma (N,) [px] the fit's own precision, from the cost's curvature
+    against its minimum). Where ``ok`` is False, ``d`` is ``d0`` and ``sigma`` inf. The cost is measured at the
     integer column rint(xl); the caller keeps the keypoint's sub-pixel column and assumes the
     disparity is constant over that < 0.5 px offset. (numba kernel; numpy twin:
     ``refine_disparity_numpy`` in tests/support/reference_frontend.py.)
@@ -350,8 +355,9 @@ def refine_disparity(
     d_out = np.array(d0, dtype=np.float64)
     ok = np.zeros(n, bool)
     edge = np.zeros(n, bool)
+    sigma = np.full(n, np.inf)
     if n == 0:
-        return d_out, ok, edge
+        return d_out, ok, edge, sigma
     _k.refine_kernel(
         np.ascontiguousarray(left_img, dtype=np.uint8),
         np.ascontiguousarray(right_img, dtype=np.uint8),
@@ -363,8 +369,9 @@ def refine_disparity(
         d_out,
         ok,
         edge,
+        sigma,
     )
-    return d_out, ok, edge
+    return d_out, ok, edge, sigma
 
 
 def warmup() -> None:
@@ -379,7 +386,9 @@ def warmup() -> None:
     d = np.zeros(1, np.float32)
     _k.ratio_cross_kernel(zero, d, zero, zero, d, 1, 0.8, np.float32(60.0), True, out_i, np.zeros(3, np.int64))
     c = np.full(1, 8, np.int64)
-    _k.refine_kernel(img, img, np.full(1, 16, np.int64), c, c, 3, 2, np.zeros(1), np.zeros(1, bool), np.zeros(1, bool))
+    _k.refine_kernel(
+        img, img, np.full(1, 16, np.int64), c, c, 3, 2, np.zeros(1), np.zeros(1, bool), np.zeros(1, bool), np.zeros(1)
+    )
 
 
 def match_stereo(
@@ -425,9 +434,10 @@ def match_stereo(
     yr = right.xy[j, 1].astype(np.float64)
     y = 0.5 * (yl + yr)
     refined = np.zeros(i.size, bool)
+    sigma_d: np.ndarray | None = None
     n_edge = 0
     if params.refine == "patch" and left_img is not None and right_img is not None and i.size:
-        d, refined, edge = refine_disparity(
+        d, refined, edge, sigma_d = refine_disparity(
             left_img, right_img, xl, yl, xl - xr, params.patch_half_px, params.search_px
         )
         xr = np.where(refined, xl - d, xr)
@@ -443,6 +453,7 @@ def match_stereo(
         d_min, d_max = rig.disparity_bounds(params.depth_min_m, params.d_min_px)
         keep &= (xl - xr >= d_min) & (xl - xr <= d_max)
         i, j, dist, xl, xr, y, refined = i[keep], j[keep], dist[keep], xl[keep], xr[keep], y[keep], refined[keep]
+        sigma_d = None if sigma_d is None else sigma_d[keep]
     stats["refine_edge"] = n_edge
     stats["matches"] = int(i.size)
     f, px, py, b = rig.f_px, rig.px, rig.py, rig.baseline_m
@@ -468,5 +479,5 @@ def match_stereo(
         i.size,
     )
     return StereoMatches(
-        xl, xr, y, xyz, cov, dl[i], i.astype(np.int64), j.astype(np.int64), dist, refined, binary, stats
+        xl, xr, y, xyz, cov, dl[i], i.astype(np.int64), j.astype(np.int64), dist, refined, binary, stats, sigma_d
     )

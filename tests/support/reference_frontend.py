@@ -117,16 +117,17 @@ def refine_disparity_numpy(
     d0: np.ndarray,
     half: int = 3,
     search: int = 2,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Readable twin of :func:`robotd.frontend.stereo_match.refine_disparity` and its kernel
     ``_stereo_kernels.refine_kernel``: all ZSSD costs at once from one right strip per keypoint.
 
-    Agreement: bit-identical ``d``, ``ok`` and ``edge`` (the costs are exact integers;
+    Agreement: bit-identical ``d``, ``ok`` and ``edge``, ``sigma`` to rounding (the costs are exact integers;
     tests/robotd/frontend/test_kernels.py::test_refine_kernel_equals_numpy_on_random_points).
 
     ``xl``, ``yl``: (N,) [px] left keypoints; ``d0``: (N,) [px] initial disparities. Returns
     (d (N,) refined disparity at the left keypoint, ok (N,) refinement applied, edge (N,) minimum
-    on the search border). Where ``ok`` is False, ``d`` is ``d0``.
+    on the search border, sigma (N,) [px] the fit's precision). Where ``ok`` is False, ``d`` is
+    ``d0`` and ``sigma`` inf.
     """
     n = xl.shape[0]
     h, w = left_img.shape
@@ -144,9 +145,10 @@ def refine_disparity_numpy(
     d_out = np.asarray(d0, dtype=np.float64).copy()
     ok = np.zeros(n, bool)
     edge = np.zeros(n, bool)
+    sigma = np.full(n, np.inf)
     idx = np.flatnonzero(inside)
     if idx.size == 0:
-        return d_out, ok, edge
+        return d_out, ok, edge, sigma
     r = np.arange(-half, half + 1)
     k = np.arange(-search, search + 1)
     rows = v[idx, None] + r[None, :]  # (M, P)
@@ -177,7 +179,9 @@ def refine_disparity_numpy(
     d_out[idx[good]] = d_new[good]
     ok[idx[good]] = True
     edge[idx[at_edge]] = True
-    return d_out, ok, edge
+    # the fit's precision: var k* = s² / Σ g_x² with c_min ≈ P² s² and curvature ≈ 2 P Σ g_x²
+    sigma[idx[good]] = np.sqrt(2.0 * (c_0[good] + 1.0) / (npx * den[good]))
+    return d_out, ok, edge, sigma
 
 
 def _bilinear_numpy(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -76,13 +76,27 @@ def test_far_points_alone_cannot_tell_the_offset_from_the_translation() -> None:
     assert var_far > 10 * var_mix
 
 
-def _drive(est: DisparityBias, delta: float, frames: int, step_m: float, seed: int = 4) -> list[float]:
+def _drive(
+    est: DisparityBias,
+    delta: float,
+    frames: int,
+    step_m: float,
+    seed: int = 4,
+    flat_share: float = 0.0,
+    with_sigma: bool = False,
+) -> list[float]:
     """Frames of a rover driving straight through a fixed scene, each landmark keeping its id, the
     way the pipeline feeds the estimate: measured x_r = true x_r − δ, corrected with the running
-    estimate, and the frame's pose. Returns the estimate after each frame."""
+    estimate, and the frame's pose. Returns the estimate after each frame.
+
+    ``flat_share`` of the landmarks sit in flat patches: in each frame their disparity comes out
+    too small by a half-normal of σ 1 px (the refinement's minimum wandering one way along a flat
+    cost valley), and the refinement says so with σ_d = 0.4 px (0.05 px for the rest), passed on
+    when ``with_sigma``."""
     rng = np.random.default_rng(seed)
     P_W = _scene(rng, 400, 4.0, 80.0) + np.array([step_m * frames / 2, 0.0, 0.0])
     table = rng.integers(0, 256, (400, 32), dtype=np.uint8)  # each landmark's own binary descriptor
+    flat = rng.random(400) < flat_share
     out = []
     for k in range(frames):
         x = k * step_m
@@ -91,10 +105,11 @@ def _drive(est: DisparityBias, delta: float, frames: int, step_m: float, seed: i
         vis = (q[:, 0] > 2.0) & (z[:, 0] > 0) & (z[:, 0] < RIG.width) & (z[:, 0] - z[:, 1] > 5)
         ids = np.nonzero(vis)[0]
         zm = z[ids] + rng.normal(0, 0.3, (ids.size, 3))
-        zm[:, 1] += -delta + est.value_px
+        zm[:, 1] += -delta + est.value_px + np.where(flat[ids], np.abs(rng.normal(0.0, 1.0, ids.size)), 0.0)
         T = np.eye(4)
         T[0, 3] = x
-        est.observe(zm, table[ids], True, T, RIG, 0.5, 64.0, 0.8)
+        sigma_d = np.where(flat[ids], 0.4, 0.05) if with_sigma else None
+        est.observe(zm, table[ids], True, T, RIG, 0.5, 64.0, 0.8, sigma_d)
         out.append(est.value_px)
     return out
 
@@ -116,6 +131,19 @@ def test_tracker_leaves_a_true_rig_alone_and_off_never_moves() -> None:
     off = DisparityBias(DisparityBiasParams(mode="off"))
     _drive(off, -0.4, 60, 0.1)
     assert off.value_px == 0.0 and off.fused == 0
+
+
+def test_matches_the_refinement_cannot_place_do_not_measure_the_offset() -> None:
+    """A true rig where a fifth of the points' disparities come out too small now and then by up
+    to a few pixels (flat cost valleys; the Huber weight does not stop errors that lean one way):
+    the estimate takes them for an offset. With each match's σ_d from the refinement those points
+    are left out and the estimate stays at zero."""
+    blind = DisparityBias()
+    _drive(blind, 0.0, 120, 0.1, flat_share=0.2)
+    told = DisparityBias()
+    _drive(told, 0.0, 120, 0.1, flat_share=0.2, with_sigma=True)
+    assert blind.value_px < -0.1  # the flat points' errors, taken for an offset
+    assert abs(told.value_px) < 0.06 and told.fused >= 4
 
 
 def test_bad_input_fuses_nothing_and_leaves_the_estimate() -> None:
@@ -147,9 +175,9 @@ def _replay(root: object, delta: float, mode: str, tmp_path, monkeypatch: pytest
     """robotd replay of ``root`` with every refined disparity made ``delta`` px too large."""
     orig = sm.refine_disparity
 
-    def biased(*a: object, **k: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        d, ok, edge = orig(*a, **k)  # type: ignore[arg-type]
-        return d + delta, ok, edge
+    def biased(*a: object, **k: object) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        d, ok, edge, sigma = orig(*a, **k)  # type: ignore[arg-type]
+        return d + delta, ok, edge, sigma
 
     monkeypatch.setattr(sm, "refine_disparity", biased)
     cfg = tmp_path / f"{mode}.toml"

@@ -63,11 +63,13 @@ def test_refine_kernel_equals_numpy_on_random_points(rng, sim_pair):
     yl = rng.uniform(-2, h + 2, n)
     d0 = rng.uniform(0, 80, n)
     for half, search in ((3, 2), (2, 3)):
-        d, ok, edge = refine_disparity(left, right, xl, yl, d0, half, search)
-        d_r, ok_r, edge_r = refine_disparity_numpy(left, right, xl, yl, d0, half, search)
+        d, ok, edge, sig = refine_disparity(left, right, xl, yl, d0, half, search)
+        d_r, ok_r, edge_r, sig_r = refine_disparity_numpy(left, right, xl, yl, d0, half, search)
         np.testing.assert_array_equal(ok, ok_r)
         np.testing.assert_array_equal(edge, edge_r)
         np.testing.assert_array_equal(d, d_r)  # integer costs: bit-identical
+        np.testing.assert_allclose(sig, sig_r, rtol=1e-12)  # inf where not refined, in both
+        assert np.all(np.isfinite(sig[ok])) and np.all(np.isinf(sig[~ok]))
         assert ok.sum() > 100 and edge.sum() > 100
 
 

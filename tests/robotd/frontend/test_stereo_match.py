@@ -141,12 +141,42 @@ def test_refine_disparity_recovers_subpixel_shift(rng):
         xl = rng.uniform(60, 340, 200)
         yl = rng.uniform(10, 110, 200)
         d0 = shift + rng.uniform(-1.0, 1.0, 200)  # descriptor-level disparity, off by up to 1 px
-        d, ok, edge = refine_disparity(L8, R8, xl, yl, d0)
+        d, ok, edge, _ = refine_disparity(L8, R8, xl, yl, d0)
         assert ok.mean() > 0.95 and not edge.any()
         assert np.median(np.abs(d[ok] - shift)) < 0.1
         # a descriptor disparity 3.5 px off puts the photometric minimum outside the ±2 px window
-        _, ok_far, edge_far = refine_disparity(L8, R8, xl, yl, np.full(200, shift + 3.5))
+        _, ok_far, edge_far, _ = refine_disparity(L8, R8, xl, yl, np.full(200, shift + 3.5))
         assert edge_far.mean() > 0.9 and not np.any(ok_far & edge_far)
+
+
+def test_refinement_sigma_tells_how_well_the_disparity_is_placed():
+    """The refinement's own σ_d (the cost's curvature against its minimum) follows the real
+    error: a textured half and a flat half (12 % of the contrast) of one noisy pair; σ_d is the
+    flat half's several times over, it is within a factor 2.5 of each half's RMS error, and the
+    matches it calls sharp (σ_d ≤ 0.12 px, the disparity offset's gate) are."""
+    rng = np.random.default_rng(7)
+    base = smooth_texture(rng, 200, 400).astype(np.float64)
+    base[100:] = 128 + 0.12 * (base[100:] - 128)
+    shift = 9.3
+    M = np.float32([[1, 0, -shift], [0, 1, 0]])
+    right = cv2.warpAffine(base.astype(np.float32), M, (400, 200), flags=cv2.INTER_CUBIC).astype(np.float64)
+    L8 = np.clip(base + rng.normal(0, 2.0, base.shape), 0, 255).astype(np.uint8)
+    R8 = np.clip(right + rng.normal(0, 2.0, base.shape), 0, 255).astype(np.uint8)
+    n = 600
+    xl = rng.uniform(40, 360, n)
+    yl = np.r_[rng.uniform(8, 92, n // 2), rng.uniform(108, 192, n // 2)]
+    d, ok, _, sig = refine_disparity(L8, R8, xl, yl, np.full(n, np.rint(shift)))
+    assert np.all(np.isfinite(sig[ok])) and np.all(np.isinf(sig[~ok]))
+    err = np.abs(d - shift)
+    med = []
+    for half in (slice(0, n // 2), slice(n // 2, n)):
+        o = ok[half]
+        rms = float(np.sqrt(np.mean(err[half][o] ** 2)))
+        med.append(float(np.median(sig[half][o])))
+        assert rms / 2.5 < med[-1] < rms * 2.5
+    assert med[1] > 3 * med[0]
+    sharp = ok & (sig <= 0.12)
+    assert sharp.sum() > n // 3 and np.sqrt(np.mean(err[sharp] ** 2)) < 0.1
 
 
 def test_refined_disparity_leans_to_whole_pixels_by_hundredths_that_average_out():
@@ -165,7 +195,7 @@ def test_refined_disparity_leans_to_whole_pixels_by_hundredths_that_average_out(
     bias = []
     for shift in np.arange(5.0, 5.95, 0.1):
         right = np.clip(np.rint(np.real(np.fft.ifft(spectrum * np.exp(2j * np.pi * freq * shift), axis=1))), 0, 255)
-        d, ok, _ = refine_disparity(left, right.astype(np.uint8), xl, yl, np.full(xl.size, np.rint(shift)))
+        d, ok, _, _ = refine_disparity(left, right.astype(np.uint8), xl, yl, np.full(xl.size, np.rint(shift)))
         assert ok.mean() > 0.95
         bias.append(float(np.mean(d[ok] - shift)))
     b = np.array(bias)
