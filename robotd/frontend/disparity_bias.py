@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robotd.core.errors import ConfigError
+from robotd.core.errors import ConfigError, InputError
 from robotd.core.geometry import so3_exp
 from robotd.core.stereo import RectifiedStereo, triangulate
 from robotd.frontend.pnp import project_stereo
@@ -74,8 +74,8 @@ class DisparityBiasParams:
     max_sigma_px: only stereo matches whose disparity the sub-pixel refinement places to this
       precision or better take part (``StereoMatches.sigma_d``; all do when no refinement ran). A
       flat cost valley leaves a disparity that is mostly right but now and then off by a pixel or
-      more, mostly too large, and the same error in both frames of a far point is exactly what an
-      offset looks like (docs/frontend.md "Which matches measure the offset").
+      more, leaning one way, and the solve fits those errors with the offset (docs/frontend.md
+      "Which matches measure the offset").
     """
 
     mode: str = "online"
@@ -234,7 +234,12 @@ class DisparityBias:
         T = np.asarray(T_world_robot, dtype=float)
         z = np.asarray(z, dtype=float)
         if sigma_d is not None:
-            sharp = np.asarray(sigma_d, dtype=float) <= p.max_sigma_px
+            sigma_d = np.asarray(sigma_d, dtype=float)
+            if sigma_d.shape != (z.shape[0],):
+                raise InputError(
+                    f"DisparityBias.observe: expected sigma_d of shape ({z.shape[0]},), got {sigma_d.shape}"
+                )
+            sharp = sigma_d <= p.max_sigma_px  # NaN and inf: not sharp
             z, desc = z[sharp], desc[sharp]
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             self.reset_tracks()  # no usable pose: nothing to measure against, start again

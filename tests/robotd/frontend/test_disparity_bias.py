@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import robotd.frontend.stereo_match as sm
-from robotd.core.errors import ConfigError
+from robotd.core.errors import ConfigError, InputError
 from robotd.core.geometry import so3_exp
 from robotd.core.stereo import RectifiedStereo
 from robotd.frontend.disparity_bias import DisparityBias, DisparityBiasParams, solve_offset
@@ -164,6 +164,11 @@ def test_bad_input_fuses_nothing_and_leaves_the_estimate() -> None:
     assert not est.observe(zn, desc, True, far, RIG, 0.5, 64.0, 0.8)  # the anchor was dropped: this is it
     assert not est.observe(np.zeros((0, 3)), np.zeros((0, 32), np.uint8), True, far, RIG, 0.5, 64.0, 0.8)
     assert est.value_px == 0.0 and est.fused == 0 and np.isfinite(est.sigma_px)
+    # precisions that do not belong to the measurements: a clear error; NaN ones just do not take part
+    with pytest.raises(InputError, match="sigma_d of shape"):
+        est.observe(z, desc, True, far, RIG, 0.5, 64.0, 0.8, np.zeros(z.shape[0] - 1))
+    assert not est.observe(z, desc, True, far, RIG, 0.5, 64.0, 0.8, np.full(z.shape[0], np.nan))
+    assert est.value_px == 0.0 and est.fused == 0
 
 
 def test_a_wrong_mode_is_a_config_error() -> None:
