@@ -6,7 +6,7 @@
   in the layer its row names, ``RULES`` says what each layer may import (its own layer, whole
   layers, single modules of others, libraries), and the page's table and ``LAYERS`` must agree;
 - core (robotd/core/: geometry, stereo, msgs, statecheck, outliers, ...; robotd/frontend/,
-  robotd/slam/): numpy, scipy, OpenCV and numba only;
+  robotd/slam/): numpy, scipy, OpenCV and numba (with llvmlite, numba's code generator) only;
 - pipeline (robotd/pipeline/: the step, its stages, relocalise, odometry, feed, ...; robotd/config/):
   the core, no I/O (but the config's loader);
 - drivers (drivers/): the core and three modules of the formats, each hardware library in its owner;
@@ -54,7 +54,8 @@ LAYERS: dict[str, tuple[str, ...]] = {
 TOP_LEVEL = ("robotd/__init__.py", "robotd/__main__.py")
 CORE = list(LAYERS["core"])
 PIPELINE = list(LAYERS["pipeline"])
-ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba"}
+# llvmlite: numba's own code generator, for a kernel intrinsic (_stereo_kernels._popcount64, one POPCNT)
+ALLOWED_THIRD_PARTY = {"numpy", "scipy", "cv2", "numba", "llvmlite"}
 STDLIB_OK = {
     "__future__",
     "dataclasses",

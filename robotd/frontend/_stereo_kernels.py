@@ -8,6 +8,9 @@ and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads r
 - :func:`candidate_pairs_kernel`: the (i, j) pairs inside the row band and the disparity range.
 - :func:`ratio_cross_kernel`: ratio test (or lone-candidate limit) and cross-check.
 - :func:`refine_kernel`: ZSSD patch cost at integer disparities and the parabola fit.
+- :func:`mutual_binary_kernel`: every binary descriptor of one set against every one of another,
+  and the mutual best matches among them (frame-to-frame motion and the disparity offset's pairs;
+  ``stereo_match.mutual_matches``), without the (N, M) distance matrix.
 
 Compiled by :func:`robotd.core.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for read-only installs).
 """
@@ -15,10 +18,32 @@ Compiled by :func:`robotd.core.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for rea
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from robotd.core.jit import jit
+
+
+def _ctpop64(typingctx, x):  # type: ignore[no-untyped-def]
+    """Typing and code of :func:`_popcount64`."""
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        fnty = ir.FunctionType(ir.IntType(64), [ir.IntType(64)])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.ctpop.i64")
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+# _popcount64(x): the number of set bits of a uint64, as LLVM's ``ctpop`` (one POPCNT instruction
+# on x86-64 and ARMv8 CPUs that have it; numba compiles for the host CPU). Callable from kernels only.
+_popcount64: Any = intrinsic(_ctpop64)
 
 
 @jit
@@ -186,3 +211,77 @@ def refine_kernel(
             d_out[m] = dd + (kmin - search) + delta
             ok[m] = True
             sigma[m] = math.sqrt(2.0 * (c_0 + 1.0) / (npx * den))
+
+
+@jit
+def mutual_binary_kernel(
+    a: np.ndarray,
+    b: np.ndarray,
+    max_d: int,
+    ratio: float,
+    second_in_row: bool,
+    out_i: np.ndarray,
+    out_j: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Mutual best matches between binary descriptor sets ``a`` (N, W) and ``b`` (M, W) of uint64
+    words, by Hamming distance (``stereo_match.mutual_matches``, which documents the rule).
+
+    One pass over the N × M distances keeps, per row i, the smallest distance (the first j on
+    ties), the second smallest (equal to it on a tie) and how many are ≤ ``max_d`` (the
+    candidates), and per column j the row of its smallest candidate (the first i on ties). A row
+    with candidates passes when its best is below ``ratio`` × its second-best (float64) if it has
+    two or more, and, with ``second_in_row`` and M > 1, also below ``ratio`` × the second-best of
+    the whole row in float32 (as numpy computes ``D < ratio * second`` on float32 distances); then
+    when its best column's smallest candidate is this row (cross-check). Writes the accepted (i, j)
+    in ascending i to ``out_i``/``out_j`` (length ≥ N); returns how many.
+    """
+    n, w = a.shape
+    m = b.shape[0]
+    big = np.int64(1) << 40
+    col_best = np.full(m, big, np.int64)
+    col_row = np.full(m, -1, np.int64)
+    best = np.empty(n, np.int64)
+    best_j = np.empty(n, np.int64)
+    second = np.empty(n, np.int64)
+    count = np.zeros(n, np.int64)
+    for i in range(n):
+        b1 = big
+        j1 = -1
+        b2 = big
+        c = 0
+        for j in range(m):
+            d = np.int64(0)
+            for k in range(w):
+                d += np.int64(_popcount64(a[i, k] ^ b[j, k]))
+            if d < b1:
+                b2 = b1
+                b1 = d
+                j1 = j
+            elif d < b2:
+                b2 = d
+            if d <= max_d:
+                c += 1
+                if d < col_best[j]:
+                    col_best[j] = d
+                    col_row[j] = i
+        best[i] = b1
+        best_j[i] = j1
+        second[i] = b2
+        count[i] = c
+    r32 = np.float32(ratio)
+    n_out = 0
+    for i in range(n):
+        c = count[i]
+        if c == 0:
+            continue
+        if c >= 2 and not (np.float64(best[i]) < ratio * np.float64(second[i])):
+            continue
+        if second_in_row and m > 1 and not (np.float32(best[i]) < r32 * np.float32(second[i])):
+            continue
+        j = best_j[i]
+        if col_row[j] != i:
+            continue
+        out_i[n_out] = i
+        out_j[n_out] = j
+        n_out += 1
+    return n_out

@@ -226,7 +226,7 @@ class DisparityBias:
         descriptor (ratio test and cross-check, ``max_dist`` and ``ratio`` as the frame-to-frame
         motion's), pairs that the filter's motion does not carry within ``gate_px`` are dropped, and
         the rest give one measurement of the offset; this frame becomes the anchor. True if fused."""
-        from robotd.frontend.stereo_match import distance_matrix, ratio_and_cross_check
+        from robotd.frontend.stereo_match import mutual_matches
 
         p = self.params
         if p.mode != "online":
@@ -256,10 +256,7 @@ class DisparityBias:
         self._anchor = (z, desc, binary, T.copy(), used)
         if base > p.max_baseline_m or a_binary != binary or not len(za_all) or not len(z):
             return False  # a jump (relocalisation, a gap) or nothing to match: start again here
-        D = distance_matrix(desc, da, binary)  # (N_curr, N_anchor)
-        ii, jj = np.nonzero(D <= max_dist)
-        sel, _ = ratio_and_cross_check(ii, jj, D[ii, jj], da.shape[0], ratio, max_dist, True)
-        ic, ia = ii[sel], jj[sel]
+        ic, ia = mutual_matches(desc, da, binary, max_dist, ratio, second_in_row=False)
         if ic.size < p.min_points:
             return False
         za = za_all[ia].copy()

@@ -64,9 +64,8 @@ from robotd.frontend.pnp import MotionPrior, PnpParams, offset_sensitivity, repr
 from robotd.frontend.stereo_match import (
     StereoMatches,
     StereoMatchParams,
-    distance_matrix,
     match_stereo,
-    ratio_and_cross_check,
+    mutual_matches,
 )
 
 logger = logging.getLogger(__name__)
@@ -441,16 +440,11 @@ class Frontend:
             return VisualMotion(None, None, counts)
         p = self.params
         binary = meas.binary
-        D = distance_matrix(meas.desc, pv.meas.desc, binary)  # (N_curr, N_prev)
         max_d = p.association.max_dist_binary if binary else p.association.max_dist_float
         ratio = p.association.ratio if p.association.ratio is not None else (0.75 if binary else 0.8)
-        ii, jj = np.nonzero(D <= max_d)
-        sel, _ = ratio_and_cross_check(ii, jj, D[ii, jj], pv.meas.n, ratio, max_d, True)
-        ic, ip = ii[sel], jj[sel]
-        if D.shape[1] > 1:
-            second = np.partition(D, 1, axis=1)[:, 1]
-            ok = D[ic, ip] < ratio * second[ic]
-            ic, ip = ic[ok], ip[ok]
+        # every current measurement against every previous one; a lone candidate must also beat
+        # the ratio against its row's nearest non-candidate
+        ic, ip = mutual_matches(meas.desc, pv.meas.desc, binary, max_d, ratio, second_in_row=True)
         counts["motion_matches"] = int(ic.size)
         if p.motion_method == "pnp":
             z = np.c_[meas.xl[ic], meas.xr[ic], meas.y[ic]]

@@ -1,8 +1,9 @@
 """Readable numpy twins of the front end's bucketing and stereo-matching kernels.
 
 - :func:`bucket_select_numpy`: ``robotd.frontend.detectors.bucket_select`` (``_detect_kernels``).
-- :func:`ratio_and_cross_check_numpy`, :func:`refine_disparity_numpy`: the functions of the same
-  name without ``_numpy`` in ``robotd.frontend.stereo_match`` (``_stereo_kernels``).
+- :func:`ratio_and_cross_check_numpy`, :func:`refine_disparity_numpy`, :func:`mutual_matches_numpy`:
+  the functions of the same name without ``_numpy`` in ``robotd.frontend.stereo_match``
+  (``_stereo_kernels``).
 
 Moved here unchanged from the hot modules; tests/robotd/frontend/test_kernels.py holds the kernels to them.
 """
@@ -107,6 +108,36 @@ def ratio_and_cross_check_numpy(
     mutual = best_pair_of_j[j[best]] == best
     stats["cross_rejected"] = int(np.sum(~mutual))
     return best[mutual], stats
+
+
+def mutual_matches_numpy(
+    a: np.ndarray, b: np.ndarray, binary: bool, max_dist: float, ratio: float, second_in_row: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Readable twin of :func:`robotd.frontend.stereo_match.mutual_matches` and its kernel
+    ``_stereo_kernels.mutual_binary_kernel``: the whole (N, M) distance matrix, its candidates within
+    ``max_dist``, :func:`ratio_and_cross_check_numpy` on them, and (``second_in_row``, M > 1) the
+    ratio against each row's second-smallest distance (the path frame-to-frame motion took before
+    the kernel, session 29).
+
+    Agreement: the same pairs in the same order (tests/robotd/frontend/test_kernels.py: random
+    descriptors with many near duplicates, several ratios and limits, and a rendered ORB pair).
+    """
+    n, m = a.shape[0], b.shape[0]
+    if n == 0 or m == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if binary:
+        D = np.bitwise_count(a[:, None, :] ^ b[None, :, :]).sum(axis=2, dtype=np.int32).astype(np.float32)
+    else:
+        # unit-norm descriptors: |a − b|² = 2 − 2 a·b, in float32 as the matcher computes it
+        D = np.sqrt(np.maximum(2.0 - 2.0 * (a @ b.T), 0.0)).astype(np.float32)
+    ii, jj = np.nonzero(D <= max_dist)
+    sel, _ = ratio_and_cross_check_numpy(ii, jj, D[ii, jj], m, ratio, max_dist, True)
+    ic, jc = ii[sel].astype(np.int64), jj[sel].astype(np.int64)
+    if second_in_row and m > 1:
+        second = np.sort(D, axis=1)[:, 1]
+        ok = D[ic, jc] < ratio * second[ic]
+        ic, jc = ic[ok], jc[ok]
+    return ic, jc
 
 
 def refine_disparity_numpy(

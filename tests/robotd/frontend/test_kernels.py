@@ -15,11 +15,17 @@ from robotd.frontend.stereo_match import (
     StereoMatchParams,
     candidate_pairs,
     match_stereo,
+    mutual_matches,
+    normalise_descriptors,
     pair_distances,
     ratio_and_cross_check,
     refine_disparity,
 )
-from tests.support.reference_frontend import ratio_and_cross_check_numpy, refine_disparity_numpy
+from tests.support.reference_frontend import (
+    mutual_matches_numpy,
+    ratio_and_cross_check_numpy,
+    refine_disparity_numpy,
+)
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +58,75 @@ def test_ratio_cross_kernel_equals_numpy(rng, grouped):
             ref, st_ref = ratio_and_cross_check_numpy(i, j, d, 50, 0.8, 0.45 if trial % 3 else 6.0, cc)
             np.testing.assert_array_equal(got, ref)  # same pairs, same order
             assert st == st_ref
+
+
+def _near_copies(rng, n, m, width, flip):
+    """(n, width) random binary descriptors and (m, width) ones of which some are noisy copies,
+    some exact duplicates of each other (ties in rows and columns) and the rest random."""
+    a = rng.integers(0, 256, (n, width), dtype=np.uint8)
+    b = rng.integers(0, 256, (m, width), dtype=np.uint8)
+    k = min(n, m) * 2 // 3
+    if k:
+        src = rng.choice(n, k, replace=False)
+        bits = np.unpackbits(a[src], axis=1) ^ (rng.random((k, width * 8)) < flip)
+        b[:k] = np.packbits(bits, axis=1)
+        if m > 4:
+            b[k // 2 :: 7] = b[k // 2]  # repeated rows: equal distances everywhere in their columns
+        if n > 4:
+            # near copies of one row: they compete for the same column (the cross-check decides)
+            rows = np.arange(k // 3, n, 11)
+            bits = np.unpackbits(np.repeat(a[k // 3 : k // 3 + 1], rows.size, 0), axis=1)
+            a[rows] = np.packbits(bits ^ (rng.random(bits.shape) < flip / 2), axis=1)
+    return a, b
+
+
+def test_mutual_binary_kernel_equals_numpy(rng):
+    """The one-pass kernel gives the pairs the distance matrix did, in the same order, for every
+    ratio, limit and mode, with ties, a single column and empty sets."""
+    checked = 0
+    for trial in range(40):
+        n, m = int(rng.integers(0, 120)), int(rng.integers(0, 120))
+        if trial % 10 == 0:
+            m = 1
+        a, b = _near_copies(rng, n, m, 32, (0.02, 0.1, 0.2)[trial % 3])
+        for max_d in (20.0, 60.0, 60.5, 90.0):
+            for ratio in (0.6, 0.75, 0.8, 0.9):  # at 0.6 float32 and float64 products differ
+                for second_in_row in (True, False):
+                    got = mutual_matches(a, b, True, max_d, ratio, second_in_row)
+                    ref = mutual_matches_numpy(a, b, True, max_d, ratio, second_in_row)
+                    np.testing.assert_array_equal(got[0], ref[0])
+                    np.testing.assert_array_equal(got[1], ref[1])
+                    assert got[0].dtype == got[1].dtype == np.int64
+                    checked += got[0].size
+    assert checked > 1000  # the cases were not all empty
+
+
+def _same_pairs(a, b, binary, max_d, ratio, at_least):
+    """mutual_matches and its numpy twin agree (pairs and order) in both modes, on enough pairs."""
+    for second_in_row in (True, False):
+        got = mutual_matches(a, b, binary, max_d, ratio, second_in_row)
+        ref = mutual_matches_numpy(a, b, binary, max_d, ratio, second_in_row)
+        np.testing.assert_array_equal(np.c_[got], np.c_[ref])
+        assert got[0].size > at_least
+
+
+def test_mutual_matches_other_descriptors_equal_numpy(rng):
+    # binary widths that are not whole 64-bit words, and float descriptors, take the matrix path
+    a, b = _near_copies(rng, 90, 70, 20, 0.05)
+    _same_pairs(a, b, True, 40.0, 0.75, 20)
+    fa = normalise_descriptors(rng.normal(size=(80, 64)), False)
+    fb = normalise_descriptors(np.r_[fa[:50] + rng.normal(0, 0.05, (50, 64)), rng.normal(size=(30, 64))], False)
+    _same_pairs(fa, fb, False, 0.7, 0.8, 20)
+
+
+def test_mutual_matches_on_rendered_frames():
+    """The daemon's workload: ORB features of two simulated frames 0.2 s apart."""
+    det = make_detector(DetectorParams())
+    with drivers.open_camera("sim://?realtime=0&fps=30") as cam:
+        it = cam.frames()
+        frames = [next(it) for _ in range(7)]
+    fa, fb = det.detect(frames[0].left), det.detect(frames[6].left)
+    _same_pairs(normalise_descriptors(fb.desc, True), normalise_descriptors(fa.desc, True), True, 60.0, 0.75, 50)
 
 
 def test_refine_kernel_equals_numpy_on_random_points(rng, sim_pair):
@@ -122,6 +197,7 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
         _stereo_kernels.candidate_pairs_kernel,
         _stereo_kernels.ratio_cross_kernel,
         _stereo_kernels.refine_kernel,
+        _stereo_kernels.mutual_binary_kernel,
         _align_kernels.align_kernel,
         _outlier_kernels.similarity_d2_kernel,
         _outlier_kernels.gn_weights,
