@@ -11,6 +11,10 @@ and take ≈ 0.3 ms here. ``nogil=True`` lets the camera and detection threads r
 - :func:`mutual_binary_kernel`: every binary descriptor of one set against every one of another,
   and the mutual best matches among them (frame-to-frame motion and the disparity offset's pairs;
   ``stereo_match.mutual_matches``), without the (N, M) distance matrix.
+- :func:`window_pairs_kernel`: the (measurement, landmark) pairs of guided identification whose
+  column, row and disparity all lie within a radius of the prediction
+  (``association.LandmarkDescriptors.identify_guided``), from a column-sorted search instead of
+  three (N, K) masks.
 
 Compiled by :func:`robotd.core.jit.jit` (disk cache; ``NUMBA_CACHE_DIR`` for read-only installs).
 """
@@ -285,3 +289,48 @@ def mutual_binary_kernel(
         out_j[n_out] = j
         n_out += 1
     return n_out
+
+
+@jit
+def window_pairs_kernel(
+    px: np.ndarray,
+    pred: np.ndarray,
+    order: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    r: float,
+    rows_known: bool,
+    out_i: np.ndarray,
+    out_j: np.ndarray,
+) -> int:  # pragma: no cover - compiled
+    """Pairs (i, j) with |px[i, 0] − pred[j, 0]| ≤ r, (``rows_known``) |px[i, 2] − pred[j, 2]| ≤ r
+    and |(px[i, 0] − px[i, 1]) − (pred[j, 0] − pred[j, 1])| ≤ r, in float64 exactly as numpy
+    evaluates those masks; written in row-major order (i, then j ascending) to ``out_i``/``out_j``.
+
+    ``order`` sorts ``pred`` by column, and ``order[lo[i]:hi[i]]`` must hold every j whose column
+    can pass for measurement i (a superset: the exact test is applied here). The outputs hold at
+    least Σ(hi − lo) entries; returns the count.
+    """
+    n = 0
+    for i in range(px.shape[0]):
+        x = px[i, 0]
+        y = px[i, 2]
+        dm = px[i, 0] - px[i, 1]
+        start = n
+        for p in range(lo[i], hi[i]):
+            j = order[p]
+            if not abs(x - pred[j, 0]) <= r:
+                continue
+            if rows_known and not abs(y - pred[j, 2]) <= r:
+                continue
+            if not abs(dm - (pred[j, 0] - pred[j, 1])) <= r:
+                continue
+            # insertion in ascending j (a window holds a handful)
+            q = n
+            while q > start and out_j[q - 1] > j:
+                out_j[q] = out_j[q - 1]
+                q -= 1
+            out_j[q] = j
+            out_i[n] = i
+            n += 1
+    return n

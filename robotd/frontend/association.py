@@ -25,7 +25,7 @@ import numpy as np
 from robotd.core.errors import ConfigError, InputError, PersistenceError
 from robotd.core.statecheck import ID_LIMIT, INT64_MAX, StateTable
 from robotd.core.statecheck import check_finite as check_saved_finite
-from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check
+from robotd.frontend.stereo_match import distance_matrix, pair_distances, ratio_and_cross_check, window_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -194,14 +194,7 @@ class LandmarkDescriptors:
         if n == 0 or cand.size == 0:
             return Correspondences(status, ids, dist, stats)
         rows = self.rows(cand)
-        r = params.guided_radius_px
-        px = np.asarray(pixels, float)
-        near = np.abs(px[:, None, 0] - predicted[None, :, 0]) <= r
-        if rows_known:
-            near &= np.abs(px[:, None, 2] - predicted[None, :, 2]) <= r
-        disp_m, disp_p = px[:, 0] - px[:, 1], predicted[:, 0] - predicted[:, 1]
-        near &= np.abs(disp_m[:, None] - disp_p[None, :]) <= r
-        ii, jj = np.nonzero(near)  # grouped by measurement (row-major)
+        ii, jj = window_pairs(np.asarray(pixels, float), predicted, params.guided_radius_px, rows_known)
         if ii.size == 0:
             return Correspondences(status, ids, dist, stats)
         d = pair_distances(np.asarray(desc)[ii], self.desc[rows[jj]], self.binary)

@@ -369,6 +369,41 @@ def mutual_matches(
     return ic, jc
 
 
+def window_pairs(
+    px: np.ndarray, predicted: np.ndarray, r: float, rows_known: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Guided identification's candidate pairs: (i, j) with measurement i's left column, row (when
+    ``rows_known``) and disparity all within ``r`` [px] of landmark j's predicted ones.
+
+    ``px`` (N, 3), ``predicted`` (K, 3): pixels (x_l, x_r, y), float64. Returns (ii, jj) int64 in
+    row-major order (i, then j ascending), the order ``np.nonzero`` gives the three (N, K) masks.
+    The predictions are sorted by column once and each measurement visits only its column window
+    (numba kernel ``_stereo_kernels.window_pairs_kernel``; numpy twin: ``window_pairs_numpy`` in
+    tests/support/reference_frontend.py, the masks this replaced).
+    """
+    px = np.ascontiguousarray(px, dtype=np.float64)
+    predicted = np.ascontiguousarray(predicted, dtype=np.float64)
+    if px.ndim != 2 or px.shape[1] != 3 or predicted.ndim != 2 or predicted.shape[1] != 3:
+        raise InputError(f"window_pairs: expected (N, 3) and (K, 3) pixels, got {px.shape}, {predicted.shape}")
+    empty = np.zeros(0, np.int64)
+    if px.shape[0] == 0 or predicted.shape[0] == 0 or not r >= 0:
+        return empty, empty
+    order = np.argsort(predicted[:, 0], kind="stable")
+    cols = predicted[order, 0]
+    # a window a little wider than r (the kernel applies the exact test): every column that can pass
+    pad = r + 1e-6 * (1.0 + r + np.abs(px[:, 0]))
+    lo = np.searchsorted(cols, px[:, 0] - pad, "left").astype(np.int64)
+    hi = np.searchsorted(cols, px[:, 0] + pad, "right").astype(np.int64)
+    hi = np.maximum(hi, lo)
+    total = int(np.sum(hi - lo))
+    if total == 0:
+        return empty, empty
+    out_i = np.empty(total, np.int64)
+    out_j = np.empty(total, np.int64)
+    n = _k.window_pairs_kernel(px, predicted, order, lo, hi, float(r), bool(rows_known), out_i, out_j)
+    return out_i[:n], out_j[:n]
+
+
 def refine_disparity(
     left_img: np.ndarray,
     right_img: np.ndarray,
@@ -433,6 +468,8 @@ def warmup() -> None:
     )
     words = np.zeros((1, 4), np.uint64)
     _k.mutual_binary_kernel(words, words, 60, 0.75, True, out_i, out_j)
+    pix = np.zeros((1, 3))
+    _k.window_pairs_kernel(pix, pix, zero, zero, one, 15.0, True, out_i, out_j)
 
 
 def match_stereo(

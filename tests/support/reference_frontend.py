@@ -1,9 +1,9 @@
 """Readable numpy twins of the front end's bucketing and stereo-matching kernels.
 
 - :func:`bucket_select_numpy`: ``robotd.frontend.detectors.bucket_select`` (``_detect_kernels``).
-- :func:`ratio_and_cross_check_numpy`, :func:`refine_disparity_numpy`, :func:`mutual_matches_numpy`:
-  the functions of the same name without ``_numpy`` in ``robotd.frontend.stereo_match``
-  (``_stereo_kernels``).
+- :func:`ratio_and_cross_check_numpy`, :func:`refine_disparity_numpy`, :func:`mutual_matches_numpy`,
+  :func:`window_pairs_numpy`: the functions of the same name without ``_numpy`` in
+  ``robotd.frontend.stereo_match`` (``_stereo_kernels``).
 
 Moved here unchanged from the hot modules; tests/robotd/frontend/test_kernels.py holds the kernels to them.
 """
@@ -138,6 +138,25 @@ def mutual_matches_numpy(
         ok = D[ic, jc] < ratio * second[ic]
         ic, jc = ic[ok], jc[ok]
     return ic, jc
+
+
+def window_pairs_numpy(
+    px: np.ndarray, predicted: np.ndarray, r: float, rows_known: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Readable twin of :func:`robotd.frontend.stereo_match.window_pairs` and its kernel
+    ``_stereo_kernels.window_pairs_kernel``: the three (N, K) masks guided identification built
+    before session 29, and ``np.nonzero`` of their conjunction (row-major order).
+
+    Agreement: the same pairs in the same order (tests/robotd/frontend/test_kernels.py: random
+    pixels on a coarse grid, so that distances of exactly r are common, NaN and inf included).
+    """
+    near = np.abs(px[:, None, 0] - predicted[None, :, 0]) <= r
+    if rows_known:
+        near &= np.abs(px[:, None, 2] - predicted[None, :, 2]) <= r
+    disp_m, disp_p = px[:, 0] - px[:, 1], predicted[:, 0] - predicted[:, 1]
+    near &= np.abs(disp_m[:, None] - disp_p[None, :]) <= r
+    ii, jj = np.nonzero(near)
+    return ii.astype(np.int64), jj.astype(np.int64)
 
 
 def refine_disparity_numpy(

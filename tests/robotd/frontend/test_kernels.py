@@ -20,11 +20,13 @@ from robotd.frontend.stereo_match import (
     pair_distances,
     ratio_and_cross_check,
     refine_disparity,
+    window_pairs,
 )
 from tests.support.reference_frontend import (
     mutual_matches_numpy,
     ratio_and_cross_check_numpy,
     refine_disparity_numpy,
+    window_pairs_numpy,
 )
 
 
@@ -129,6 +131,32 @@ def test_mutual_matches_on_rendered_frames():
     _same_pairs(normalise_descriptors(fb.desc, True), normalise_descriptors(fa.desc, True), True, 60.0, 0.75, 50)
 
 
+def test_window_pairs_kernel_equals_numpy(rng):
+    """Guided identification's window: the same pairs in the same order as the three masks, with
+    distances of exactly r everywhere (pixels on a quarter-pixel grid), ties in the sorted
+    columns, NaN and inf predictions, and rows ignored."""
+    seen = 0
+    for trial in range(60):
+        n, k = int(rng.integers(0, 150)), int(rng.integers(0, 300))
+        px = np.round(rng.uniform(0, 120, (n, 3)) * 4) / 4
+        px[:, 1] = px[:, 0] - np.round(rng.uniform(1, 30, n) * 4) / 4
+        pred = np.round(rng.uniform(-10, 130, (k, 3)) * 4) / 4
+        pred[:, 1] = pred[:, 0] - np.round(rng.uniform(0, 32, k) * 4) / 4
+        if k > 3 and trial % 4 == 0:
+            pred[::3, 0] = pred[0, 0]  # equal columns: the stable sort's ties
+            pred[1] = np.nan
+            pred[2, 0] = np.inf
+        if n > 2 and trial % 5 == 0:
+            px[1, 0] = np.nan
+        for r in (0.25, 5.0, 15.0):
+            for rows_known in (True, False):
+                got = window_pairs(px, pred, r, rows_known)
+                ref = window_pairs_numpy(px, pred, r, rows_known)
+                np.testing.assert_array_equal(np.c_[got], np.c_[ref])
+                seen += got[0].size
+    assert seen > 10_000
+
+
 def test_refine_kernel_equals_numpy_on_random_points(rng, sim_pair):
     left, right, *_ = sim_pair
     h, w = left.shape
@@ -198,6 +226,7 @@ def test_warmup_compiles_every_signature_the_pipeline_uses():
         _stereo_kernels.ratio_cross_kernel,
         _stereo_kernels.refine_kernel,
         _stereo_kernels.mutual_binary_kernel,
+        _stereo_kernels.window_pairs_kernel,
         _align_kernels.align_kernel,
         _outlier_kernels.similarity_d2_kernel,
         _outlier_kernels.gn_weights,
