@@ -260,6 +260,8 @@ def test_kernel_wrappers_refuse_inputs_the_kernels_would_read_past():
     img = np.zeros((20, 40), np.uint8)
     with pytest.raises(InputError, match="one length"):
         refine_disparity(img, img, np.ones(3), np.ones(2), np.ones(3))
+    with pytest.raises(InputError, match=r"window_pairs: expected \(N, 3\) and \(K, 3\)"):
+        window_pairs(np.zeros((4, 2)), np.zeros((3, 3)), 15.0)
     a = np.zeros((5, 3))
     with pytest.raises(InputError, match="similarity_d2"):
         similarity_d2(np.ones(2), np.eye(3)[None], np.zeros((2, 3)), a, a, None, np.eye(3)[None].repeat(5, 0))
