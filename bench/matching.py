@@ -40,8 +40,9 @@ import drivers
 import robotd.frontend.association as association
 from robotd.config import load_config
 from robotd.frontend.frontend import Frontend, FrontendParams
-from robotd.frontend.stereo_match import distance_matrix, mutual_matches, ratio_and_cross_check, window_pairs
+from robotd.frontend.stereo_match import mutual_matches, mutual_matches_matrix, window_pairs
 from robotd.tools.replay import replay
+from tests.support.reference_frontend import window_pairs_numpy as window_masks  # the masks it replaced
 
 SHARED = Path(os.environ.get("ROBOTD_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 SOURCES = {
@@ -50,31 +51,6 @@ SOURCES = {
     "euroc-v101-micro": f"euroc://{SHARED / 'euroc-v101-micro'}",
     "sim": "sim://?realtime=0&fps=30",
 }
-
-
-def matrix_path(
-    a: np.ndarray, b: np.ndarray, binary: bool, max_d: float, ratio: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """What ``Frontend.visual_motion`` ran before session 29 (the kernel's reference)."""
-    D = distance_matrix(a, b, binary)
-    ii, jj = np.nonzero(D <= max_d)
-    sel, _ = ratio_and_cross_check(ii, jj, D[ii, jj], b.shape[0], ratio, max_d, True)
-    ic, ip = ii[sel], jj[sel]
-    if D.shape[1] > 1:
-        second = np.partition(D, 1, axis=1)[:, 1]
-        ok = D[ic, ip] < ratio * second[ic]
-        ic, ip = ic[ok], ip[ok]
-    return ic, ip
-
-
-def window_masks(px: np.ndarray, pred: np.ndarray, r: float, rows_known: bool) -> tuple[np.ndarray, np.ndarray]:
-    """What guided identification ran before session 29 (the window kernel's reference)."""
-    near = np.abs(px[:, None, 0] - pred[None, :, 0]) <= r
-    if rows_known:
-        near &= np.abs(px[:, None, 2] - pred[None, :, 2]) <= r
-    near &= np.abs((px[:, 0] - px[:, 1])[:, None] - (pred[:, 0] - pred[:, 1])[None, :]) <= r
-    ii, jj = np.nonzero(near)
-    return ii, jj
 
 
 def run_window(name: str, url: str, frames: int, reps: int) -> dict[str, Any]:
@@ -133,13 +109,13 @@ def run_source(name: str, url: str, frames: int, reps: int) -> dict[str, Any]:
             meas = fe.match_stereo(fe.detect(fr.left, fr.right), fr.left, fr.right)
             descs.append(meas.desc)
     p = fe.params
-    max_d, ratio = p.association.max_dist_binary, p.association.ratio or 0.75
+    max_d, ratio = p.association.limits(True)
     before, after, sizes, pairs, same = [], [], [], [], True
     for a, b in zip(descs[1:], descs[:-1], strict=True):
-        ref = matrix_path(a, b, True, max_d, ratio)
+        ref = mutual_matches_matrix(a, b, True, max_d, ratio, True)
         got = mutual_matches(a, b, True, max_d, ratio, second_in_row=True)
         same &= bool(np.array_equal(ref[0], got[0]) and np.array_equal(ref[1], got[1]))
-        before.append(_median_ms(lambda a=a, b=b: matrix_path(a, b, True, max_d, ratio), reps))
+        before.append(_median_ms(lambda a=a, b=b: mutual_matches_matrix(a, b, True, max_d, ratio, True), reps))
         after.append(_median_ms(lambda a=a, b=b: mutual_matches(a, b, True, max_d, ratio, True), reps))
         sizes.append(a.shape[0] * b.shape[0])
         pairs.append(got[0].size)

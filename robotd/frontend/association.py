@@ -70,6 +70,12 @@ class AssociationParams:
                 f"{self.max_dist_float}, {self.max_dist_binary}"
             )
 
+    def limits(self, binary: bool) -> tuple[float, float]:
+        """(absolute distance limit, ratio) for binary or float descriptors: ``max_dist_binary`` or
+        ``max_dist_float``, and ``ratio`` or its default (0.75 binary, 0.8 float)."""
+        max_d = self.max_dist_binary if binary else self.max_dist_float
+        return max_d, (self.ratio if self.ratio is not None else (0.75 if binary else 0.8))
+
 
 @dataclass(slots=True, eq=False)
 class Correspondences:
@@ -290,8 +296,7 @@ class LandmarkDescriptors:
         if n == 0 or rows.size == 0:
             return Correspondences(status, ids, dist, stats)
         D = distance_matrix(desc, self.desc[rows], self.binary)  # (N, C)
-        ratio = params.ratio if params.ratio is not None else (0.75 if self.binary else 0.8)
-        max_d = params.max_dist_binary if self.binary else params.max_dist_float
+        max_d, ratio = params.limits(self.binary)
         # nearest landmark per measurement decides NEW (too far) against "something similar exists"
         nearest = D.min(axis=1)
         near = nearest <= max_d

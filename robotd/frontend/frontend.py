@@ -440,8 +440,7 @@ class Frontend:
             return VisualMotion(None, None, counts)
         p = self.params
         binary = meas.binary
-        max_d = p.association.max_dist_binary if binary else p.association.max_dist_float
-        ratio = p.association.ratio if p.association.ratio is not None else (0.75 if binary else 0.8)
+        max_d, ratio = p.association.limits(binary)
         # every current measurement against every previous one; a lone candidate must also beat
         # the ratio against its row's nearest non-candidate
         ic, ip = mutual_matches(meas.desc, pv.meas.desc, binary, max_d, ratio, second_in_row=True)
@@ -541,8 +540,7 @@ class Frontend:
         if pv is None:
             return False
         p, m = self.params, pv.meas
-        max_d = p.association.max_dist_binary if m.binary else p.association.max_dist_float
-        ratio = p.association.ratio if p.association.ratio is not None else (0.75 if m.binary else 0.8)
+        max_d, ratio = p.association.limits(m.binary)
         z = np.c_[m.xl, m.xr, m.y]
         return self.disparity_bias.observe(
             z, m.desc, m.binary, T_world_robot, self.rig, p.pnp.sigma_px, max_d, ratio, m.sigma_d

@@ -358,6 +358,18 @@ def mutual_matches(
         limit = int(min(math.floor(max_dist), 1 << 30))  # integer distances: d ≤ max_dist ⇔ d ≤ ⌊max_dist⌋
         k = _k.mutual_binary_kernel(aw, bw, limit, float(ratio), bool(second_in_row), out_i, out_j)
         return out_i[:k], out_j[:k]
+    return mutual_matches_matrix(a, b, binary, max_dist, ratio, second_in_row)
+
+
+def mutual_matches_matrix(
+    a: np.ndarray, b: np.ndarray, binary: bool, max_dist: float, ratio: float, second_in_row: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`mutual_matches` through the whole (N, M) distance matrix: its path for float
+    descriptors and binary widths that are not whole 64-bit words, and the path binary descriptors
+    took before the kernel (``bench/matching.py`` times the two)."""
+    m = int(np.shape(b)[0])
+    if np.shape(a)[0] == 0 or m == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     D = distance_matrix(a, b, binary)
     ii, jj = np.nonzero(D <= max_dist)
     sel, _ = ratio_and_cross_check(ii, jj, D[ii, jj], m, ratio, max_dist, True)
