@@ -347,10 +347,14 @@ def mutual_matches(
     partition. Float descriptors (one matrix product) and other widths take that numpy path; both
     give the same pairs (numpy twin: ``mutual_matches_numpy`` in tests/support/reference_frontend.py).
     """
+    if np.ndim(a) != 2 or np.ndim(b) != 2 or np.shape(a)[1] != np.shape(b)[1]:
+        raise InputError(
+            f"mutual_matches: expected (N, D) and (M, D) descriptors of one width, got {np.shape(a)}, {np.shape(b)}"
+        )
     n, m = int(np.shape(a)[0]), int(np.shape(b)[0])
     if n == 0 or m == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    if binary and a.ndim == 2 and a.shape[1] == b.shape[1] and a.shape[1] % 8 == 0:
+    if binary and a.shape[1] % 8 == 0:
         aw = np.ascontiguousarray(a, dtype=np.uint8).view(np.uint64)
         bw = np.ascontiguousarray(b, dtype=np.uint8).view(np.uint64)
         out_i = np.empty(n, np.int64)

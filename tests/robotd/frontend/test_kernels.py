@@ -260,6 +260,10 @@ def test_kernel_wrappers_refuse_inputs_the_kernels_would_read_past():
     img = np.zeros((20, 40), np.uint8)
     with pytest.raises(InputError, match="one length"):
         refine_disparity(img, img, np.ones(3), np.ones(2), np.ones(3))
+    with pytest.raises(InputError, match="mutual_matches: expected .* of one width"):
+        mutual_matches(np.zeros((3, 32), np.uint8), np.zeros((4, 16), np.uint8), True, 60.0, 0.75, True)
+    with pytest.raises(InputError, match="mutual_matches: expected"):
+        mutual_matches(np.zeros(32, np.uint8), np.zeros((4, 32), np.uint8), True, 60.0, 0.75, True)
     with pytest.raises(InputError, match=r"window_pairs: expected \(N, 3\) and \(K, 3\)"):
         window_pairs(np.zeros((4, 2)), np.zeros((3, 3)), 15.0)
     a = np.zeros((5, 3))
